@@ -1,0 +1,19 @@
+# The two commands of the README: `make run` and `make test`. Each does its own set-up first
+# (idempotent: a second run skips what is already installed).
+PY ?= python3
+TOPOLOGY ?= topologies/local.yaml
+PYTEST_ARGS ?=
+
+.PHONY: setup run test test-slow
+
+setup:
+	@bash scripts/setup.sh
+
+run: setup
+	$(PY) -m dvla up $(TOPOLOGY)
+
+test: setup
+	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+test-slow: setup
+	$(PY) -m pytest -q -m slow $(PYTEST_ARGS)

@@ -1,0 +1,323 @@
+"""Configuration types shared by the orchestrator and the roles.
+
+A topology YAML is parsed (by ``dvla.orchestrator.topology.load_topology``) into a frozen
+:class:`Topology`. The orchestrator then resolves it into one :class:`RoleConfig` per process:
+everything a role needs to run (its endpoints, its parent in the weight tree, the task), so roles
+never read YAML or CLI arguments. Every dataclass here is frozen and keyword-only; every field has
+a docstring (``#:`` comment) saying what it means and its unit. Defaults live here, nowhere else.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+ROLE_KINDS = ("actor", "rollout", "replicator", "evaluator")
+"""Every role a topology may place. ``evaluator`` is a rollout that runs deterministic eval episodes."""
+
+ENCODINGS = ("full", "delta-bf16", "delta-topk")
+"""Weight encodings of the replication tree (see docs/replication.md)."""
+
+RoleKind = Literal["actor", "rollout", "replicator", "evaluator"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class PPOConfig:
+    """Proximal policy optimisation (and GRPO) hyper-parameters of the actor."""
+
+    #: discount factor
+    gamma: float = 0.8
+    #: GAE lambda
+    gae_lambda: float = 0.9
+    #: Adam learning rate
+    lr: float = 3e-4
+    #: PPO ratio clip
+    clip: float = 0.2
+    #: passes over each batch
+    update_epochs: int = 4
+    #: minibatches per epoch
+    minibatches: int = 8
+    #: env steps (transitions) per learner batch; one policy version per batch
+    batch_steps: int = 1600
+    #: entropy bonus coefficient
+    ent_coef: float = 0.0
+    #: value loss coefficient
+    vf_coef: float = 0.5
+    #: gradient clip (global norm)
+    max_grad_norm: float = 0.5
+    #: stop an update early when the approximate KL exceeds this (None: never)
+    target_kl: float | None = 0.1
+    #: chunks acted on by a policy more than this many versions old are dropped (and counted)
+    max_policy_lag: int = 4
+    #: rewards are multiplied by this before learning
+    reward_scale: float = 1.0
+    #: advantage estimator: "gae" (PPO) or "grpo" (group-relative, episodes sharing a seed)
+    advantage: Literal["gae", "grpo"] = "gae"
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.gamma <= 1.0:
+            raise ValueError(f"gamma must be in (0, 1], got {self.gamma!r}")
+        if self.batch_steps < self.minibatches:
+            raise ValueError(f"batch_steps ({self.batch_steps}) must be >= minibatches ({self.minibatches})")
+
+
+@dataclass(frozen=True, kw_only=True)
+class EvalConfig:
+    """Periodic evaluation with deterministic actions on separate envs."""
+
+    #: episodes per evaluation
+    episodes: int = 16
+    #: evaluate whenever this many new policy versions have appeared (at least)
+    every_versions: int = 2
+    #: seed offset of eval envs (so they never share initial states with training envs)
+    seed_offset: int = 1_000_000
+
+
+@dataclass(frozen=True, kw_only=True)
+class BudgetConfig:
+    """When a run stops by itself. The first limit reached wins."""
+
+    #: stop after this many env steps consumed by the learner (None: no limit)
+    max_env_steps: int | None = 400_000
+    #: stop once eval success_once >= this for `consecutive` evals in a row (None: never)
+    until_success: float | None = None
+    #: how many consecutive evals must clear `until_success`
+    consecutive: int = 3
+    #: stop after this many seconds of wall time (None: no limit)
+    max_wall_s: float | None = None
+
+
+@dataclass(frozen=True, kw_only=True)
+class TaskConfig:
+    """What is learned and how."""
+
+    #: ManiSkill3 env id (e.g. "PushCube-v1") or a Gymnasium factory as "module:function"
+    env: str = "PushCube-v1"
+    #: ManiSkill observation mode ("state", "rgb")
+    obs_mode: str = "state"
+    #: ManiSkill controller
+    control_mode: str = "pd_joint_delta_pos"
+    #: episode length (steps) before truncation
+    max_episode_steps: int = 50
+    #: "physx_cpu", "physx_cuda" or "auto" (cuda when present)
+    sim_backend: str = "auto"
+    #: policy registry name ("mlp") or "module:Class" of a user policy
+    policy: str = "mlp"
+    #: keyword arguments for the policy constructor
+    policy_kwargs: dict[str, Any] = field(default_factory=dict)
+    #: learning algorithm: "ppo" or "grpo"
+    algorithm: Literal["ppo", "grpo"] = "ppo"
+    #: learner hyper-parameters
+    ppo: PPOConfig = field(default_factory=PPOConfig)
+    #: evaluation schedule
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    #: stop conditions
+    budget: BudgetConfig = field(default_factory=BudgetConfig)
+    #: envs stepped by each rollout process (split into two groups for double-buffered sampling)
+    envs_per_rollout: int = 4
+    #: steps per env in one trajectory chunk
+    chunk_steps: int = 25
+    #: torch device: "auto" (cuda when present), "cpu", "cuda"
+    device: str = "auto"
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReplicationConfig:
+    """How weights travel from the actor to the rollouts."""
+
+    #: "full", "delta-bf16" or "delta-topk"
+    encoding: str = "full"
+    #: fraction of entries sent per version by delta-topk
+    topk_fraction: float = 0.05
+    #: a full snapshot every this many versions
+    snapshot_every: int = 10
+    #: max children per tree node
+    fanout: int = 8
+    #: bytes per weight chunk
+    chunk_bytes: int = 1 << 20
+
+
+@dataclass(frozen=True, kw_only=True)
+class LinkConfig:
+    """Link rates used by `dvla plan` and by `emulate: netns`."""
+
+    #: node NIC rate, Gbit/s
+    node_gbit: float = 10.0
+    #: rack uplink rate, Gbit/s
+    rack_uplink_gbit: float = 10.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class RolePlacement:
+    """A role placed on a node, possibly several processes of it."""
+
+    #: role kind
+    role: RoleKind
+    #: number of processes of this role on the node
+    count: int = 1
+
+
+@dataclass(frozen=True, kw_only=True)
+class NodeConfig:
+    """A host of the cluster."""
+
+    #: unique node name
+    name: str
+    #: "localhost" (or 127.0.0.1) for this machine, else a host reachable over SSH
+    host: str = "localhost"
+    #: address the node's planes bind to (None: derived: loopback, or the netns address)
+    address: str | None = None
+    #: roles placed on this node
+    roles: tuple[RolePlacement, ...] = ()
+    #: CPU cores the node's processes are pinned to (None: no pinning)
+    cpus: tuple[int, ...] | None = None
+
+
+@dataclass(frozen=True, kw_only=True)
+class RackConfig:
+    """A rack: nodes sharing a switch."""
+
+    #: unique rack name
+    name: str
+    #: the rack's nodes
+    nodes: tuple[NodeConfig, ...]
+
+
+@dataclass(frozen=True, kw_only=True)
+class Topology:
+    """A validated topology file."""
+
+    #: run id; keys, run directory and process names derive from it
+    run: str
+    #: the file it was read from (for messages)
+    source: str = "<memory>"
+    #: master seed
+    seed: int = 1
+    #: "async" (swimlanes overlap) or "sync" (lock-step baseline)
+    mode: Literal["async", "sync"] = "async"
+    #: "none" (all processes on loopback) or "netns" (a network namespace per node)
+    emulate: Literal["none", "netns"] = "none"
+    #: file holding the cluster secret (None: `dvla up` makes one per run)
+    secret_file: str | None = None
+    #: first TCP port handed out to planes
+    base_port: int = 17400
+    #: Zenoh shared memory between local processes (turn off to measure the network)
+    shared_memory: bool = False
+    #: the learning task
+    task: TaskConfig = field(default_factory=TaskConfig)
+    #: weight replication
+    replication: ReplicationConfig = field(default_factory=ReplicationConfig)
+    #: link rates
+    links: LinkConfig = field(default_factory=LinkConfig)
+    #: racks of nodes
+    racks: tuple[RackConfig, ...] = ()
+
+    def nodes(self) -> list[tuple[RackConfig, NodeConfig]]:
+        """Every (rack, node) pair in file order."""
+        return [(rack, node) for rack in self.racks for node in rack.nodes]
+
+
+@dataclass(frozen=True, kw_only=True)
+class PlaneEndpoints:
+    """Zenoh endpoints of one plane of one process."""
+
+    #: endpoints this session listens on (e.g. "tcp/127.0.0.1:17400")
+    listen: tuple[str, ...] = ()
+    #: endpoints this session connects to
+    connect: tuple[str, ...] = ()
+    #: zenoh mode: "peer", "client" or "router"
+    mode: str = "peer"
+
+
+@dataclass(frozen=True, kw_only=True)
+class RoleConfig:
+    """Everything one role process needs; written as JSON by the orchestrator."""
+
+    #: process name, unique in the run (e.g. "rollout-node0-1"); also its key suffix
+    name: str
+    #: role kind
+    kind: RoleKind
+    #: run id
+    run: str
+    #: node and rack hosting the process
+    node: str
+    rack: str
+    #: seed of this process (master seed + index)
+    seed: int
+    #: "async" or "sync"
+    mode: str
+    #: run directory on this host (logs, checkpoints, metrics)
+    run_dir: str
+    #: data-plane and control-plane endpoints
+    data: PlaneEndpoints
+    ctrl: PlaneEndpoints
+    #: Zenoh shared memory on or off
+    shared_memory: bool
+    #: who sends this process its weights (a role name; None for the actor)
+    parent: str | None
+    #: ancestors from parent up to the actor, nearest first (re-attach targets on failure)
+    ancestors: tuple[str, ...]
+    #: roles this process forwards weights to
+    children: tuple[str, ...]
+    #: actor(s) this process ships trajectories to (rollouts)
+    actors: tuple[str, ...]
+    #: rollouts shipping to this actor (actors)
+    rollouts: tuple[str, ...]
+    #: environment variable holding the cluster secret (hex), set by the orchestrator
+    secret_env: str = "DVLA_SECRET"
+    #: CPU cores to pin to (None: no pinning)
+    cpus: tuple[int, ...] | None = None
+    #: sync mode: env steps a rollout ships per policy version (its share of one learner batch)
+    lockstep_steps: int = 0
+    #: the task
+    task: TaskConfig
+    #: replication settings
+    replication: ReplicationConfig
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), indent=1, sort_keys=True)
+
+    @staticmethod
+    def from_json(text: str) -> "RoleConfig":
+        raw = json.loads(text)
+        return RoleConfig(
+            **{
+                **raw,
+                "data": PlaneEndpoints(**_tuples(raw["data"])),
+                "ctrl": PlaneEndpoints(**_tuples(raw["ctrl"])),
+                "ancestors": tuple(raw["ancestors"]),
+                "children": tuple(raw["children"]),
+                "actors": tuple(raw["actors"]),
+                "rollouts": tuple(raw["rollouts"]),
+                "cpus": tuple(raw["cpus"]) if raw.get("cpus") is not None else None,
+                "task": task_from_dict(raw["task"]),
+                "replication": ReplicationConfig(**raw["replication"]),
+            }
+        )
+
+
+def _tuples(d: dict[str, Any]) -> dict[str, Any]:
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+
+
+def task_from_dict(raw: dict[str, Any]) -> TaskConfig:
+    """Rebuild a TaskConfig from `dataclasses.asdict` output (trusted input)."""
+    return TaskConfig(
+        **{
+            **raw,
+            "ppo": PPOConfig(**raw["ppo"]),
+            "eval": EvalConfig(**raw["eval"]),
+            "budget": BudgetConfig(**raw["budget"]),
+        }
+    )
+
+
+def resolve_device(name: str) -> str:
+    """'auto' -> 'cuda' when a CUDA device is present, else 'cpu'."""
+    if name != "auto":
+        return name
+    import torch
+
+    return "cuda" if torch.cuda.is_available() else "cpu"

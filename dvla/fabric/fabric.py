@@ -1,0 +1,381 @@
+"""`Fabric`: the two Zenoh sessions of one process and everything sent or received through them.
+
+- The **data** session carries trajectory chunks only (high rate, bulky, BLOCK congestion
+  control so none vanish in the network).
+- The **ctrl** session carries weights, commands, status, eval results and liveliness, signed
+  with the cluster secret and sent at a higher priority. It is a different session on a
+  different link, so a flooded data plane cannot delay it.
+
+Zenoh callbacks never block for long and never decode: they move raw bytes into a bounded
+:class:`Inbox`; the reading lane decodes (zero-copy), verifies and counts. Usable without any dvla
+configuration: pass two plain `zenoh.Config` objects (see docs/embedding.md).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import threading
+import time
+from typing import Any, Callable, Iterable
+
+import zenoh
+
+from .accounting import Accounting
+from .codec import CodecError, decode, encode
+from .keys import KeySpace
+from .signing import SignatureError, Signer, Verifier
+
+log = logging.getLogger("dvla.fabric")
+
+DATA, CTRL = "data", "ctrl"
+
+#: priority of commands, status and eval results: above everything else on the ctrl link
+PRIO_CTRL = zenoh.Priority.INTERACTIVE_HIGH
+#: weights: urgent but bulky; below commands so a `stop` overtakes a weight transfer
+PRIO_WEIGHTS = zenoh.Priority.DATA_HIGH
+#: trajectories
+PRIO_DATA = zenoh.Priority.DATA
+
+
+class Inbox:
+    """Bounded hand-off from a Zenoh callback to a lane.
+
+    The callback waits at most `block_s` for space (this is how backpressure reaches the sender
+    through Zenoh's BLOCK congestion control), then drops the message and counts it: a consumer
+    that is slow for seconds must never stall Zenoh's receive thread long enough to close the
+    transport.
+    """
+
+    def __init__(
+        self,
+        maxsize: int,
+        decoder: Callable[[str, bytes], Any],
+        accounting: Accounting,
+        plane: str,
+        block_s: float = 1.0,
+    ) -> None:
+        self._q: queue.Queue[tuple[str, bytes]] = queue.Queue(maxsize=maxsize)
+        self._decoder = decoder
+        self._acct = accounting
+        self._plane = plane
+        self._block_s = block_s
+        self.maxsize = maxsize
+        self.high_watermark = 0
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        raw = sample.payload.to_bytes()
+        peer = KeySpace.last(key)
+        self._acct.received(self._plane, len(raw), peer)
+        try:
+            self._q.put((key, raw), timeout=self._block_s)
+        except queue.Full:
+            self._acct.dropped(self._plane, "backpressure", peer)
+            return
+        depth = self._q.qsize()
+        if depth > self.high_watermark:
+            self.high_watermark = depth
+
+    def get(self, timeout: float | None = None) -> Any | None:
+        """Next valid message, or None after `timeout`. Invalid ones are counted and skipped."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+            try:
+                key, raw = self._q.get(timeout=remaining)
+            except queue.Empty:
+                return None
+            msg = self._decoder(key, raw)
+            if msg is not None:
+                return msg
+            if deadline is not None and time.monotonic() >= deadline:
+                return None
+
+    def get_nowait(self) -> Any | None:
+        return self.get(timeout=0.0)
+
+    def depth(self) -> int:
+        return self._q.qsize()
+
+    def drain_count(self) -> int:
+        """Discard what is queued (at shutdown); returns how many were discarded."""
+        n = 0
+        while True:
+            try:
+                self._q.get_nowait()
+                n += 1
+            except queue.Empty:
+                return n
+
+
+class Fabric:
+    """Two Zenoh sessions (data, ctrl), signed control traffic, accounting, liveliness.
+
+    `name` is this process's name in the run (its key suffix). `data_conf` may be None for a
+    process that has no data-plane traffic (replicators, evaluators, tools).
+    """
+
+    def __init__(
+        self,
+        *,
+        run: str,
+        name: str,
+        ctrl_conf: zenoh.Config,
+        data_conf: zenoh.Config | None,
+        secret: bytes,
+        open_timeout_s: float = 30.0,
+        max_age_s: float = 30.0,
+    ) -> None:
+        self.keys = KeySpace(run)
+        self.name = name
+        self.accounting = Accounting()
+        self._signer = Signer(secret, name)
+        self._verifier = Verifier(secret, max_age_s=max_age_s)
+        self._verify_lock = threading.Lock()
+        self._declared: list[Any] = []
+        self._publishers: dict[str, Any] = {}
+        self._pub_lock = threading.Lock()
+        self.ctrl = _open_retrying(ctrl_conf, open_timeout_s, "ctrl")
+        try:
+            self.data = _open_retrying(data_conf, open_timeout_s, "data") if data_conf is not None else None
+        except BaseException:
+            self.ctrl.close()
+            raise
+        self._closed = False
+
+    # ------------------------------------------------------------------ data plane
+    def publish_traj(self, chunk: Any) -> int:
+        """Encode and send a TrajectoryChunk on the data plane; returns bytes sent."""
+        payload = encode(chunk)
+        pub = self._publisher(DATA, self.keys.traj(self.name))
+        pub.put(payload)
+        self.accounting.sent(DATA, len(payload), self.name)
+        return len(payload)
+
+    def subscribe_traj(self, maxsize: int, expect: type, block_s: float = 1.0, rollout: str = "*") -> Inbox:
+        """Bounded inbox of decoded TrajectoryChunks from every (or one) rollout."""
+        if self.data is None:
+            raise RuntimeError(f"{self.name}: this fabric was opened without a data plane")
+
+        def _decode(key: str, raw: bytes) -> Any | None:
+            peer = KeySpace.last(key)
+            try:
+                msg = decode(raw, expect=expect)
+            except CodecError as err:
+                self.accounting.rejected(DATA, err.reason, peer)
+                log.warning("rejected data message on %s from %s: %s", key, peer, err)
+                return None
+            if getattr(msg, "rollout", peer) != peer:
+                self.accounting.rejected(DATA, "sender_mismatch", peer)
+                log.warning("rejected data message on %s: claims sender %r", key, msg.rollout)
+                return None
+            return msg
+
+        key = self.keys.traj(rollout) if rollout != "*" else self.keys.traj_all()
+        inbox = Inbox(maxsize, _decode, self.accounting, DATA, block_s)
+        self._declared.append(self.data.declare_subscriber(key, inbox._on_sample))
+        return inbox
+
+    # ------------------------------------------------------------------ ctrl plane
+    def seal(self, key: str, msg: Any) -> bytes:
+        return self._signer.seal(key, encode(msg))
+
+    def open_signed(self, key: str, raw: bytes, expect: type | tuple[type, ...] | None) -> tuple[str, Any] | None:
+        """Verify and decode a control message; None (and counted) when it fails."""
+        peer = KeySpace.last(key)
+        try:
+            with self._verify_lock:
+                sender, payload = self._verifier.open(key, raw)
+        except SignatureError as err:
+            self.accounting.rejected(CTRL, err.reason, peer)
+            log.warning("rejected control message on %s: %s", key, err.reason)
+            return None
+        try:
+            msg = decode(payload, expect=expect)
+        except CodecError as err:
+            self.accounting.rejected(CTRL, err.reason, sender)
+            log.warning("rejected control message on %s from %s: %s", key, sender, err)
+            return None
+        return sender, msg
+
+    def publish_ctrl(self, key: str, msg: Any, *, weights: bool = False) -> int:
+        """Sign and send a control message on `key` (built by `self.keys`)."""
+        payload = self.seal(key, msg)
+        kind = "weights" if weights else "ctrl"
+        pub = self._publisher(CTRL, key, kind)
+        pub.put(payload)
+        self.accounting.sent(CTRL, len(payload), KeySpace.last(key))
+        return len(payload)
+
+    def subscribe_ctrl(
+        self, key: str, maxsize: int, expect: type | tuple[type, ...] | None, block_s: float = 1.0
+    ) -> Inbox:
+        """Bounded inbox of verified (sender, message) pairs from `key`."""
+
+        def _decode(k: str, raw: bytes) -> tuple[str, Any] | None:
+            return self.open_signed(k, raw, expect)
+
+        inbox = Inbox(maxsize, _decode, self.accounting, CTRL, block_s)
+        self._declared.append(self.ctrl.declare_subscriber(key, inbox._on_sample))
+        return inbox
+
+    def on_ctrl(self, key: str, expect: type | tuple[type, ...] | None, handler: Callable[[str, Any], None]) -> None:
+        """Call `handler(sender, msg)` for each verified message on `key`, from Zenoh's thread.
+
+        For small, rare messages (commands) whose handler only sets flags; bulk traffic uses
+        `subscribe_ctrl`.
+        """
+
+        def _cb(sample: zenoh.Sample) -> None:
+            k = str(sample.key_expr)
+            raw = sample.payload.to_bytes()
+            self.accounting.received(CTRL, len(raw), KeySpace.last(k))
+            got = self.open_signed(k, raw, expect)
+            if got is not None:
+                try:
+                    handler(*got)
+                except Exception:  # a handler bug must not kill Zenoh's callback thread
+                    log.exception("control handler for %s failed", k)
+
+        self._declared.append(self.ctrl.declare_subscriber(key, _cb))
+
+    def serve(self, key: str, handler: Callable[[Any | None], Any | None], expect: type | None = None) -> None:
+        """Queryable on `key`: `handler(request_msg_or_None)` returns a message to reply with."""
+
+        def _cb(query: zenoh.Query) -> None:
+            req = None
+            if query.payload is not None:
+                got = self.open_signed(key, query.payload.to_bytes(), expect)
+                if got is None:
+                    return
+                req = got[1]
+            try:
+                reply = handler(req)
+            except Exception:
+                log.exception("queryable %s failed", key)
+                return
+            if reply is None:
+                return
+            payload = reply if isinstance(reply, (bytes, bytearray)) else self.seal(key, reply)
+            query.reply(key, payload)
+            self.accounting.sent(CTRL, len(payload), "reply")
+
+        self._declared.append(self.ctrl.declare_queryable(key, _cb))
+
+    def query(
+        self, selector: str, request: Any | None = None, *, expect: type | tuple[type, ...] | None = None,
+        timeout: float = 2.0,
+    ) -> list[tuple[str, Any]]:
+        """Query every matching queryable; returns verified (sender, message) replies."""
+        payload = self.seal(selector, request) if request is not None else None
+        replies = self.ctrl.get(selector, payload=payload, timeout=timeout, priority=PRIO_CTRL)
+        out = []
+        for reply in replies:
+            if reply.ok is None:
+                continue
+            sample = reply.ok
+            k = str(sample.key_expr)
+            raw = sample.payload.to_bytes()
+            self.accounting.received(CTRL, len(raw), KeySpace.last(k))
+            got = self.open_signed(k, raw, expect)
+            if got is not None:
+                out.append(got)
+        return out
+
+    def sealed_reply(self, key: str, msg: Any) -> bytes:
+        """Pre-sign a reply (e.g. a snapshot served many times) for `serve` handlers."""
+        return self.seal(key, msg)
+
+    # ------------------------------------------------------------------ membership
+    def declare_alive(self) -> None:
+        """Hold this process's liveliness token until the fabric closes."""
+        self._declared.append(self.ctrl.liveliness().declare_token(self.keys.alive(self.name)))
+
+    def watch_alive(self, handler: Callable[[str, bool], None]) -> None:
+        """`handler(role, alive)` on every join/leave, starting with the current members."""
+
+        def _cb(sample: zenoh.Sample) -> None:
+            handler(KeySpace.last(str(sample.key_expr)), sample.kind == zenoh.SampleKind.PUT)
+
+        self._declared.append(self.ctrl.liveliness().declare_subscriber(self.keys.alive_all(), _cb, history=True))
+
+    def alive_members(self, timeout: float = 1.0) -> set[str]:
+        replies = self.ctrl.liveliness().get(self.keys.alive_all(), timeout=timeout)
+        return {KeySpace.last(str(r.ok.key_expr)) for r in replies if r.ok is not None}
+
+    # ------------------------------------------------------------------ plumbing
+    def _publisher(self, plane: str, key: str, kind: str = "data") -> Any:
+        pub = self._publishers.get(key)
+        if pub is not None:
+            return pub
+        with self._pub_lock:
+            pub = self._publishers.get(key)
+            if pub is None:
+                session = self.data if plane == DATA else self.ctrl
+                if session is None:
+                    raise RuntimeError(f"{self.name}: no {plane} session")
+                prio = {"data": PRIO_DATA, "weights": PRIO_WEIGHTS, "ctrl": PRIO_CTRL}[kind]
+                pub = session.declare_publisher(
+                    key,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    priority=prio,
+                    express=(kind == "ctrl"),
+                )
+                self._publishers[key] = pub
+            return pub
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for entity in reversed(self._declared):
+            try:
+                entity.undeclare()
+            except Exception:
+                pass
+        for pub in self._publishers.values():
+            try:
+                pub.undeclare()
+            except Exception:
+                pass
+        for session in (self.data, self.ctrl):
+            if session is not None:
+                try:
+                    session.close()
+                except Exception:
+                    pass
+
+    def __enter__(self) -> "Fabric":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _open_retrying(conf: zenoh.Config, timeout_s: float, plane: str) -> zenoh.Session:
+    """Open a session; a client whose router is not up yet retries until `timeout_s`."""
+    deadline = time.monotonic() + timeout_s
+    delay = 0.05
+    while True:
+        try:
+            return zenoh.open(conf)
+        except zenoh.ZError as err:
+            if time.monotonic() >= deadline:
+                raise ConnectionError(f"cannot open the {plane} plane session: {err}") from err
+            time.sleep(delay)
+            delay = min(delay * 2, 0.5)
+
+
+def init_zenoh_logging() -> None:
+    """Route Zenoh's own logs to Python logging at WARN (once per process)."""
+    if os.environ.get("DVLA_ZENOH_LOG", "1") != "0":
+        try:
+            zenoh.init_log_from_env_or("error")
+        except Exception:
+            pass
+
+
+def members(names: Iterable[str]) -> list[str]:
+    return sorted(set(names))

@@ -1,0 +1,295 @@
+"""Typed messages exchanged between dvla processes.
+
+This module owns the message *types*: one frozen, keyword-only dataclass per message, each with
+a class-level ``TYPE_TAG`` naming it on the wire, and a ``validate()`` that checks invariants a
+type hint cannot express (array shapes agreeing, enumerated strings, non-negative counters).
+How messages become bytes is :mod:`dvla.fabric.codec`'s job; the byte layout is documented in
+``docs/wire-format.md``. Nothing here depends on the rest of dvla, so other RL code can reuse
+these types as-is.
+
+Field type hints are the schema: the codec checks decoded values against them, so only the
+hint shapes it understands may be used (``str``, ``int``, ``float``, ``bool``, ``bytes``,
+``np.ndarray``, ``dict[str, X]`` of those, and ``dict[str, Any]`` for free-form maps).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+
+from dvla.fabric.errors import CodecError
+
+COMMAND_VERBS = ("stop", "checkpoint", "pause", "resume")
+"""Verbs a :class:`Command` may carry."""
+
+ROLE_STATES = ("starting", "running", "stopping", "error")
+"""States a :class:`RoleStatus` may report."""
+
+
+def _now_ns() -> int:
+    return time.time_ns()
+
+
+class Message:
+    """Common base of every fabric message (not itself a wire type)."""
+
+    TYPE_TAG: ClassVar[str] = ""
+
+    def validate(self) -> None:
+        """Raise :class:`CodecError` if the message breaks an invariant. Default: nothing to check."""
+
+
+def _require(ok: bool, reason: str, detail: str) -> None:
+    if not ok:
+        raise CodecError(reason, detail)
+
+
+# Checks below run on every encode/decode: build error text only on failure (dtype
+# formatting alone costs microseconds).
+_F32 = np.dtype(np.float32)
+_BOOL = np.dtype(np.bool_)
+
+
+def _check_array(name: str, arr: np.ndarray, shape: tuple[int, ...], dtype: np.dtype) -> None:
+    if arr.shape != shape:
+        raise CodecError("shape", f"{name}: shape {arr.shape}, expected {shape}")
+    if arr.dtype != dtype:
+        raise CodecError("type", f"{name}: dtype {arr.dtype}, expected {dtype}")
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class TrajectoryChunk(Message):
+    """T consecutive steps of N parallel environments, sent by a rollout to the learner.
+
+    Arrays are time-major: ``[T, N, ...]``. Equality is identity (arrays make field-wise
+    ``==`` ambiguous).
+    """
+
+    TYPE_TAG: ClassVar[str] = "traj"
+
+    #: name of the rollout role that produced the chunk
+    rollout: str
+    #: per-rollout counter, starting at 0; gaps reveal lost chunks
+    seq: int
+    #: version of the policy weights that chose the actions
+    policy_version: int
+    #: environment steps in this chunk, always T * N
+    env_steps: int
+    #: observations before each step, name -> [T, N, ...] (e.g. "state" float32 [T, N, D])
+    obs: dict[str, np.ndarray]
+    #: actions taken, float32 [T, N, A]
+    actions: np.ndarray
+    #: log-probability of each action under the acting policy, float32 [T, N]
+    logprobs: np.ndarray
+    #: rewards, float32 [T, N]
+    rewards: np.ndarray
+    #: episode ended by the task (success/failure), bool [T, N]
+    terminated: np.ndarray
+    #: episode ended by a time limit, bool [T, N]
+    truncated: np.ndarray
+    #: task success at this step, bool [T, N]
+    success: np.ndarray
+    #: observation after the last step, name -> [N, ...] (bootstrap value input)
+    next_obs: dict[str, np.ndarray]
+    #: observation before auto-reset where an episode ended at that step, zeros elsewhere;
+    #: name -> [T, N, ...], same keys, shapes and dtypes as ``obs``
+    final_obs: dict[str, np.ndarray]
+    #: wall-clock creation time, ns since the Unix epoch
+    created_ns: int = field(default_factory=_now_ns)
+
+    @property
+    def horizon(self) -> int:
+        """T, the number of time steps."""
+        return int(self.actions.shape[0])
+
+    @property
+    def num_envs(self) -> int:
+        """N, the number of parallel environments."""
+        return int(self.actions.shape[1])
+
+    def validate(self) -> None:
+        """Check that every array agrees on T and N and has its documented dtype."""
+        actions = self.actions
+        if actions.ndim != 3:
+            raise CodecError("shape", f"actions: ndim {actions.ndim}, expected 3 [T, N, A]")
+        t, n = actions.shape[:2]
+        _check_array("actions", actions, actions.shape, _F32)
+        _check_array("logprobs", self.logprobs, (t, n), _F32)
+        _check_array("rewards", self.rewards, (t, n), _F32)
+        _check_array("terminated", self.terminated, (t, n), _BOOL)
+        _check_array("truncated", self.truncated, (t, n), _BOOL)
+        _check_array("success", self.success, (t, n), _BOOL)
+        if self.seq < 0:
+            raise CodecError("schema", f"seq {self.seq} < 0")
+        if self.env_steps != t * n:
+            raise CodecError("shape", f"env_steps {self.env_steps} != T*N = {t * n}")
+        self._validate_obs(t, n)
+
+    def _validate_obs(self, t: int, n: int) -> None:
+        if not self.obs:
+            raise CodecError("schema", "obs is empty")
+        keys = self.obs.keys()
+        for name, other in (("next_obs", self.next_obs), ("final_obs", self.final_obs)):
+            if other.keys() != keys:
+                raise CodecError("schema", f"{name} keys {sorted(other)} != obs keys {sorted(keys)}")
+        for key, arr in self.obs.items():
+            if arr.ndim < 2 or arr.shape[:2] != (t, n):
+                raise CodecError("shape", f"obs[{key!r}]: shape {arr.shape}, expected (T={t}, N={n}, ...)")
+            _check_array(f"final_obs[{key!r}]", self.final_obs[key], arr.shape, arr.dtype)
+            _check_array(f"next_obs[{key!r}]", self.next_obs[key], arr.shape[1:], arr.dtype)
+
+
+@dataclass(frozen=True, kw_only=True)
+class WeightManifest(Message):
+    """Announces a weight version; the payload follows as ``n_chunks`` :class:`WeightChunk`."""
+
+    TYPE_TAG: ClassVar[str] = "weights.manifest"
+
+    #: role that publishes the weights
+    sender: str
+    #: policy version the chunks reconstruct
+    version: int
+    #: version the delta applies to; -1 for a full (non-delta) snapshot
+    base_version: int
+    #: how the payload encodes the weights (e.g. "full", "delta-bf16")
+    encoding: str
+    #: hash of parameter names/shapes/dtypes; receivers refuse a layout they don't have
+    layout_hash: str
+    #: number of chunks that follow
+    n_chunks: int
+    #: total payload bytes over all chunks
+    total_bytes: int
+    #: hex digest of the concatenated payload
+    checksum: str
+    #: wall-clock creation time, ns since the Unix epoch
+    created_ns: int = field(default_factory=_now_ns)
+
+    def validate(self) -> None:
+        _require(self.version >= 0, "schema", f"version {self.version} < 0")
+        _require(self.base_version >= -1, "schema", f"base_version {self.base_version} < -1")
+        _require(self.n_chunks >= 0, "schema", f"n_chunks {self.n_chunks} < 0")
+        _require(self.total_bytes >= 0, "schema", f"total_bytes {self.total_bytes} < 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class WeightChunk(Message):
+    """One slice of a weight payload announced by a :class:`WeightManifest`."""
+
+    TYPE_TAG: ClassVar[str] = "weights.chunk"
+
+    #: role that publishes the weights
+    sender: str
+    #: policy version this chunk belongs to
+    version: int
+    #: position of this chunk, 0 <= index < n_chunks
+    index: int
+    #: number of chunks of this version
+    n_chunks: int
+    #: the payload slice
+    data: bytes
+
+    def validate(self) -> None:
+        _require(0 <= self.index < self.n_chunks, "schema", f"index {self.index} outside [0, {self.n_chunks})")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Command(Message):
+    """An operator instruction to one role or to all of them."""
+
+    TYPE_TAG: ClassVar[str] = "cmd"
+
+    #: role name, or "all"
+    target: str
+    #: one of :data:`COMMAND_VERBS`
+    verb: str
+    #: verb-specific arguments (msgpack-able scalars, strings, lists, nested dicts)
+    args: dict[str, Any] = field(default_factory=dict)
+    #: wall-clock issue time, ns since the Unix epoch
+    issued_ns: int = field(default_factory=_now_ns)
+
+    def validate(self) -> None:
+        _require(self.verb in COMMAND_VERBS, "schema", f"verb {self.verb!r} not in {COMMAND_VERBS}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RoleStatus(Message):
+    """Periodic self-report of a role, consumed by the orchestrator and dashboards."""
+
+    TYPE_TAG: ClassVar[str] = "status"
+
+    #: role name
+    name: str
+    #: role kind (e.g. "actor", "rollout")
+    kind: str
+    #: host the role runs on
+    node: str
+    #: rack of that host
+    rack: str
+    #: process id
+    pid: int
+    #: one of :data:`ROLE_STATES`
+    state: str
+    #: newest policy version the role holds
+    policy_version: int
+    #: environment steps produced (rollouts) or consumed (actor) so far
+    env_steps: int
+    #: recent throughput, env steps per second
+    steps_per_s: float
+    #: per-link float metrics, lane name -> metric name -> value
+    lanes: dict[str, dict[str, float]] = field(default_factory=dict)
+    #: per-plane counters, plane name -> counter name -> value
+    planes: dict[str, dict[str, int]] = field(default_factory=dict)
+    #: anything else (msgpack-able scalars, strings, lists, nested dicts)
+    extra: dict[str, Any] = field(default_factory=dict)
+    #: wall-clock report time, ns since the Unix epoch
+    time_ns: int = field(default_factory=_now_ns)
+
+    def validate(self) -> None:
+        _require(self.state in ROLE_STATES, "schema", f"state {self.state!r} not in {ROLE_STATES}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class EvalResult(Message):
+    """Outcome of deterministic evaluation episodes of one policy version."""
+
+    TYPE_TAG: ClassVar[str] = "eval"
+
+    #: evaluator role name
+    sender: str
+    #: policy version evaluated
+    policy_version: int
+    #: number of episodes run
+    episodes: int
+    #: fraction of episodes that succeeded at any step
+    success_once: float
+    #: fraction of episodes that were successful at their last step
+    success_at_end: float
+    #: mean undiscounted episode return
+    return_mean: float
+    #: wall-clock report time, ns since the Unix epoch
+    time_ns: int = field(default_factory=_now_ns)
+
+    def validate(self) -> None:
+        _require(self.episodes >= 0, "schema", f"episodes {self.episodes} < 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SnapshotRequest(Message):
+    """Asks a weight publisher for a full snapshot (e.g. after joining late or losing chunks)."""
+
+    TYPE_TAG: ClassVar[str] = "snapshot.req"
+
+    #: role asking
+    requester: str
+    #: newest version the requester holds, -1 for none
+    have_version: int
+
+
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    cls.TYPE_TAG: cls
+    for cls in (TrajectoryChunk, WeightManifest, WeightChunk, Command, RoleStatus, EvalResult, SnapshotRequest)
+}
+"""Wire type tag -> message class."""

@@ -1,0 +1,150 @@
+"""Policies the actor trains and the rollouts run, and the registry naming them.
+
+A task names its policy with ``TaskConfig.policy``: a registry name (``"mlp"``) or
+``"module:Class"`` for a user policy, built by :func:`make_policy` as
+``Class(obs_dim, act_dim, **TaskConfig.policy_kwargs)``.
+
+The policy protocol
+-------------------
+A policy is a ``torch.nn.Module`` (its ``state_dict`` is what the replication tree ships, so all
+weights must live in parameters or buffers) with these methods; ``obs`` is float32 ``[B, D]``,
+``action`` float32 ``[B, A]``, every other output ``[B]``:
+
+* ``act(obs, deterministic=False) -> (action, logprob, value)``: sample an action (the mean when
+  ``deterministic``), without gradients. ``logprob`` must be the log-density of exactly the
+  returned action; the env clips actions itself, so return the unclipped sample.
+* ``evaluate(obs, action) -> (logprob, entropy, value)``: with gradients, for the PPO loss.
+* ``value(obs) -> value``: the critic, for bootstrapping.
+
+Register a class with ``@register_policy("name")`` to make it addressable by name.
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+from typing import Any, Callable, Protocol, Sequence, runtime_checkable
+
+import torch
+from torch import Tensor, nn
+from torch.distributions import Normal
+
+__all__ = ["Policy", "MLPPolicy", "register_policy", "make_policy", "registered_policies"]
+
+
+@runtime_checkable
+class Policy(Protocol):
+    """What the learner, the rollouts and the evaluator call on a policy (see module docstring)."""
+
+    def act(self, obs: Tensor, deterministic: bool = False) -> tuple[Tensor, Tensor, Tensor]: ...
+
+    def evaluate(self, obs: Tensor, action: Tensor) -> tuple[Tensor, Tensor, Tensor]: ...
+
+    def value(self, obs: Tensor) -> Tensor: ...
+
+    def parameters(self, recurse: bool = True) -> Any: ...
+
+    def state_dict(self, *args: Any, **kwargs: Any) -> Any: ...
+
+    def load_state_dict(self, state_dict: Any, strict: bool = True, assign: bool = False) -> Any: ...
+
+
+_REGISTRY: dict[str, type] = {}
+
+
+def register_policy(name: str) -> Callable[[type], type]:
+    """Class decorator adding a policy to the registry under ``name``."""
+
+    def add(cls: type) -> type:
+        if name in _REGISTRY and _REGISTRY[name] is not cls:
+            raise ValueError(f"policy name {name!r} is already registered to {_REGISTRY[name]!r}")
+        _REGISTRY[name] = cls
+        return cls
+
+    return add
+
+
+def registered_policies() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+def _policy_class(spec: str) -> type:
+    if ":" in spec:
+        module_name, _, attr = spec.partition(":")
+        cls = getattr(importlib.import_module(module_name), attr, None)
+        if cls is None:
+            raise ValueError(f"{spec!r}: module {module_name!r} has no attribute {attr!r}")
+        return cls
+    if spec not in _REGISTRY:
+        raise ValueError(f"unknown policy {spec!r}; registered: {registered_policies()}")
+    return _REGISTRY[spec]
+
+
+def make_policy(spec: str, obs_dim: int, act_dim: int, **kwargs: Any) -> nn.Module:
+    """Build a policy from a registry name or ``"module:Class"``."""
+    policy = _policy_class(spec)(obs_dim, act_dim, **kwargs)
+    missing = [m for m in ("act", "evaluate", "value", "state_dict") if not callable(getattr(policy, m, None))]
+    if missing:
+        raise TypeError(f"policy {spec!r} lacks {missing}; see dvla.learn.policies for the protocol")
+    return policy
+
+
+# --- the default MLP policy ------------------------------------------------------------------
+
+
+def _layer(n_in: int, n_out: int, std: float) -> nn.Linear:
+    # Orthogonal weights and zero biases keep early activations well scaled (CleanRL-style init).
+    layer = nn.Linear(n_in, n_out)
+    nn.init.orthogonal_(layer.weight, std)
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
+def _mlp(n_in: int, hidden: Sequence[int], n_out: int, out_std: float) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for width in hidden:
+        layers += [_layer(n_in, width, math.sqrt(2)), nn.Tanh()]
+        n_in = width
+    layers.append(_layer(n_in, n_out, out_std))
+    return nn.Sequential(*layers)
+
+
+@register_policy("mlp")
+class MLPPolicy(nn.Module):
+    """Gaussian actor and value critic, two separate tanh MLPs.
+
+    The action std is a state-independent parameter (log-std initialised to ``init_log_std``).
+    The actor's last layer starts tiny so the initial mean action is near zero.
+    """
+
+    def __init__(
+        self,
+        obs_dim: int,
+        act_dim: int,
+        hidden: Sequence[int] = (256, 256, 256),
+        init_log_std: float = -0.5,
+    ):
+        super().__init__()
+        self.obs_dim = int(obs_dim)
+        self.act_dim = int(act_dim)
+        hidden = tuple(int(h) for h in hidden)
+        self.actor = _mlp(self.obs_dim, hidden, self.act_dim, 0.01 * math.sqrt(2))
+        self.critic = _mlp(self.obs_dim, hidden, 1, 1.0)
+        self.log_std = nn.Parameter(torch.full((self.act_dim,), float(init_log_std)))
+
+    def _dist(self, obs: Tensor) -> Normal:
+        mean = self.actor(obs)
+        return Normal(mean, self.log_std.exp().expand_as(mean))
+
+    def value(self, obs: Tensor) -> Tensor:
+        return self.critic(obs).squeeze(-1)
+
+    @torch.no_grad()
+    def act(self, obs: Tensor, deterministic: bool = False) -> tuple[Tensor, Tensor, Tensor]:
+        dist = self._dist(obs)
+        action = dist.mean if deterministic else dist.sample()
+        return action, dist.log_prob(action).sum(-1), self.value(obs)
+
+    def evaluate(self, obs: Tensor, action: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        dist = self._dist(obs)
+        return dist.log_prob(action).sum(-1), dist.entropy().sum(-1), self.value(obs)

@@ -1,0 +1,245 @@
+"""The learning algorithm: advantage estimation (GAE, GRPO) and the PPO update.
+
+Data reaches the actor as trajectory *chunks*: ``T`` consecutive steps of ``N`` envs acted on by
+one (possibly slightly stale) policy version. :func:`batch_from_chunks` turns chunks into a flat
+training batch with advantages computed by the learner's current critic, and
+:class:`PPOLearner` runs the clipped-surrogate update on it. The PPO ratio is taken against the
+log-probabilities of the *behaviour* policy that acted, so stale chunks are corrected for.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from dvla.config import PPOConfig
+
+__all__ = ["compute_gae", "grpo_advantages", "chunk_advantages", "batch_from_chunks", "PPOLearner", "CHUNK_KEYS"]
+
+
+# --- advantages -------------------------------------------------------------------------------
+
+
+def _float_mask(x: Any, like: Any) -> Any:
+    if isinstance(like, Tensor):
+        return torch.as_tensor(x, device=like.device).to(like.dtype)
+    return np.asarray(x).astype(np.asarray(like).dtype)
+
+
+def compute_gae(rewards, values, next_values, terminated, episode_end, gamma: float, lam: float):
+    """Generalised advantage estimation over ``[T, N]`` arrays (all numpy or all torch).
+
+    ``next_values[t]`` is the value of the state actually reached after step t: the value of the
+    pre-reset ``final_obs`` where the episode ended, of the next observation otherwise.
+    ``terminated`` drops that bootstrap (a terminal state is worth nothing); ``episode_end``
+    (terminated or truncated) stops the recursion so advantages never leak across episodes.
+    Steps past the last row bootstrap from ``next_values`` alone.
+
+    Returns ``(advantages, returns)`` with ``returns = advantages + values``.
+    """
+    not_term = 1 - _float_mask(terminated, values)
+    not_end = 1 - _float_mask(episode_end, values)
+    deltas = rewards + gamma * not_term * next_values - values
+    advantages = deltas * 0  # same type, dtype and device as the inputs
+    running = deltas[0] * 0
+    for t in range(deltas.shape[0] - 1, -1, -1):
+        running = deltas[t] + gamma * lam * not_end[t] * running
+        advantages[t] = running
+    return advantages, advantages + values
+
+
+def grpo_advantages(episode_returns, group_ids):
+    """Group-relative advantages: ``(R - mean_g) / (std_g + 1e-8)`` within each group.
+
+    ``episode_returns`` and ``group_ids`` are 1-D (numpy or torch); episodes sharing a group id
+    started from the same initial state. A group of one gets advantage 0. The population std is
+    used, so the result does not depend on an arbitrary degrees-of-freedom choice.
+    """
+    is_torch = isinstance(episode_returns, Tensor)
+    r = episode_returns.detach().cpu().numpy() if is_torch else np.asarray(episode_returns)
+    r = r.astype(np.float64).reshape(-1)
+    ids = group_ids.detach().cpu().numpy() if isinstance(group_ids, Tensor) else np.asarray(group_ids)
+    if ids.reshape(-1).shape != r.shape:
+        raise ValueError(f"{r.shape[0]} returns but {ids.size} group ids")
+    _, inverse = np.unique(ids.reshape(-1), return_inverse=True)
+    counts = np.bincount(inverse)
+    mean = np.bincount(inverse, weights=r) / counts
+    var = np.bincount(inverse, weights=(r - mean[inverse]) ** 2) / counts
+    adv = (r - mean[inverse]) / (np.sqrt(var[inverse]) + 1e-8)
+    if is_torch:
+        return torch.as_tensor(adv, dtype=episode_returns.dtype, device=episode_returns.device)
+    return adv.astype(np.float32)
+
+
+CHUNK_KEYS = ("obs", "actions", "logprobs", "rewards", "terminated", "truncated", "final_obs", "next_obs")
+"""Arrays of one trajectory chunk, as :func:`batch_from_chunks` reads them:
+
+obs [T,N,D], actions [T,N,A], logprobs [T,N] (behaviour policy), rewards [T,N],
+terminated [T,N], truncated [T,N], final_obs [T,N,D] (pre-reset obs where an episode ended),
+next_obs [N,D] (observation after the chunk's last step, for bootstrapping)."""
+
+
+def _values(policy: nn.Module, obs: np.ndarray, device: torch.device) -> Tensor:
+    flat = torch.as_tensor(obs, dtype=torch.float32, device=device).reshape(-1, obs.shape[-1])
+    return policy.value(flat).reshape(obs.shape[:-1])
+
+
+@torch.no_grad()
+def chunk_advantages(
+    policy: nn.Module, chunk: Mapping[str, np.ndarray], cfg: PPOConfig, device: Any = "cpu"
+) -> dict[str, Tensor]:
+    """Training tensors ``[T*N, ...]`` of one chunk, with GAE from ``policy``'s critic.
+
+    Values are recomputed with the learner's critic rather than taken from the rollout: the
+    rollout's critic is stale, and the bootstrap values must come from the same function as the
+    baseline. Rewards are multiplied by ``cfg.reward_scale``.
+    """
+    device = torch.device(device)
+    missing = [k for k in CHUNK_KEYS if k not in chunk]
+    if missing:
+        raise KeyError(f"chunk lacks {missing}")
+    obs = np.asarray(chunk["obs"], dtype=np.float32)
+    steps, n = obs.shape[:2]
+    ended = np.asarray(chunk["terminated"], bool) | np.asarray(chunk["truncated"], bool)
+    values = _values(policy, obs, device)
+    next_values = torch.empty_like(values)
+    next_values[:-1] = values[1:]
+    next_values[-1] = _values(policy, np.asarray(chunk["next_obs"], dtype=np.float32), device)
+    if ended.any():
+        final = np.asarray(chunk["final_obs"], dtype=np.float32)[ended]
+        next_values[torch.as_tensor(ended, device=device)] = _values(policy, final, device)
+    rewards = torch.as_tensor(np.asarray(chunk["rewards"], np.float32), device=device) * cfg.reward_scale
+    terminated = torch.as_tensor(np.asarray(chunk["terminated"], bool), device=device)
+    adv, ret = compute_gae(
+        rewards, values, next_values, terminated, torch.as_tensor(ended, device=device), cfg.gamma, cfg.gae_lambda
+    )
+    actions = np.asarray(chunk["actions"], dtype=np.float32)
+    return {
+        "obs": torch.as_tensor(obs, device=device).reshape(steps * n, -1),
+        "actions": torch.as_tensor(actions, device=device).reshape(steps * n, -1),
+        "logprobs": torch.as_tensor(np.asarray(chunk["logprobs"], np.float32), device=device).reshape(-1),
+        "advantages": adv.reshape(-1),
+        "returns": ret.reshape(-1),
+        "values": values.reshape(-1),
+    }
+
+
+def batch_from_chunks(
+    policy: nn.Module, chunks: Sequence[Mapping[str, np.ndarray]], cfg: PPOConfig, device: Any = "cpu"
+) -> dict[str, Tensor]:
+    """One PPO batch (the dict :meth:`PPOLearner.update` takes) from several chunks."""
+    if not chunks:
+        raise ValueError("no chunks to learn from")
+    parts = [chunk_advantages(policy, c, cfg, device) for c in chunks]
+    return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+
+
+# --- the update --------------------------------------------------------------------------------
+
+BATCH_KEYS = ("obs", "actions", "logprobs", "advantages", "returns")
+
+
+class PPOLearner:
+    """Clipped-surrogate PPO on batches of (possibly stale) transitions.
+
+    The ratio is against the behaviour log-probs in the batch. The ``target_kl`` early stop
+    measures how far *this update* moved the policy (KL to the policy at its start), not the
+    staleness the batch arrived with: otherwise data a few versions old could stop every update
+    before its first step.
+    """
+
+    def __init__(self, policy: nn.Module, cfg: PPOConfig, device: Any = "cpu", seed: int | None = None):
+        self.policy = policy
+        self.cfg = cfg
+        self.device = torch.device(device)
+        self.optimizer = torch.optim.Adam(policy.parameters(), lr=cfg.lr, eps=1e-5)
+        self._gen = torch.Generator()
+        if seed is not None:
+            self._gen.manual_seed(seed)
+
+    def _tensors(self, batch: Mapping[str, Any]) -> dict[str, Tensor]:
+        missing = [k for k in BATCH_KEYS if k not in batch]
+        if missing:
+            raise KeyError(f"batch lacks {missing}")
+        out = {k: torch.as_tensor(batch[k], dtype=torch.float32, device=self.device) for k in BATCH_KEYS}
+        size = out["obs"].shape[0]
+        if any(v.shape[0] != size for v in out.values()):
+            raise ValueError(f"batch arrays disagree on length: { {k: tuple(v.shape) for k, v in out.items()} }")
+        if size < self.cfg.minibatches:
+            raise ValueError(f"batch of {size} is smaller than minibatches={self.cfg.minibatches}")
+        return out
+
+    def update(self, batch: Mapping[str, Any]) -> dict[str, float]:
+        """Run up to ``update_epochs`` passes of minibatch SGD on ``batch``; return statistics."""
+        started = time.perf_counter()
+        cfg = self.cfg
+        b = self._tensors(batch)
+        size = b["obs"].shape[0]
+        with torch.no_grad():
+            start_logprobs, _, _ = self.policy.evaluate(b["obs"], b["actions"])
+        behaviour_kl = _approx_kl(start_logprobs - b["logprobs"])
+        mb_size = size // cfg.minibatches
+        stats: dict[str, list[float]] = {k: [] for k in ("pg_loss", "v_loss", "entropy", "approx_kl", "clipfrac")}
+        epochs_run, stopped = 0, False
+        for _ in range(cfg.update_epochs):
+            order = torch.randperm(size, generator=self._gen).to(self.device)
+            for start in range(0, mb_size * cfg.minibatches, mb_size):
+                idx = order[start : start + mb_size]
+                mb = {k: v[idx] for k, v in b.items()}
+                logprob, entropy, value = self.policy.evaluate(mb["obs"], mb["actions"])
+                kl = _approx_kl(logprob.detach() - start_logprobs[idx])
+                if cfg.target_kl is not None and kl > cfg.target_kl:
+                    stopped = True
+                    break
+                loss, parts = self._loss(mb, logprob, entropy, value)
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                nn.utils.clip_grad_norm_(self.policy.parameters(), cfg.max_grad_norm)
+                self.optimizer.step()
+                for k, v in parts.items():
+                    stats[k].append(v)
+                stats["approx_kl"].append(kl)
+            epochs_run += 1
+            if stopped:
+                break
+        out = {k: float(np.mean(v)) if v else float("nan") for k, v in stats.items()}
+        out.update(
+            epochs_run=epochs_run,
+            early_stop=float(stopped),
+            behaviour_kl=behaviour_kl,
+            batch_size=size,
+            update_s=time.perf_counter() - started,
+        )
+        return out
+
+    def _loss(self, mb: dict[str, Tensor], logprob: Tensor, entropy: Tensor, value: Tensor) -> tuple[Tensor, dict]:
+        cfg = self.cfg
+        adv = mb["advantages"]
+        # Per-minibatch normalisation keeps the step size independent of the reward scale.
+        adv = (adv - adv.mean()) / (adv.std(unbiased=False) + 1e-8)
+        ratio = (logprob - mb["logprobs"]).exp()
+        pg_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - cfg.clip, 1 + cfg.clip)).mean()
+        v_loss = 0.5 * (value - mb["returns"]).pow(2).mean()
+        ent = entropy.mean()
+        loss = pg_loss + cfg.vf_coef * v_loss - cfg.ent_coef * ent
+        with torch.no_grad():
+            clipfrac = ((ratio - 1).abs() > cfg.clip).float().mean().item()
+        return loss, {"pg_loss": pg_loss.item(), "v_loss": v_loss.item(), "entropy": ent.item(), "clipfrac": clipfrac}
+
+    def state_dict(self) -> dict[str, Any]:
+        """Policy and optimizer state, for checkpoints."""
+        return {"policy": copy.deepcopy(self.policy.state_dict()), "optimizer": copy.deepcopy(self.optimizer.state_dict())}
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        self.policy.load_state_dict(state["policy"])
+        self.optimizer.load_state_dict(state["optimizer"])
+
+
+def _approx_kl(log_ratio: Tensor) -> float:
+    # The low-variance, always non-negative estimator k3 = (r - 1) - log r (Schulman 2020).
+    return float(((log_ratio.exp() - 1) - log_ratio).mean())

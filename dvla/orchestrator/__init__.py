@@ -1,0 +1,1 @@
+"""Orchestration: topology files, process placement and the `dvla` command line."""

@@ -1,0 +1,29 @@
+"""The `dvla` command line: one Typer app, one module per command under `commands/`."""
+
+from __future__ import annotations
+
+import typer
+
+from .commands import bench, down, logs, plan, status, up
+
+app = typer.Typer(
+    name="dvla",
+    help="Distributed asynchronous RL for vision-language-action policies over Eclipse Zenoh.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+app.command("up")(up.up)
+app.command("status")(status.status)
+app.command("down")(down.down)
+app.command("logs")(logs.logs)
+app.command("plan")(plan.plan)
+app.add_typer(bench.app, name="bench")
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

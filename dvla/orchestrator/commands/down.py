@@ -1,0 +1,58 @@
+"""`dvla down [RUN]`: stop a run started elsewhere and remove what it left (processes, netns)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from .common import RUNS_ROOT, find_run
+
+
+def down(
+    run: Annotated[Optional[str], typer.Argument(help="run id or topology file (default: the newest live run)")] = None,
+    runs: Annotated[Path, typer.Option(help="directory of run directories")] = RUNS_ROOT,
+    timeout: Annotated[float, typer.Option(help="seconds to wait for a clean stop")] = 30.0,
+) -> None:
+    """Ask the run's orchestrator to stop (as Ctrl-C would); kill and clean up after `timeout`."""
+    run_id, state = find_run(run, runs)
+    pid = int(state.get("pid", 0))
+    if pid and _alive(pid):
+        os.kill(pid, signal.SIGTERM)
+        deadline = time.monotonic() + timeout
+        while _alive(pid) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        if _alive(pid):
+            typer.echo(f"dvla: orchestrator {pid} did not stop in {timeout:.0f} s: killing", err=True)
+            os.kill(pid, signal.SIGKILL)
+    for name, child in state.get("children", {}).items():
+        if _alive(int(child)):
+            try:
+                os.killpg(int(child), signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+    leftovers = state.get("netns") or []
+    if leftovers:
+        from ..netns import destroy_names
+
+        destroy_names(run_id, leftovers)
+    state_file = runs / run_id / "state.json"
+    if state_file.exists():
+        state_file.unlink()
+    typer.echo(f"dvla: run {run_id} is down")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except (ProcessLookupError, PermissionError):
+        return False
+    try:  # a zombie is not alive
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return True

@@ -1,0 +1,49 @@
+"""`dvla status [RUN]`: every role's state, policy version, lag, steps/s and lane utilisation.
+
+Works from any terminal that can reach the run's control plane: it reads the run's state file
+for the entry endpoints and the secret, collects every status reply, then renders it.
+"""
+
+from __future__ import annotations
+
+from enum import Enum
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from ...fabric.messages import RoleStatus
+from ..run import tool_fabric
+from ..view import render_json, render_table
+from .common import RUNS_ROOT, fail, find_run, secret_for
+
+
+class Format(str, Enum):
+    table = "table"
+    json = "json"
+
+
+def status(
+    run: Annotated[Optional[str], typer.Argument(help="run id or topology file (default: the newest live run)")] = None,
+    format: Annotated[Format, typer.Option("--format", "-f", help="table or json")] = Format.table,
+    runs: Annotated[Path, typer.Option(help="directory of run directories")] = RUNS_ROOT,
+    timeout: Annotated[float, typer.Option(help="seconds to wait for replies")] = 2.0,
+) -> None:
+    """Show the live roles of a run."""
+    run_id, state = find_run(run, runs)
+    secret = secret_for(state)
+    try:
+        fabric = tool_fabric(run_id, tuple(state["ctrl_entry"]), secret, name="status-cli")
+    except ConnectionError as err:
+        raise fail(f"run {run_id}: control plane unreachable: {err}")
+    try:
+        replies = fabric.query(fabric.keys.status_all(), expect=RoleStatus, timeout=timeout)
+    finally:
+        fabric.close()
+    statuses = {msg.name: msg for _s, msg in replies}
+    expected = sorted(p.stem for p in (runs / run_id / "roles").glob("*.json"))
+    if format == Format.json:
+        silent = sorted(set(expected) - set(statuses))
+        typer.echo(render_json(statuses, {"run": run_id, "silent": silent}))
+    else:
+        typer.echo(render_table(statuses, expected))

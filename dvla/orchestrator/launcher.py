@@ -1,0 +1,198 @@
+"""Starts and supervises role processes: one OS process per role, restarted with backoff.
+
+Children run in their own session (so a terminal's Ctrl-C reaches only the orchestrator, which
+then stops them in order) and die with the orchestrator (PR_SET_PDEATHSIG), so no orphan
+survives even a `kill -9` of `dvla up`.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .plan import Process
+
+log = logging.getLogger("dvla.launcher")
+
+_PR_SET_PDEATHSIG = 1
+
+
+def _child_setup() -> None:
+    """Runs in the child between fork and exec: die with the parent."""
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    except OSError:
+        pass
+
+
+@dataclass
+class Supervised:
+    """One role process and its restart history."""
+
+    proc: Process
+    config_path: Path
+    log_path: Path
+    popen: subprocess.Popen | None = None
+    restarts: int = 0
+    exit_codes: list[int] = field(default_factory=list)
+    next_start: float = 0.0
+    started_at: float = 0.0
+    failed: bool = False
+    finished: bool = False
+
+    @property
+    def name(self) -> str:
+        return self.proc.config.name
+
+    def alive(self) -> bool:
+        return self.popen is not None and self.popen.poll() is None
+
+
+class Launcher:
+    """Owns every child process of a run."""
+
+    def __init__(
+        self,
+        run_dir: Path,
+        env: dict[str, str],
+        *,
+        max_restarts: int = 3,
+        backoff_s: float = 1.0,
+        wrap: "CommandWrapper | None" = None,
+    ) -> None:
+        self.run_dir = run_dir
+        self.env = env
+        self.max_restarts = max_restarts
+        self.backoff_s = backoff_s
+        self.wrap = wrap
+        self.children: dict[str, Supervised] = {}
+
+    def add(self, proc: Process) -> Supervised:
+        cfg = proc.config
+        config_path = self.run_dir / "roles" / f"{cfg.name}.json"
+        config_path.parent.mkdir(parents=True, exist_ok=True)
+        config_path.write_text(cfg.to_json())
+        log_path = self.run_dir / "logs" / f"{cfg.name}.log"
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        sup = Supervised(proc=proc, config_path=config_path, log_path=log_path)
+        self.children[cfg.name] = sup
+        return sup
+
+    def command(self, sup: Supervised) -> list[str]:
+        argv = [sys.executable, "-m", f"dvla.roles.{sup.proc.config.kind}", "--config", str(sup.config_path)]
+        return self.wrap(sup.proc, argv) if self.wrap is not None else argv
+
+    def start(self, sup: Supervised) -> None:
+        argv = self.command(sup)
+        logf = open(sup.log_path, "ab", buffering=0)
+        try:
+            logf.write(f"--- start {time.strftime('%H:%M:%S')} (restart {sup.restarts}): {' '.join(argv)}\n".encode())
+            sup.popen = subprocess.Popen(
+                argv,
+                stdin=subprocess.DEVNULL,
+                stdout=logf,
+                stderr=subprocess.STDOUT,
+                env=self.env,
+                start_new_session=True,
+                preexec_fn=_child_setup,
+            )
+        finally:
+            logf.close()
+        sup.started_at = time.monotonic()
+        log.info("started %s (pid %d)", sup.name, sup.popen.pid)
+
+    def start_all(self) -> None:
+        for sup in self.children.values():
+            self.start(sup)
+
+    def poll(self, stopping: bool) -> list[str]:
+        """Reap exited children; restart crashed ones with backoff. Returns events (log lines)."""
+        events = []
+        now = time.monotonic()
+        for sup in self.children.values():
+            if sup.failed or sup.finished:
+                continue
+            if sup.popen is None:
+                if not stopping and now >= sup.next_start:
+                    self.start(sup)
+                    events.append(f"restarted {sup.name} (restart {sup.restarts})")
+                continue
+            code = sup.popen.poll()
+            if code is None:
+                continue
+            sup.exit_codes.append(code)
+            sup.popen = None
+            if stopping or code == 0:
+                sup.finished = True
+                events.append(f"{sup.name} exited ({code})")
+                continue
+            if sup.restarts >= self.max_restarts:
+                sup.failed = True
+                events.append(f"{sup.name} failed {sup.restarts + 1} times (last exit {code}); giving up")
+                continue
+            # A role that ran a while before crashing gets its backoff reset.
+            ran = now - sup.started_at
+            delay = self.backoff_s * (2 ** sup.restarts if ran < 30 else 1)
+            sup.restarts += 1
+            sup.next_start = now + delay
+            events.append(f"{sup.name} crashed (exit {code}); restarting in {delay:.1f} s")
+        return events
+
+    def stop(self, names: list[str], timeout: float) -> None:
+        """SIGTERM the named children, then SIGKILL whoever is still up after `timeout`."""
+        sups = [self.children[n] for n in names if self.children[n].alive()]
+        for sup in sups:
+            _signal(sup, signal.SIGTERM)
+        deadline = time.monotonic() + timeout
+        for sup in sups:
+            remaining = max(0.0, deadline - time.monotonic())
+            try:
+                sup.popen.wait(timeout=remaining)  # type: ignore[union-attr]
+            except subprocess.TimeoutExpired:
+                log.warning("%s did not stop in %.0f s: killing", sup.name, timeout)
+                _signal(sup, signal.SIGKILL)
+                sup.popen.wait(timeout=5)  # type: ignore[union-attr]
+
+    def wait_exit(self, names: list[str], timeout: float) -> list[str]:
+        """Wait for the named children to exit by themselves; returns those still running."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if not any(self.children[n].alive() for n in names):
+                return []
+            time.sleep(0.05)
+        return [n for n in names if self.children[n].alive()]
+
+    def kill_all(self) -> None:
+        for sup in self.children.values():
+            if sup.alive():
+                _signal(sup, signal.SIGKILL)
+                try:
+                    sup.popen.wait(timeout=5)  # type: ignore[union-attr]
+                except subprocess.TimeoutExpired:
+                    pass
+
+    def pids(self) -> dict[str, int]:
+        return {n: s.popen.pid for n, s in self.children.items() if s.popen is not None and s.alive()}
+
+
+def _signal(sup: Supervised, sig: int) -> None:
+    try:
+        # The child leads its own session: signal the group so helpers it spawned go too.
+        os.killpg(sup.popen.pid, sig)  # type: ignore[union-attr]
+    except (ProcessLookupError, PermissionError):
+        pass
+
+
+class CommandWrapper:
+    """Turns a role's argv into one run elsewhere (a network namespace, an SSH host)."""
+
+    def __call__(self, proc: Process, argv: list[str]) -> list[str]:  # pragma: no cover - interface
+        raise NotImplementedError

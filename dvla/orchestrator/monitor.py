@@ -1,0 +1,144 @@
+"""The orchestrator's view of a running cluster: status collection, eval results, metrics files
+and stop conditions. Collects first, renders elsewhere (view.py)."""
+
+from __future__ import annotations
+
+import csv
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..config import BudgetConfig
+from ..fabric import Fabric
+from ..fabric.messages import EvalResult, RoleStatus
+
+
+@dataclass
+class EvalPoint:
+    time_s: float
+    version: int
+    env_steps: int
+    success_once: float
+    success_at_end: float
+    return_mean: float
+    episodes: int
+
+
+@dataclass
+class Snapshot:
+    """One collection round: every role's status (None for a role that did not answer)."""
+
+    time_s: float
+    statuses: dict[str, RoleStatus]
+    env_steps: int
+    produced_steps: int
+    steps_per_s: float
+    version: int
+
+
+@dataclass
+class Monitor:
+    fabric: Fabric
+    run_dir: Path
+    budget: BudgetConfig
+    t0: float = field(default_factory=time.monotonic)
+    evals: list[EvalPoint] = field(default_factory=list)
+    last: Snapshot | None = None
+    first_step_s: float | None = None
+    success_at_s: float | None = None
+    success_at_steps: int | None = None
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+    _rate_mark: tuple[float, int] | None = None
+    _rate: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.metrics_path = self.run_dir / "metrics.csv"
+        self.evals_path = self.run_dir / "evals.csv"
+        self._metrics = open(self.metrics_path, "w", newline="")
+        self._mw = csv.writer(self._metrics)
+        self._mw.writerow(["time_s", "env_steps", "produced_steps", "steps_per_s", "version", "policy_lag_mean", "roles_up"])
+        self._evals = open(self.evals_path, "w", newline="")
+        self._ew = csv.writer(self._evals)
+        self._ew.writerow(["time_s", "version", "env_steps", "success_once", "success_at_end", "return_mean", "episodes"])
+        self._inbox = self.fabric.subscribe_ctrl(self.fabric.keys.eval_all(), 64, EvalResult)
+
+    def now(self) -> float:
+        return time.monotonic() - self.t0
+
+    def collect(self) -> Snapshot:
+        replies = self.fabric.query(self.fabric.keys.status_all(), expect=RoleStatus, timeout=1.5)
+        statuses = {msg.name: msg for _sender, msg in replies}
+        actors = [s for s in statuses.values() if s.kind == "actor"]
+        env_steps = sum(s.env_steps for s in actors)
+        produced = sum(s.env_steps for s in statuses.values() if s.kind == "rollout")
+        if self.last is not None:
+            env_steps = max(env_steps, self.last.env_steps)  # a restarting actor answers late
+        version = max((s.extra.get("published_version", s.policy_version) for s in actors), default=0)
+        t = self.now()
+        if self.first_step_s is None and produced > 0:
+            self.first_step_s = t
+        if self._rate_mark is None:
+            self._rate_mark = (t, env_steps)
+        elif t - self._rate_mark[0] >= 3.0:
+            self._rate = (env_steps - self._rate_mark[1]) / (t - self._rate_mark[0])
+            self._rate_mark = (t, env_steps)
+        snap = Snapshot(t, statuses, env_steps, produced, self._rate, int(version))
+        lag = actors[0].extra.get("policy_lag_mean", 0.0) if actors else 0.0
+        self._mw.writerow([f"{t:.2f}", env_steps, produced, f"{self._rate:.1f}", version, f"{lag:.2f}", len(statuses)])
+        self._metrics.flush()
+        self.last = snap
+        self._drain_evals()
+        return snap
+
+    def _drain_evals(self) -> None:
+        while (got := self._inbox.get_nowait()) is not None:
+            _sender, ev = got
+            steps = self.last.env_steps if self.last else 0
+            p = EvalPoint(self.now(), ev.policy_version, steps, ev.success_once, ev.success_at_end, ev.return_mean, ev.episodes)
+            self.evals.append(p)
+            self._ew.writerow([f"{p.time_s:.2f}", p.version, p.env_steps, f"{p.success_once:.4f}",
+                               f"{p.success_at_end:.4f}", f"{p.return_mean:.4f}", p.episodes])
+            self._evals.flush()
+            if self.success_at_s is None and self.success_reached():
+                self.success_at_s = p.time_s
+                self.success_at_steps = p.env_steps
+
+    def success_reached(self) -> bool:
+        b = self.budget
+        if b.until_success is None or len(self.evals) < b.consecutive:
+            return False
+        return all(e.success_once >= b.until_success for e in self.evals[-b.consecutive:])
+
+    def stop_reason(self) -> str | None:
+        """Why the run should stop now, or None."""
+        b = self.budget
+        if self.success_reached():
+            return "success"
+        if b.max_env_steps is not None and self.last is not None and self.last.env_steps >= b.max_env_steps:
+            return "max_env_steps"
+        if b.max_wall_s is not None and self.now() >= b.max_wall_s:
+            return "max_wall_s"
+        return None
+
+    def close(self) -> None:
+        self._metrics.close()
+        self._evals.close()
+
+    def result(self) -> dict[str, Any]:
+        last = self.last
+        first = self.first_step_s
+        end = self.success_at_s if self.success_at_s is not None else self.now()
+        train_s = (end - first) if first is not None else None
+        steps = self.success_at_steps if self.success_at_steps is not None else (last.env_steps if last else 0)
+        return {
+            "startup_s": first,
+            "train_s": train_s,
+            "env_steps": steps,
+            "train_steps_per_s": (steps / train_s) if train_s else None,
+            "final_env_steps": last.env_steps if last else 0,
+            "final_version": last.version if last else 0,
+            "evals": [e.__dict__ for e in self.evals],
+            "success_reached": self.success_reached() or self.success_at_s is not None,
+        }

@@ -1,0 +1,219 @@
+"""Resolves a `Topology` into one `RoleConfig` per process: names, ports, the weight tree and the
+Zenoh link graph. Pure logic: nothing is started here.
+
+Link graph (see docs/architecture.md):
+- ctrl plane: the root actor's ctrl session is a Zenoh router; each replicator's ctrl session is
+  a router connected to its parent's; leaves (rollouts, evaluators) are clients of their parent
+  router, with their other ancestors as fallbacks (so they re-attach when the parent dies). The
+  weight tree is therefore also the link tree: a version crosses each link once.
+- data plane: each actor listens; each rollout connects straight to the actor it feeds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass
+
+from ..config import NodeConfig, PlaneEndpoints, RackConfig, RoleConfig, Topology
+
+LOOPBACK = "127.0.0.1"
+
+
+@dataclass(frozen=True, kw_only=True)
+class Process:
+    """A process to start: its resolved config and where it runs."""
+
+    config: RoleConfig
+    host: str
+    #: network namespace to run in (emulate: netns), else None
+    netns: str | None = None
+
+
+@dataclass(frozen=True, kw_only=True)
+class Plan:
+    """Every process of a run, in start order (actors, replicators, then leaves)."""
+
+    topology: Topology
+    processes: tuple[Process, ...]
+    #: ctrl endpoints a tool (orchestrator, `dvla status`) connects to, nearest-to-root first
+    ctrl_entry: tuple[str, ...]
+    #: node name -> address its planes bind to
+    addresses: dict[str, str]
+    warnings: tuple[str, ...] = ()
+
+    def by_name(self, name: str) -> Process:
+        for p in self.processes:
+            if p.config.name == name:
+                return p
+        raise KeyError(name)
+
+    @property
+    def root_actor(self) -> str:
+        return next(p.config.name for p in self.processes if p.config.kind == "actor")
+
+
+@dataclass
+class _Slot:
+    name: str
+    kind: str
+    rack: RackConfig
+    node: NodeConfig
+    index: int
+    parent: str | None = None
+    children: list[str] = dataclasses.field(default_factory=list)
+    actors: list[str] = dataclasses.field(default_factory=list)
+    rollouts: list[str] = dataclasses.field(default_factory=list)
+    ctrl_port: int | None = None
+    data_port: int | None = None
+
+
+def node_address(topo: Topology, rack_index: int, node_index: int, node: NodeConfig) -> str:
+    """Where a node's planes bind: explicit address, the netns address, or loopback."""
+    if node.address:
+        return node.address
+    if topo.emulate == "netns":
+        from .netns import node_ip  # local import: only netns runs need it
+
+        return node_ip(rack_index, node_index)
+    return LOOPBACK
+
+
+def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Plan:
+    """Names every process, builds the weight tree and the links, assigns ports."""
+    port = base_port if base_port is not None else topo.base_port
+    slots: list[_Slot] = []
+    addresses: dict[str, str] = {}
+    for ri, rack in enumerate(topo.racks):
+        for ni, node in enumerate(rack.nodes):
+            addresses[node.name] = node_address(topo, ri, ni, node)
+            for placement in node.roles:
+                for i in range(placement.count):
+                    slots.append(_Slot(f"{placement.role}-{node.name}-{i}", placement.role, rack, node, len(slots)))
+    by_name = {s.name: s for s in slots}
+    actors = [s for s in slots if s.kind == "actor"]
+    root = actors[0]
+    warnings: list[str] = []
+
+    # Weight tree: root actor -> rack replicator -> (node replicators) -> leaves.
+    for rack in topo.racks:
+        reps = [s for s in slots if s.kind == "replicator" and s.rack is rack]
+        if reps:
+            reps[0].parent = root.name
+            for r in reps[1:]:
+                r.parent = reps[0].name
+        leaves = [s for s in slots if s.kind in ("rollout", "evaluator") and s.rack is rack]
+        for leaf in leaves:
+            if not reps:
+                leaf.parent = root.name
+                continue
+            same_node = [r for r in reps if r.node is leaf.node]
+            candidates = same_node + [r for r in reps if r not in same_node]
+            parent = min(candidates, key=lambda r: (len(r.children) >= topo.replication.fanout, r not in same_node, len(r.children)))
+            leaf.parent = parent.name
+    for s in slots:
+        if s.parent is not None:
+            by_name[s.parent].children.append(s.name)
+    for s in slots:
+        if len(s.children) > topo.replication.fanout:
+            warnings.append(
+                f"{s.name} has {len(s.children)} children, above fanout {topo.replication.fanout}: add a replicator on its rack"
+            )
+    # Non-root actors learn in a torch.distributed group; they need no weights.
+    # Data plane: every rollout feeds one actor, same node first, then round robin.
+    rr = 0
+    for s in slots:
+        if s.kind != "rollout":
+            continue
+        local = [a for a in actors if a.node is s.node]
+        actor = local[0] if local else actors[rr % len(actors)]
+        rr += 0 if local else 1
+        s.actors.append(actor.name)
+        actor.rollouts.append(s.name)
+
+    # Ports: listeners only (actors: ctrl + data, replicators: ctrl).
+    for s in slots:
+        if s.kind == "actor":
+            s.ctrl_port, s.data_port = port, port + 1
+            port += 2
+        elif s.kind == "replicator":
+            s.ctrl_port = port
+            port += 1
+
+    def ep(s: _Slot, which: str) -> str:
+        p = s.ctrl_port if which == "ctrl" else s.data_port
+        return f"tcp/{addresses[s.node.name]}:{p}"
+
+    def ancestors(s: _Slot) -> list[_Slot]:
+        out, cur = [], s
+        while cur.parent is not None:
+            cur = by_name[cur.parent]
+            out.append(cur)
+        return out
+
+    order = {"actor": 0, "replicator": 1, "rollout": 2, "evaluator": 3}
+    processes = []
+    for s in sorted(slots, key=lambda s: (order[s.kind], s.index)):
+        anc = ancestors(s)
+        if s.kind == "actor":
+            ctrl = PlaneEndpoints(mode="router", listen=(ep(s, "ctrl"),), connect=() if s is root else (ep(root, "ctrl"),))
+            data = PlaneEndpoints(mode="peer", listen=(ep(s, "data"),))
+        elif s.kind == "replicator":
+            ctrl = PlaneEndpoints(mode="router", listen=(ep(s, "ctrl"),), connect=(ep(anc[0], "ctrl"),))
+            data = PlaneEndpoints(mode="peer")
+        else:
+            ctrl = PlaneEndpoints(mode="client", connect=tuple(ep(a, "ctrl") for a in anc))
+            data = (
+                PlaneEndpoints(mode="peer", connect=tuple(ep(by_name[a], "data") for a in s.actors))
+                if s.kind == "rollout"
+                else PlaneEndpoints(mode="peer")
+            )
+        cfg = RoleConfig(
+            name=s.name,
+            kind=s.kind,  # type: ignore[arg-type]
+            run=topo.run,
+            node=s.node.name,
+            rack=s.rack.name,
+            seed=topo.seed * 1000 + s.index,
+            mode=topo.mode,
+            run_dir=run_dir,
+            data=data,
+            ctrl=ctrl,
+            shared_memory=topo.shared_memory,
+            parent=s.parent,
+            ancestors=tuple(a.name for a in anc),
+            children=tuple(s.children),
+            actors=tuple(s.actors),
+            rollouts=tuple(s.rollouts),
+            cpus=s.node.cpus,
+            lockstep_steps=_lockstep_steps(topo, s, by_name),
+            task=topo.task,
+            replication=topo.replication,
+        )
+        netns = None
+        if topo.emulate == "netns":
+            from .netns import netns_name
+
+            netns = netns_name(topo.run, s.node.name)
+        processes.append(Process(config=cfg, host=s.node.host, netns=netns))
+
+    entry = [ep(root, "ctrl")] + [ep(s, "ctrl") for s in slots if s.kind == "replicator"]
+    return Plan(
+        topology=topo,
+        processes=tuple(processes),
+        ctrl_entry=tuple(entry),
+        addresses=addresses,
+        warnings=tuple(warnings),
+    )
+
+
+def is_local_host(host: str) -> bool:
+    return host in ("localhost", LOOPBACK, "::1", os.uname().nodename)
+
+
+def _lockstep_steps(topo: Topology, s: _Slot, by_name: dict[str, _Slot]) -> int:
+    """Env steps each rollout ships per version in sync mode: its share of one learner batch."""
+    if s.kind != "rollout" or not s.actors:
+        return 0
+    n_rollouts = len(by_name[s.actors[0]].rollouts)
+    return -(-topo.task.ppo.batch_steps // n_rollouts)

@@ -1,0 +1,286 @@
+"""`dvla up`: prepare the run directory, start every role, watch, stop in order, report.
+
+Stop order matters for the accounting identity: rollouts and evaluators first (they flush their
+last chunks), then the actor (which counts what it never learned from), then replicators.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import shutil
+import signal
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from ..config import BudgetConfig, Topology
+from ..fabric import Fabric, load_secret, new_secret, plane_config
+from ..fabric.messages import Command
+from .launcher import Launcher
+from .monitor import Monitor
+from .plan import Plan, make_plan
+from .topology import dump_topology_yaml
+
+log = logging.getLogger("dvla.up")
+
+
+class ExitCode:
+    SUCCESS = 0  # stop condition reached (and the success target, when one was set)
+    TARGET_MISSED = 1  # budget ran out before the success target
+    ROLE_FAILED = 2  # a role kept crashing, or the cluster could not start
+    INTERRUPTED = 130  # Ctrl-C / dvla down
+
+
+@dataclass(frozen=True, kw_only=True)
+class UpOptions:
+    """Command-line overrides of `dvla up`."""
+
+    #: override task.budget.max_env_steps
+    max_env_steps: int | None = None
+    #: override task.budget.until_success
+    until_success: float | None = None
+    #: override task.budget.max_wall_s
+    max_wall_s: float | None = None
+    #: "async" or "sync" (overrides the topology's mode)
+    mode: str | None = None
+    #: first port to hand out (None: the topology's base_port)
+    base_port: int | None = None
+    #: runs/ directory
+    runs_root: Path = Path("runs")
+    #: seconds between status collections
+    poll_s: float = 1.0
+    #: restarts allowed per role
+    max_restarts: int = 3
+
+
+def apply_overrides(topo: Topology, opts: UpOptions) -> Topology:
+    b = topo.task.budget
+    budget = BudgetConfig(
+        max_env_steps=opts.max_env_steps if opts.max_env_steps is not None else b.max_env_steps,
+        until_success=opts.until_success if opts.until_success is not None else b.until_success,
+        consecutive=b.consecutive,
+        max_wall_s=opts.max_wall_s if opts.max_wall_s is not None else b.max_wall_s,
+    )
+    task = dataclasses.replace(topo.task, budget=budget)
+    return dataclasses.replace(topo, task=task, mode=opts.mode or topo.mode)  # type: ignore[arg-type]
+
+
+def prepare_run_dir(root: Path, run: str) -> Path:
+    """runs/<run>/, emptied of a previous run's files (refuses while that run is alive)."""
+    run_dir = (root / run).resolve()
+    state = run_dir / "state.json"
+    if state.exists():
+        try:
+            pid = json.loads(state.read_text()).get("pid")
+        except (OSError, ValueError):
+            pid = None
+        if pid and _pid_alive(pid) and pid != os.getpid():
+            raise RuntimeError(f"run {run!r} is already up (pid {pid}); `dvla down {run}` first")
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    run_dir.mkdir(parents=True)
+    return run_dir
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+        return True
+    except (ProcessLookupError, PermissionError):
+        return False
+
+
+def resolve_secret(topo: Topology, run_dir: Path) -> tuple[str, str]:
+    """(hex secret, where it came from); a fresh per-run secret unless one is configured."""
+    if topo.secret_file:
+        return load_secret(topo.secret_file).hex(), topo.secret_file
+    if os.environ.get("DVLA_SECRET"):
+        return load_secret(None).hex(), "DVLA_SECRET"
+    secret = new_secret()
+    path = run_dir / "secret"
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(secret)
+    return secret, str(path)
+
+
+def tool_fabric(run: str, entry: tuple[str, ...], secret: bytes, name: str = "orchestrator") -> Fabric:
+    """A client-only fabric for tools (orchestrator, `dvla status`) on the ctrl plane."""
+    conf = plane_config(mode="client", connect=entry)
+    return Fabric(run=run, name=name, ctrl_conf=conf, data_conf=None, secret=secret, open_timeout_s=20.0)
+
+
+class Up:
+    """One `dvla up` from start to exit code."""
+
+    def __init__(self, topo: Topology, opts: UpOptions, on_tick: Callable[["Up"], None] | None = None) -> None:
+        self.topo = apply_overrides(topo, opts)
+        self.opts = opts
+        self.on_tick = on_tick
+        self.run_dir = prepare_run_dir(opts.runs_root, self.topo.run)
+        self.plan: Plan = make_plan(self.topo, str(self.run_dir), opts.base_port)
+        self.secret, self.secret_source = resolve_secret(self.topo, self.run_dir)
+        self.events: list[str] = []
+        self.reason: str | None = None
+        self.monitor: Monitor | None = None
+        self._interrupted = threading.Event()
+        self.netns = None
+        env = dict(os.environ)
+        env["DVLA_SECRET"] = self.secret
+        env.setdefault("PYTHONUNBUFFERED", "1")
+        env.setdefault("OMP_NUM_THREADS", "1")
+        self.launcher = Launcher(self.run_dir, env, max_restarts=opts.max_restarts)
+
+    def interrupt(self) -> None:
+        self._interrupted.set()
+
+    def _write_state(self) -> None:
+        state = {
+            "run": self.topo.run,
+            "pid": os.getpid(),
+            "ctrl_entry": list(self.plan.ctrl_entry),
+            "secret_file": self.secret_source if self.secret_source != "DVLA_SECRET" else None,
+            "children": self.launcher.pids(),
+            "netns": self.netns.names() if self.netns else [],
+            "started": time.time(),
+        }
+        tmp = self.run_dir / "state.json.tmp"
+        tmp.write_text(json.dumps(state, indent=1))
+        tmp.replace(self.run_dir / "state.json")
+
+    def run(self) -> int:
+        (self.run_dir / "topology.yaml").write_text(dump_topology_yaml(self.topo))
+        for w in self.plan.warnings:
+            self.events.append(f"warning: {w}")
+        if self.topo.emulate == "netns":
+            from .netns import NetnsCluster
+
+            self.netns = NetnsCluster(self.topo, self.plan)
+            self.netns.create()
+            self.launcher.wrap = self.netns.wrapper()
+        try:
+            for p in self.plan.processes:
+                self.launcher.add(p)
+            self.launcher.start_all()
+            self._write_state()
+            fabric = tool_fabric(self.topo.run, self.plan.ctrl_entry, bytes.fromhex(self.secret))
+            try:
+                self.monitor = Monitor(fabric, self.run_dir, self.topo.task.budget)
+                code = self._watch(fabric)
+                self._shutdown(fabric)
+            finally:
+                if self.monitor is not None:
+                    self.monitor.close()
+                fabric.close()
+            self._report(code)
+            return code
+        finally:
+            self.launcher.kill_all()
+            if self.netns is not None:
+                self.netns.destroy()
+            state = self.run_dir / "state.json"
+            if state.exists():
+                state.unlink()
+
+    def _watch(self, fabric: Fabric) -> int:
+        assert self.monitor is not None
+        while True:
+            if self._interrupted.is_set():
+                self.reason = "interrupted"
+                return ExitCode.INTERRUPTED
+            events = self.launcher.poll(stopping=False)
+            self.events.extend(events)
+            if any(s.failed for s in self.launcher.children.values()):
+                failed = [s for s in self.launcher.children.values() if s.failed]
+                self.reason = "role_failed:" + ",".join(s.name for s in failed)
+                for s in failed:
+                    self.events.append(f"{s.name} last log lines:\n" + _tail(s.log_path, 15))
+                return ExitCode.ROLE_FAILED
+            if events:
+                self._write_state()
+            self.monitor.collect()
+            if self.on_tick is not None:
+                self.on_tick(self)
+            reason = self.monitor.stop_reason()
+            if reason is not None:
+                self.reason = reason
+                b = self.topo.task.budget
+                if b.until_success is not None and not self.monitor.success_reached():
+                    return ExitCode.TARGET_MISSED
+                return ExitCode.SUCCESS
+            self._interrupted.wait(self.opts.poll_s)
+
+    def _shutdown(self, fabric: Fabric) -> None:
+        """Stop leaves first, then the actor, then relays; escalate to signals on timeout."""
+        groups = [("rollout", "evaluator"), ("actor",), ("replicator",)]
+        for kinds in groups:
+            names = [n for n, s in self.launcher.children.items() if s.proc.config.kind in kinds and s.alive()]
+            for n in names:
+                fabric.publish_ctrl(fabric.keys.cmd(n), Command(target=n, verb="stop", args={}, issued_ns=time.time_ns()))
+            left = self.launcher.wait_exit(names, timeout=15.0)
+            if left:
+                self.events.append(f"no clean exit from {', '.join(left)}: terminating")
+                self.launcher.stop(left, timeout=5.0)
+        self.launcher.poll(stopping=True)
+
+    def _report(self, code: int) -> None:
+        assert self.monitor is not None
+        res = self.monitor.result()
+        res.update(
+            {
+                "run": self.topo.run,
+                "reason": self.reason,
+                "exit_code": code,
+                "restarts": {n: s.restarts for n, s in self.launcher.children.items()},
+                "accounting": accounting_from_summaries(self.run_dir),
+            }
+        )
+        (self.run_dir / "result.json").write_text(json.dumps(res, indent=1, default=str))
+        try:
+            from .plots import plot_run
+
+            plot_run(self.run_dir)
+        except Exception as err:  # a missing plot must not hide the run's result
+            self.events.append(f"plot failed: {err}")
+
+
+def accounting_from_summaries(run_dir: Path) -> dict[str, Any]:
+    """produced = consumed + dropped + rejected + unaccounted, from the roles' final summaries."""
+    produced = consumed = dropped = rejected = 0
+    for path in sorted((run_dir / "summaries").glob("*.json")):
+        doc = json.loads(path.read_text())
+        if doc["kind"] == "rollout":
+            produced += int(doc["extra"].get("chunks_produced", 0))
+        elif doc["kind"] == "actor":
+            data = doc["planes"].get("data", {})
+            consumed += int(data.get("consumed", 0))
+            dropped += int(data.get("dropped", 0))
+            rejected += int(data.get("rejected", 0))
+    return {
+        "produced": produced,
+        "consumed": consumed,
+        "dropped": dropped,
+        "rejected": rejected,
+        "unaccounted": produced - consumed - dropped - rejected,
+    }
+
+
+def _tail(path: Path, n: int) -> str:
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return "  (no log)"
+    return "\n".join("  " + line for line in lines[-n:])
+
+
+def install_sigint(up: Up) -> None:
+    def _handler(_signum: int, _frame: Any) -> None:
+        up.interrupt()
+
+    signal.signal(signal.SIGINT, _handler)
+    signal.signal(signal.SIGTERM, _handler)

@@ -1,0 +1,855 @@
+"""Topology files: YAML text in, a validated frozen :class:`dvla.config.Topology` out.
+
+This module owns reading topology files, validating them against the schema declared in
+:mod:`dvla.config` plus the semantic rules a runnable cluster needs, and writing a resolved
+topology back to YAML (the copy kept in the run directory).
+
+Validation never stops at the first problem: the whole file is walked and every problem is
+reported as ``file:line: key.path: message``, so a user fixes a file in one pass. Parsing works on
+the node graph of ``yaml.compose`` rather than on plain Python data because only nodes carry
+line numbers. The schema walk is generic (dataclass fields and type hints), so a field added to
+``dvla.config`` is accepted here without touching this file; only the semantic rules are listed
+by hand.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import functools
+import os
+import re
+import types
+import typing
+from dataclasses import dataclass
+from typing import Any, Callable, Iterator, Literal, Union
+
+import yaml
+from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
+
+from dvla.config import (
+    ENCODINGS,
+    ROLE_KINDS,
+    BudgetConfig,
+    EvalConfig,
+    LinkConfig,
+    NodeConfig,
+    PPOConfig,
+    RackConfig,
+    ReplicationConfig,
+    RolePlacement,
+    TaskConfig,
+    Topology,
+)
+
+__all__ = [
+    "Problem",
+    "TopologyError",
+    "load_topology",
+    "parse_topology",
+    "topology_to_dict",
+    "dump_topology_yaml",
+]
+
+#: run ids become key expressions, directory and process names: keep them plain
+RUN_ID_RE = re.compile(r"[a-z0-9][a-z0-9_-]{0,39}")
+#: hosts that mean "this machine"
+LOCAL_HOSTS = ("localhost", "127.0.0.1")
+#: weight chunks below this waste per-message overhead; above it they stall the data plane
+MIN_CHUNK_BYTES = 4096
+MAX_CHUNK_BYTES = 64 << 20
+#: Topology fields the loader fills in; a file may not set them
+LOADER_OWNED = frozenset({"source"})
+
+_TAG = "tag:yaml.org,2002:"
+_NONE_TYPE = type(None)
+#: plain scalars like ``3e-4`` are strings to YAML 1.1 but numbers to everyone writing them
+_EXPONENT_FLOAT_RE = re.compile(r"[-+]?(?:\d[\d_]*\.?[\d_]*|\.\d[\d_]*)[eE][-+]?\d+")
+
+
+# --------------------------------------------------------------------------------------------
+# problems
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One thing wrong with a topology file."""
+
+    #: file the problem is in
+    source: str
+    #: 1-based line (0: no line applies, e.g. the file cannot be read)
+    line: int
+    #: dotted key path, e.g. ``racks[1].nodes[2].roles[0].role`` ("" for the whole document)
+    path: str
+    #: what is wrong: the bad value and what was expected
+    message: str
+
+    def __str__(self) -> str:
+        where = f"{self.source}:{self.line}" if self.line > 0 else self.source
+        return f"{where}: {self.path or '<root>'}: {self.message}"
+
+
+class TopologyError(ValueError):
+    """A topology file is invalid; ``problems`` lists everything wrong with it, in line order."""
+
+    def __init__(self, problems: list[Problem]) -> None:
+        self.problems = list(problems)
+        super().__init__("\n".join(str(p) for p in self.problems))
+
+
+class _Invalid:
+    """Marks a value that could not be read (its problem is already reported)."""
+
+    __slots__ = ()
+
+    def __repr__(self) -> str:
+        return "<invalid>"
+
+
+INVALID: Any = _Invalid()
+
+
+class _Context:
+    """Problems found so far and the line of every key path seen."""
+
+    def __init__(self, source: str) -> None:
+        self.source = source
+        self.problems: list[Problem] = []
+        self.lines: dict[str, int] = {"": 1}
+        self._constructor = yaml.constructor.SafeConstructor()
+
+    def report(self, path: str, message: str, line: int | None = None) -> None:
+        if line is None:
+            line = self.line_of(path)
+        self.problems.append(Problem(self.source, line, path, message))
+
+    def line_of(self, path: str) -> int:
+        """Line of ``path``, or of its nearest ancestor present in the file (absent keys)."""
+        while path not in self.lines:
+            path = _parent(path)
+        return self.lines[path]
+
+    def construct(self, node: Node, path: str) -> Any:
+        """Python value of a node, by YAML's own rules (tags, ints, floats, bools)."""
+        try:
+            return self._constructor.construct_object(node, deep=True)
+        except yaml.YAMLError as err:
+            self.report(path, f"cannot read value: {_yaml_reason(err)}", _line(node))
+            return INVALID
+
+
+def _line(node: Node) -> int:
+    return node.start_mark.line + 1
+
+
+def _join(path: str, key: str) -> str:
+    return f"{path}.{key}" if path else key
+
+
+def _parent(path: str) -> str:
+    cut = max(path.rfind("."), path.rfind("["))
+    return path[:cut] if cut > 0 else ""
+
+
+def _leaf(path: str) -> str:
+    """Last key name of a path (``racks[0].nodes[1].host`` -> ``host``)."""
+    return re.sub(r"\[\d+\]$", "", path.rsplit(".", 1)[-1])
+
+
+def _yaml_reason(err: yaml.YAMLError) -> str:
+    """The parser's complaint, saying where the construct it was inside began."""
+    if not isinstance(err, yaml.MarkedYAMLError):
+        return str(err).splitlines()[0] if str(err) else type(err).__name__
+    reason = err.problem or str(err)
+    if err.context:
+        where = err.context_mark
+        started = f" started at line {where.line + 1}" if where and where is not err.problem_mark else ""
+        reason += f" ({err.context}{started})"
+    return reason
+
+
+def _unknown_value(what: str, value: str, options: typing.Sequence[str]) -> str:
+    """``unknown role 'x' (expected a, b)``, with a suggestion when one is close."""
+    close = difflib.get_close_matches(value, list(options), n=1)
+    hint = f"did you mean {close[0]!r}? " if close else ""
+    return f"unknown {what} {value!r} ({hint}expected {', '.join(options)})"
+
+
+# --------------------------------------------------------------------------------------------
+# schema introspection
+
+
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def _yaml_fields(cls: type) -> dict[str, dataclasses.Field]:
+    """Fields a file may set, in declaration order."""
+    skip = LOADER_OWNED if cls is Topology else frozenset()
+    return {f.name: f for f in dataclasses.fields(cls) if f.name not in skip}
+
+
+def _unwrap_optional(hint: Any) -> tuple[Any, bool]:
+    """``X | None`` -> (X, True); anything else -> (hint, False)."""
+    if typing.get_origin(hint) not in (Union, types.UnionType):
+        return hint, False
+    rest = [a for a in typing.get_args(hint) if a is not _NONE_TYPE]
+    if len(rest) != 1:
+        raise TypeError(f"unsupported union in the topology schema: {hint!r}")
+    return rest[0], True
+
+
+def _describe_hint(hint: Any) -> str:
+    """What a value of this type looks like, for "expected ..." messages."""
+    inner, nullable = _unwrap_optional(hint)
+    origin = typing.get_origin(inner)
+    if inner is bool:
+        text = "true or false"
+    elif inner is int:
+        text = "an integer"
+    elif inner is float:
+        text = "a number"
+    elif inner is str:
+        text = "a string"
+    elif origin is Literal:
+        text = "one of " + ", ".join(str(a) for a in typing.get_args(inner))
+    elif origin is tuple:
+        text = f"a list (of {_describe_hint(typing.get_args(inner)[0])})"
+    elif origin is dict or dataclasses.is_dataclass(inner):
+        text = "a mapping"
+    else:
+        text = "a value"
+    return f"{text} or null" if nullable else text
+
+
+def _describe_node(node: Node) -> str:
+    """What the file actually holds, quoting the text as written."""
+    if isinstance(node, SequenceNode):
+        return "a list"
+    if isinstance(node, MappingNode):
+        return "a mapping"
+    kinds = {
+        "null": "null",
+        "bool": "boolean",
+        "int": "integer",
+        "float": "number",
+        "str": "string",
+        "timestamp": "date",
+    }
+    kind = kinds.get(node.tag.removeprefix(_TAG), node.tag)
+    if kind == "null":
+        return "null"
+    if kind == "string":
+        return f"string {node.value!r}"
+    return f"{kind} {node.value}"
+
+
+def _is_null(node: Node) -> bool:
+    return isinstance(node, ScalarNode) and node.tag == _TAG + "null"
+
+
+# --------------------------------------------------------------------------------------------
+# YAML nodes -> partially validated values
+
+
+@dataclass
+class _Partial:
+    """A dataclass mapping as read so far: the keys present (or defaulted) and their values.
+
+    Semantic checks run on partials rather than on built dataclasses so that one bad field does
+    not hide problems elsewhere in the same object.
+    """
+
+    cls: type
+    path: str
+    values: dict[str, Any]
+    #: False when a required key is missing
+    complete: bool = True
+
+    def get(self, name: str) -> Any:
+        """The value of a field: as read, else its default, else INVALID."""
+        if name in self.values:
+            return self.values[name]
+        f = {f.name: f for f in dataclasses.fields(self.cls)}[name]
+        if f.default is not dataclasses.MISSING:
+            return f.default
+        if f.default_factory is not dataclasses.MISSING:
+            return f.default_factory()
+        return INVALID
+
+    def where(self, name: str) -> str:
+        return _join(self.path, name)
+
+
+def _mismatch(node: Node, hint: Any, path: str, ctx: _Context, advice: str = "") -> Any:
+    ctx.report(path, f"expected {_describe_hint(hint)}, got {_describe_node(node)}{advice}", _line(node))
+    return INVALID
+
+
+def _convert(node: Node, hint: Any, path: str, ctx: _Context) -> Any:
+    """Read ``node`` as a value of type ``hint``; report problems and return INVALID on failure."""
+    inner, nullable = _unwrap_optional(hint)
+    if nullable and _is_null(node):
+        return None
+    origin = typing.get_origin(inner)
+    if inner is Any:
+        return ctx.construct(node, path)
+    if dataclasses.is_dataclass(inner):
+        return _convert_dataclass(node, hint, inner, path, ctx)
+    if origin is tuple:
+        return _convert_tuple(node, hint, inner, path, ctx)
+    if origin is dict:
+        return _convert_dict(node, hint, inner, path, ctx)
+    if origin is Literal:
+        return _convert_literal(node, hint, inner, path, ctx)
+    if inner in (bool, int, float, str):
+        return _convert_scalar(node, hint, inner, path, ctx)
+    raise TypeError(f"unsupported type in the topology schema at {path}: {hint!r}")
+
+
+def _convert_scalar(node: Node, hint: Any, kind: type, path: str, ctx: _Context) -> Any:
+    if not isinstance(node, ScalarNode):
+        return _mismatch(node, hint, path, ctx)
+    value = ctx.construct(node, path)
+    if value is INVALID:
+        return INVALID
+    # type(...) is, not isinstance: YAML true/false must not pass as the integers 1/0
+    if type(value) is kind:
+        return value
+    if kind is float and type(value) is int:
+        return float(value)
+    written_as_exponent = node.style is None and isinstance(value, str) and _EXPONENT_FLOAT_RE.fullmatch(value)
+    if kind is float and written_as_exponent:
+        return float(value.replace("_", ""))
+    advice = ""
+    if kind is int and written_as_exponent and float(value.replace("_", "")).is_integer():
+        advice = f" (write integers out in full: {int(float(value.replace('_', '')))})"
+    elif kind is str and value is not None:
+        advice = " (quote it to make it a string)"
+    return _mismatch(node, hint, path, ctx, advice)
+
+
+def _convert_literal(node: Node, hint: Any, inner: Any, path: str, ctx: _Context) -> Any:
+    options = typing.get_args(inner)
+    if not isinstance(node, ScalarNode):
+        return _mismatch(node, hint, path, ctx)
+    value = ctx.construct(node, path)
+    if value is INVALID:
+        return INVALID
+    if any(type(value) is type(o) and value == o for o in options):
+        return value
+    if isinstance(value, str):
+        ctx.report(path, _unknown_value(_leaf(path), value, [str(o) for o in options]), _line(node))
+        return INVALID
+    return _mismatch(node, hint, path, ctx)
+
+
+def _convert_tuple(node: Node, hint: Any, inner: Any, path: str, ctx: _Context) -> Any:
+    args = typing.get_args(inner)
+    if len(args) != 2 or args[1] is not Ellipsis:
+        raise TypeError(f"only tuple[T, ...] is supported in the topology schema, got {inner!r}")
+    if not isinstance(node, SequenceNode):
+        return _mismatch(node, hint, path, ctx)
+    items = []
+    for i, item in enumerate(node.value):
+        item_path = f"{path}[{i}]"
+        ctx.lines[item_path] = _line(item)
+        items.append(_convert(item, args[0], item_path, ctx))
+    return tuple(items)
+
+
+def _entries(node: MappingNode, path: str, ctx: _Context) -> Iterator[tuple[str, int, Node]]:
+    """(key, key line, value node) of a mapping; non-string and repeated keys are reported.
+
+    YAML merge keys (``<<: *defaults``) are honoured, so racks of similar nodes can share one
+    anchored definition; keys written in the mapping itself win over merged ones.
+    """
+    first_seen: dict[str, int] = {}
+    merged: list[tuple[str, int, Node]] = []
+    for key_node, value_node in node.value:
+        key_line = _line(key_node)
+        if key_node.tag == _TAG + "merge":
+            merged.extend(_merged_entries(value_node, path, ctx))
+            continue
+        if not (isinstance(key_node, ScalarNode) and key_node.tag == _TAG + "str"):
+            ctx.report(path, f"keys must be strings, got {_describe_node(key_node)}", key_line)
+            continue
+        key = key_node.value
+        if key in first_seen:
+            ctx.report(_join(path, key), f"duplicate key {key!r} (first at line {first_seen[key]})", key_line)
+            continue
+        first_seen[key] = key_line
+        yield key, key_line, value_node
+    for key, key_line, value_node in merged:
+        if key not in first_seen:
+            first_seen[key] = key_line
+            yield key, key_line, value_node
+
+
+def _merged_entries(source: Node, path: str, ctx: _Context) -> list[tuple[str, int, Node]]:
+    """Entries a ``<<`` key brings in: from a mapping, or from a list of them (earlier wins)."""
+    sources = source.value if isinstance(source, SequenceNode) else [source]
+    entries: list[tuple[str, int, Node]] = []
+    for mapping in sources:
+        if not isinstance(mapping, MappingNode):
+            message = f"'<<' expects a mapping or a list of mappings, got {_describe_node(mapping)}"
+            ctx.report(path, message, _line(mapping))
+            continue
+        entries.extend(_entries(mapping, path, ctx))
+    return entries
+
+
+def _convert_dict(node: Node, hint: Any, inner: Any, path: str, ctx: _Context) -> Any:
+    key_type, value_type = typing.get_args(inner)
+    if key_type is not str:
+        raise TypeError(f"only dict[str, ...] is supported in the topology schema, got {inner!r}")
+    if not isinstance(node, MappingNode):
+        return _mismatch(node, hint, path, ctx)
+    out = {}
+    for key, key_line, value_node in _entries(node, path, ctx):
+        ctx.lines[_join(path, key)] = key_line
+        out[key] = _convert(value_node, value_type, _join(path, key), ctx)
+    return INVALID if any(v is INVALID for v in out.values()) else out
+
+
+def _unknown_key(key: str, accepted: typing.Iterable[str]) -> str:
+    options = list(accepted)
+    # two suggestions: typos often sit between two fields ('hostname': 'host' or 'name'?)
+    close = difflib.get_close_matches(key, options, n=2)
+    if close:
+        return f"unknown key {key!r} (did you mean {' or '.join(repr(c) for c in close)}?)"
+    return f"unknown key {key!r} (expected one of: {', '.join(options)})"
+
+
+def _convert_dataclass(node: Node, hint: Any, cls: type, path: str, ctx: _Context) -> Any:
+    if not isinstance(node, MappingNode):
+        return _mismatch(node, hint, path, ctx)
+    accepted = _yaml_fields(cls)
+    partial = _Partial(cls, path, {})
+    for key, key_line, value_node in _entries(node, path, ctx):
+        if key not in accepted:
+            ctx.report(_join(path, key), _unknown_key(key, accepted), key_line)
+            continue
+        ctx.lines[_join(path, key)] = key_line
+        partial.values[key] = _convert(value_node, _hints(cls)[key], _join(path, key), ctx)
+    _fill_absent(partial, accepted, ctx)
+    return partial
+
+
+def _fill_absent(partial: _Partial, accepted: dict[str, dataclasses.Field], ctx: _Context) -> None:
+    """Report missing required keys; expand absent nested dataclasses so they get checked too."""
+    for name, f in accepted.items():
+        if name in partial.values:
+            continue
+        if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            ctx.report(partial.where(name), f"missing required key {name!r}", ctx.line_of(partial.path))
+            partial.complete = False
+            continue
+        default = partial.get(name)
+        if dataclasses.is_dataclass(default):
+            partial.values[name] = _partial_of(default, partial.where(name))
+
+
+def _partial_of(value: Any, path: str) -> Any:
+    """A default dataclass instance as a partial (so defaults go through the same checks)."""
+    if dataclasses.is_dataclass(value):
+        fields = _yaml_fields(type(value))
+        return _Partial(type(value), path, {n: _partial_of(getattr(value, n), _join(path, n)) for n in fields})
+    if isinstance(value, tuple):
+        return tuple(_partial_of(v, f"{path}[{i}]") for i, v in enumerate(value))
+    return value
+
+
+# --------------------------------------------------------------------------------------------
+# partials -> frozen dataclasses
+
+
+def _build(value: Any, ctx: _Context) -> Any:
+    """Instantiate partials bottom-up; every subtree is built so each reports its own errors."""
+    if isinstance(value, _Partial):
+        kwargs = {name: _build(v, ctx) for name, v in value.values.items()}
+        if not value.complete or any(v is INVALID for v in kwargs.values()):
+            return INVALID
+        try:
+            return value.cls(**kwargs)
+        except ValueError as err:
+            ctx.report(_blamed_field(value, str(err)), str(err))
+            return INVALID
+    if isinstance(value, tuple):
+        items = tuple(_build(v, ctx) for v in value)
+        return INVALID if any(v is INVALID for v in items) else items
+    return value
+
+
+def _blamed_field(partial: _Partial, message: str) -> str:
+    """Path of the field a ``__post_init__`` message names first, else of the mapping itself."""
+    best: tuple[int, str] | None = None
+    for name in partial.values:
+        found = re.search(rf"\b{re.escape(name)}\b", message)
+        if found and (best is None or found.start() < best[0]):
+            best = (found.start(), name)
+    return partial.where(best[1]) if best else partial.path
+
+
+# --------------------------------------------------------------------------------------------
+# semantic checks
+
+
+@dataclass(frozen=True)
+class _Range:
+    """Allowed numeric range of a field."""
+
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+    note: str = ""
+
+    def contains(self, v: float) -> bool:
+        above = self.low is None or (v > self.low if self.low_open else v >= self.low)
+        below = self.high is None or (v < self.high if self.high_open else v <= self.high)
+        return above and below
+
+    def describe(self, name: str) -> str:
+        if self.low is not None and self.high is not None:
+            left, right = "(" if self.low_open else "[", ")" if self.high_open else "]"
+            text = f"{name} in {left}{self.low}, {self.high}{right}"
+        elif self.low is not None:
+            text = f"{name} {'>' if self.low_open else '>='} {self.low}"
+        else:
+            text = f"{name} {'<' if self.high_open else '<='} {self.high}"
+        return text + (f" {self.note}" if self.note else "")
+
+
+_AT_LEAST_1 = _Range(low=1)
+_AT_LEAST_0 = _Range(low=0)
+_POSITIVE = _Range(low=0, low_open=True)
+_FRACTION = _Range(low=0, high=1, low_open=True)
+
+#: numeric ranges, per schema class and field (None values are skipped: None means "off")
+_RANGES: dict[type, dict[str, _Range]] = {
+    Topology: {"base_port": _Range(low=1024, high=65000)},
+    TaskConfig: {"envs_per_rollout": _AT_LEAST_1, "chunk_steps": _AT_LEAST_1, "max_episode_steps": _AT_LEAST_1},
+    PPOConfig: {
+        "gae_lambda": _Range(low=0, high=1),
+        "lr": _POSITIVE,
+        "clip": _POSITIVE,
+        "update_epochs": _AT_LEAST_1,
+        "minibatches": _AT_LEAST_1,
+        "batch_steps": _AT_LEAST_1,
+        "ent_coef": _AT_LEAST_0,
+        "vf_coef": _AT_LEAST_0,
+        "max_grad_norm": _POSITIVE,
+        "target_kl": _POSITIVE,
+        "max_policy_lag": _AT_LEAST_0,
+    },
+    EvalConfig: {"episodes": _AT_LEAST_1, "every_versions": _AT_LEAST_1, "seed_offset": _AT_LEAST_0},
+    BudgetConfig: {
+        "max_env_steps": _AT_LEAST_1,
+        "until_success": _FRACTION,
+        "consecutive": _AT_LEAST_1,
+        "max_wall_s": _POSITIVE,
+    },
+    ReplicationConfig: {
+        "topk_fraction": _FRACTION,
+        "snapshot_every": _AT_LEAST_1,
+        "fanout": _AT_LEAST_1,
+        "chunk_bytes": _Range(low=MIN_CHUNK_BYTES, high=MAX_CHUNK_BYTES, note="(4 KiB to 64 MiB)"),
+    },
+    LinkConfig: {"node_gbit": _POSITIVE, "rack_uplink_gbit": _POSITIVE},
+    RolePlacement: {"count": _AT_LEAST_1},
+}
+
+
+def _is_number(v: Any) -> bool:
+    return type(v) in (int, float)
+
+
+def _check_ranges(p: _Partial, ctx: _Context) -> None:
+    for name, allowed in _RANGES.get(p.cls, {}).items():
+        v = p.get(name)
+        # NaN fails every comparison, so it is reported as out of range as well
+        if _is_number(v) and not allowed.contains(v):
+            ctx.report(p.where(name), f"{v!r} is out of range (expected {allowed.describe(name)})")
+
+
+def _check_run_id(p: _Partial, ctx: _Context) -> None:
+    run = p.get("run")
+    if isinstance(run, str) and not RUN_ID_RE.fullmatch(run):
+        ctx.report(
+            p.where("run"),
+            f"invalid run id {run!r} (expected 1 to 40 of a-z, 0-9, '_', '-', starting with a letter or digit)",
+        )
+
+
+def _placed_nodes(topo: _Partial) -> tuple[list[_Partial], bool]:
+    """Every readable node, and whether every rack and node could be read."""
+    racks = topo.get("racks")
+    if not isinstance(racks, tuple):
+        return [], False
+    nodes: list[_Partial] = []
+    complete = True
+    for rack in racks:
+        rack_nodes = rack.get("nodes") if isinstance(rack, _Partial) else INVALID
+        if not isinstance(rack_nodes, tuple):
+            complete = False
+            continue
+        for node in rack_nodes:
+            if isinstance(node, _Partial):
+                nodes.append(node)
+            else:
+                complete = False
+    return nodes, complete
+
+
+def _check_unique_names(items: typing.Iterable[Any], what: str, ctx: _Context) -> None:
+    first_line: dict[str, int] = {}
+    for item in items:
+        name = item.get("name") if isinstance(item, _Partial) else INVALID
+        if not isinstance(name, str):
+            continue
+        if name in first_line:
+            ctx.report(item.where("name"), f"duplicate {what} name {name!r} (first at line {first_line[name]})")
+        else:
+            first_line[name] = ctx.line_of(item.where("name"))
+
+
+def _check_names(p: _Partial, ctx: _Context) -> None:
+    racks = p.get("racks")
+    if isinstance(racks, tuple):
+        _check_unique_names(racks, "rack", ctx)
+    # node names are unique across racks: process names and keys are derived from them
+    _check_unique_names(_placed_nodes(p)[0], "node", ctx)
+
+
+def _check_has_racks(p: _Partial, ctx: _Context) -> None:
+    if p.get("racks") == ():
+        ctx.report(p.where("racks"), "no racks (expected at least one rack with an actor and a rollout)")
+
+
+def _check_required_roles(p: _Partial, ctx: _Context) -> None:
+    nodes, complete = _placed_nodes(p)
+    kinds: set[str] = set()
+    for node in nodes:
+        roles = node.get("roles")
+        if not isinstance(roles, tuple):
+            complete = False
+            continue
+        for placement in roles:
+            kind = placement.get("role") if isinstance(placement, _Partial) else INVALID
+            if isinstance(kind, str):
+                kinds.add(kind)
+            else:
+                complete = False
+    # an unreadable role might have been the actor: only claim absence when everything was read;
+    # an empty topology is reported once, by the rack and node checks
+    if not complete or not nodes:
+        return
+    for required in ("actor", "rollout"):
+        if required not in kinds:
+            ctx.report(p.where("racks"), f"no {required} placed (expected at least one node with role {required})")
+
+
+def _check_netns_hosts(p: _Partial, ctx: _Context) -> None:
+    if p.get("emulate") != "netns":
+        return
+    for node in _placed_nodes(p)[0]:
+        host = node.get("host")
+        if isinstance(host, str) and host not in LOCAL_HOSTS:
+            ctx.report(
+                node.where("host"),
+                f"remote host {host!r} with emulate: netns (netns emulation runs every node on this machine;"
+                f" expected {' or '.join(LOCAL_HOSTS)})",
+            )
+
+
+def _check_env(p: _Partial, ctx: _Context) -> None:
+    env = p.get("env")
+    if isinstance(env, str) and not env.strip():
+        ctx.report(p.where("env"), "empty env (expected an env id like 'PushCube-v1' or 'module:function')")
+
+
+def _check_stop_condition(p: _Partial, ctx: _Context) -> None:
+    limits = ("max_env_steps", "until_success", "max_wall_s")
+    values = [p.get(name) for name in limits]
+    if all(v is None for v in values):
+        ctx.report(p.path, f"no stop condition (expected at least one of {', '.join(limits)} to be set)")
+
+
+def _check_encoding(p: _Partial, ctx: _Context) -> None:
+    encoding = p.get("encoding")
+    if isinstance(encoding, str) and encoding not in ENCODINGS:
+        ctx.report(p.where("encoding"), _unknown_value("encoding", encoding, ENCODINGS))
+
+
+def _check_rack_nodes(p: _Partial, ctx: _Context) -> None:
+    if p.get("nodes") == ():
+        ctx.report(p.where("nodes"), "rack has no nodes (expected at least one node)")
+
+
+def _check_addresses(p: _Partial, ctx: _Context) -> None:
+    host, address = p.get("host"), p.get("address")
+    if isinstance(host, str) and not host.strip():
+        ctx.report(p.where("host"), "empty host (expected a host name; localhost for this machine)")
+    if isinstance(address, str) and not address.strip():
+        ctx.report(p.where("address"), "empty address (expected an IP address, or null to derive it)")
+
+
+def _check_node_roles(p: _Partial, ctx: _Context) -> None:
+    roles = p.get("roles")
+    if roles == ():
+        ctx.report(p.where("roles"), f"node has no roles (expected at least one of {', '.join(ROLE_KINDS)})")
+        return
+    if not isinstance(roles, tuple):
+        return
+    # a replicator is the node's single entry point of the weight tree; two would split it
+    replicators = 0
+    for placement in roles:
+        if not (isinstance(placement, _Partial) and placement.get("role") == "replicator"):
+            continue
+        count = placement.get("count")
+        replicators += count if type(count) is int else 1
+        if replicators > 1:
+            ctx.report(placement.path, f"at most one replicator per node, this node places {replicators}")
+            return
+
+
+def _check_cpus(p: _Partial, ctx: _Context) -> None:
+    cpus = p.get("cpus")
+    if not isinstance(cpus, tuple):
+        return
+    if not cpus:
+        ctx.report(p.where("cpus"), "empty cpu list (expected at least one core index, or null for no pinning)")
+    first_index: dict[int, int] = {}
+    for i, cpu in enumerate(cpus):
+        path = f"{p.where('cpus')}[{i}]"
+        if type(cpu) is not int:
+            continue
+        if cpu < 0:
+            ctx.report(path, f"negative cpu index {cpu} (expected >= 0)")
+        elif cpu in first_index:
+            ctx.report(path, f"duplicate cpu {cpu} (already listed at cpus[{first_index[cpu]}])")
+        else:
+            first_index[cpu] = i
+
+
+_CHECKS: dict[type, list[Callable[[_Partial, _Context], None]]] = {
+    Topology: [_check_run_id, _check_has_racks, _check_names, _check_required_roles, _check_netns_hosts],
+    TaskConfig: [_check_env],
+    BudgetConfig: [_check_stop_condition],
+    ReplicationConfig: [_check_encoding],
+    RackConfig: [_check_rack_nodes],
+    NodeConfig: [_check_addresses, _check_node_roles, _check_cpus],
+}
+
+
+def _check_tree(value: Any, ctx: _Context) -> None:
+    if isinstance(value, _Partial):
+        _check_ranges(value, ctx)
+        for check in _CHECKS.get(value.cls, ()):
+            check(value, ctx)
+        for child in value.values.values():
+            _check_tree(child, ctx)
+    elif isinstance(value, tuple):
+        for child in value:
+            _check_tree(child, ctx)
+
+
+def _resolve_secret_file(topo: _Partial, base_dir: str, ctx: _Context) -> None:
+    """Make ``secret_file`` absolute (relative to the topology file) and require it to exist."""
+    secret = topo.get("secret_file")
+    if not isinstance(secret, str):
+        return
+    if not secret.strip():
+        ctx.report(topo.where("secret_file"), "empty secret_file (expected a path, or null for a per-run secret)")
+        return
+    resolved = os.path.abspath(os.path.join(base_dir, os.path.expanduser(secret)))
+    topo.values["secret_file"] = resolved
+    if not os.path.isfile(resolved):
+        ctx.report(topo.where("secret_file"), f"secret file not found: {resolved}")
+
+
+def _base_dir(source: str) -> str:
+    """Directory relative paths in a file are resolved against ("<memory>": the working dir)."""
+    if source.startswith("<"):
+        return os.getcwd()
+    return os.path.dirname(os.path.abspath(source))
+
+
+# --------------------------------------------------------------------------------------------
+# entry points
+
+
+def _compose(text: str, ctx: _Context) -> Node | None:
+    try:
+        return yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.MarkedYAMLError as err:
+        mark = err.problem_mark or err.context_mark
+        ctx.report("<yaml>", f"invalid YAML: {_yaml_reason(err)}", mark.line + 1 if mark else 1)
+    except yaml.YAMLError as err:
+        ctx.report("<yaml>", f"invalid YAML: {_yaml_reason(err)}", 1)
+    return None
+
+
+def parse_topology(text: str, source: str = "<memory>") -> Topology:
+    """Parse and validate topology YAML ``text`` read from ``source`` (used in messages).
+
+    Relative paths in the file (``secret_file``) are resolved against the directory of
+    ``source``. Raises :class:`TopologyError` listing every problem found.
+    """
+    ctx = _Context(source)
+    root_node = _compose(text, ctx)
+    topo: Any = INVALID
+    if root_node is None and not ctx.problems:
+        ctx.report("", "empty topology (expected a mapping with at least 'run' and 'racks')")
+    elif root_node is not None:
+        ctx.lines[""] = _line(root_node)
+        root = _convert(root_node, Topology, "", ctx)
+        if isinstance(root, _Partial):
+            _resolve_secret_file(root, _base_dir(source), ctx)
+            _check_tree(root, ctx)
+            root.values["source"] = source
+            topo = _build(root, ctx)
+    if ctx.problems:
+        raise TopologyError(sorted(ctx.problems, key=lambda p: p.line))
+    if not isinstance(topo, Topology):
+        raise RuntimeError(f"{source}: topology could not be built but no problem was reported")
+    return topo
+
+
+def load_topology(path: str | os.PathLike[str]) -> Topology:
+    """Read and validate the topology file at ``path``; see :func:`parse_topology`."""
+    source = os.fspath(path)
+    try:
+        with open(source, encoding="utf-8") as f:
+            text = f.read()
+    except (OSError, UnicodeDecodeError) as err:
+        raise TopologyError([Problem(source, 0, "", f"cannot read topology file: {err}")]) from err
+    return parse_topology(text, source)
+
+
+def _plain(value: Any) -> Any:
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {name: _plain(getattr(value, name)) for name in _yaml_fields(type(value))}
+    if isinstance(value, (tuple, list)):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    return value
+
+
+def topology_to_dict(topo: Topology) -> dict[str, Any]:
+    """The topology as plain dicts, lists and scalars, every default filled in.
+
+    ``source`` is left out: it is not part of a file, the loader sets it.
+    """
+    return _plain(topo)
+
+
+def dump_topology_yaml(topo: Topology) -> str:
+    """YAML that :func:`parse_topology` reads back to an equal topology (given the same source)."""
+    origin = " ".join(topo.source.split())
+    header = f"# resolved topology of run {topo.run}, read from {origin}; every default filled in\n"
+    body = yaml.safe_dump(topology_to_dict(topo), sort_keys=False, default_flow_style=False, allow_unicode=True)
+    return header + body

@@ -1,0 +1,63 @@
+"""Rendering of collected status: a table for people, JSON for programs. Collection happens
+elsewhere (monitor.py, status command); nothing here talks to the network."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from typing import Any
+
+from ..fabric.messages import RoleStatus
+
+
+def status_dict(s: RoleStatus) -> dict[str, Any]:
+    d = dataclasses.asdict(s)
+    d["policy_lag"] = policy_lag(s)
+    return d
+
+
+def policy_lag(s: RoleStatus, latest: int | None = None) -> int | None:
+    if s.kind not in ("rollout", "evaluator") or latest is None:
+        return None
+    return max(0, latest - s.policy_version)
+
+
+def render_json(statuses: dict[str, RoleStatus], extra: dict[str, Any] | None = None) -> str:
+    latest = latest_version(statuses)
+    roles = []
+    for name in sorted(statuses):
+        d = dataclasses.asdict(statuses[name])
+        d["policy_lag"] = policy_lag(statuses[name], latest)
+        roles.append(d)
+    return json.dumps({"roles": roles, **(extra or {})}, indent=1, sort_keys=True, default=str)
+
+
+def latest_version(statuses: dict[str, RoleStatus]) -> int:
+    return max((int(s.extra.get("published_version", s.policy_version)) for s in statuses.values() if s.kind == "actor"), default=0)
+
+
+def _lanes(s: RoleStatus) -> str:
+    parts = []
+    for lane, st in s.lanes.items():
+        util = st.get("utilisation", st.get("utilization", 0.0))
+        parts.append(f"{lane} {100 * float(util):.0f}%")
+    return " ".join(parts)
+
+
+def render_table(statuses: dict[str, RoleStatus], expected: list[str] | None = None) -> str:
+    latest = latest_version(statuses)
+    header = ["ROLE", "NODE", "RACK", "STATE", "VERSION", "LAG", "STEPS", "STEPS/S", "LANES (busy)"]
+    rows = []
+    names = sorted(set(statuses) | set(expected or []))
+    for name in names:
+        s = statuses.get(name)
+        if s is None:
+            rows.append([name, "-", "-", "silent", "-", "-", "-", "-", ""])
+            continue
+        lag = policy_lag(s, latest)
+        version = s.extra.get("published_version", s.policy_version) if s.kind == "actor" else s.policy_version
+        rows.append([name, s.node, s.rack, s.state, str(version), "-" if lag is None else str(lag),
+                     str(s.env_steps), f"{s.steps_per_s:.0f}", _lanes(s)])
+    widths = [max(len(r[i]) for r in [header] + rows) for i in range(len(header))]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in [header] + rows]
+    return "\n".join(lines)

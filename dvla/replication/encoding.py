@@ -1,0 +1,666 @@
+"""Versioned weight encodings with error feedback, chunking and verified decoding.
+
+This module owns the replication wire format of policy weights (see docs/replication.md):
+
+* :class:`WeightEncoder` (actor side) turns successive flat parameter vectors into versions
+  encoded as ``full``, ``delta-bf16`` or ``delta-topk``. It keeps ``published``, the exact
+  float32 vector every replica holds after applying the versions so far; each delta is measured
+  against ``published`` (error feedback), so quantisation and sparsification errors never
+  accumulate.
+* :class:`WeightDecoder` (relay and rollout side) applies versions into a staging buffer,
+  verifies the result bit for bit against the manifest checksum, and swaps it in by reference.
+* :class:`ChunkAssembler` reassembles a payload from chunks arriving in any order, so relays can
+  forward each chunk as it arrives while also assembling a verified copy.
+* :class:`Manifest`, :class:`EncodedVersion` and :class:`Snapshot` are the plain-data records
+  exchanged between them; :func:`checksum` is the digest they carry.
+
+Everything here is pure computation on numpy buffers: no I/O, no threads. Payload bytes are
+little-endian, as are the hosts the framework runs on.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple, Union
+
+import numpy as np
+
+from dvla.config import ENCODINGS, ReplicationConfig
+from dvla.replication.layout import LayoutMismatch, ParamLayout, ReplicationError
+
+BytesLike = Union[bytes, bytearray, memoryview]
+
+MANIFEST_FIELDS = ("version", "base_version", "encoding", "layout_hash", "checksum", "n_chunks", "total_bytes")
+"""Fields of a manifest, in wire order."""
+
+_U16 = np.dtype("<u2")
+_U32 = np.dtype("<u4")
+_F32 = np.dtype("<f4")
+
+
+# --------------------------------------------------------------------------------------------
+# Errors
+
+
+class CorruptPayload(ReplicationError):
+    """A payload or manifest is malformed (wrong sizes, out-of-range indices, bad fields)."""
+
+
+class ChecksumMismatch(CorruptPayload):
+    """The decoded parameters do not hash to the manifest checksum; nothing was applied."""
+
+
+class NeedSnapshot(ReplicationError):
+    """A delta cannot be applied because this replica does not hold its base version.
+
+    The holder should fetch a snapshot (a full version) from its parent and resume from it.
+    """
+
+    def __init__(self, have: int, base: int, version: int) -> None:
+        self.have = have
+        self.base = base
+        self.version = version
+        super().__init__(f"delta to version {version} needs base {base}, replica holds {have}")
+
+
+class StaleVersion(ReplicationError):
+    """A version not newer than the one already held arrived (duplicate or late delivery)."""
+
+
+# --------------------------------------------------------------------------------------------
+# Checksums, bfloat16 and chunk arithmetic
+
+
+def checksum(flat: np.ndarray) -> str:
+    """Hex digest (blake2b, 16 bytes) of the exact bytes of a C-contiguous array, without copying."""
+    if not flat.flags.c_contiguous:
+        raise ValueError("checksum needs a C-contiguous array")
+    return hashlib.blake2b(memoryview(flat).cast("B"), digest_size=16).hexdigest()
+
+
+def _all_finite(x: np.ndarray) -> bool:
+    # Two allocation-free reductions: max propagates NaN and exposes +inf, min exposes -inf.
+    return bool(np.isfinite(x.max()) and np.isfinite(x.min()))
+
+
+def bf16_round_bits(x: np.ndarray, out: np.ndarray | None = None, scratch: np.ndarray | None = None) -> np.ndarray:
+    """Round float32 ``x`` to bfloat16 (round to nearest, ties to even) and return the uint16 bits.
+
+    Works on the float32 bit pattern: adding ``0x7FFF`` plus the lowest kept bit before
+    truncating to the upper 16 bits is exact round-to-nearest-even for normals, subnormals and
+    overflow (which rounds to infinity, as IEEE requires). Infinities map to infinities; NaNs map
+    to the quiet bfloat16 NaN with their sign (the bit trick alone could turn a NaN into an
+    infinity). ``out`` (uint16) and ``scratch`` (uint32), both of ``x``'s size, avoid allocation.
+    """
+    bits = x.view(np.uint32)
+    s = np.empty(x.shape, dtype=np.uint32) if scratch is None else scratch
+    out = np.empty(x.shape, dtype=np.uint16) if out is None else out
+    np.right_shift(bits, 16, out=s)
+    np.bitwise_and(s, 1, out=s)
+    np.add(s, 0x7FFF, out=s)
+    np.add(s, bits, out=s)  # wraps only for NaN patterns, which are fixed below
+    np.right_shift(s, 16, out=s)
+    np.copyto(out, s, casting="unsafe")  # every value is < 2**16 after the shift
+    if not _all_finite(x):
+        nan = np.isnan(x)
+        out[nan] = ((bits[nan] >> 16) & 0x8000) | 0x7FC0
+    return out
+
+
+def bf16_to_float32(q: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Exact float32 values of bfloat16 bits ``q`` (the bits become the upper half)."""
+    out = np.empty(q.shape, dtype=np.float32) if out is None else out
+    wide = out.view(np.uint32)
+    np.copyto(wide, q, casting="safe")
+    np.left_shift(wide, 16, out=wide)
+    return out
+
+
+def chunk_count(total_bytes: int, chunk_bytes: int) -> int:
+    """Number of chunks a payload of ``total_bytes`` is split into at ``chunk_bytes`` per chunk."""
+    return max(1, -(-total_bytes // chunk_bytes))
+
+
+def chunk_span(index: int, n_chunks: int, total_bytes: int) -> tuple[int, int]:
+    """(start, stop) byte range of chunk ``index``.
+
+    Chunks are even: all hold ``ceil(total_bytes / n_chunks)`` bytes except a shorter last one,
+    so a receiver derives every offset from the manifest's (n_chunks, total_bytes) alone.
+    """
+    size = -(-total_bytes // n_chunks)
+    start = index * size
+    return start, min(total_bytes, start + size)
+
+
+def _spans_valid(n_chunks: int, total_bytes: int) -> bool:
+    # With even chunks, the last chunk must still hold at least one byte.
+    return 1 <= n_chunks <= total_bytes and (n_chunks - 1) * -(-total_bytes // n_chunks) < total_bytes
+
+
+def split_chunks(payload: BytesLike, chunk_bytes: int) -> list[memoryview]:
+    """Zero-copy split of ``payload`` into even chunks of at most ``chunk_bytes`` bytes."""
+    if chunk_bytes < 1:
+        raise ValueError(f"chunk_bytes must be >= 1, got {chunk_bytes}")
+    view = memoryview(payload).cast("B")
+    n = chunk_count(view.nbytes, chunk_bytes)
+    return [view[slice(*chunk_span(i, n, view.nbytes))] for i in range(n)]
+
+
+# --------------------------------------------------------------------------------------------
+# Records
+
+
+@dataclass(frozen=True)
+class Manifest:
+    """Header of one weight version: everything a receiver needs besides the payload bytes."""
+
+    #: version number (1, 2, 3, ...); strictly increasing per actor
+    version: int
+    #: version a delta applies to (always ``version - 1``); -1 for a full version
+    base_version: int
+    #: "full", "delta-bf16" or "delta-topk"
+    encoding: str
+    #: ``ParamLayout.hash`` of the sender
+    layout_hash: str
+    #: :func:`checksum` of the flat parameters after applying this version
+    checksum: str
+    #: number of payload chunks
+    n_chunks: int
+    #: payload size in bytes
+    total_bytes: int
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-data form for the wire (the payload travels separately, as chunks)."""
+        return {name: getattr(self, name) for name in MANIFEST_FIELDS}
+
+    def manifest(self) -> "Manifest":
+        """The bare manifest (drops the payload of an :class:`EncodedVersion`)."""
+        return Manifest(**self.to_dict())
+
+    @staticmethod
+    def from_dict(raw: Mapping[str, Any]) -> "Manifest":
+        """Parse a received manifest; wrong or missing fields raise :class:`CorruptPayload`."""
+        values = {}
+        for name in MANIFEST_FIELDS:
+            if name not in raw:
+                raise CorruptPayload(f"manifest lacks {name!r}")
+            value = raw[name]
+            want = str if name in ("encoding", "layout_hash", "checksum") else int
+            # bool is an int subclass; a True version is a malformed manifest, not version 1.
+            if not isinstance(value, want) or isinstance(value, bool):
+                raise CorruptPayload(f"manifest field {name!r} must be {want.__name__}, got {value!r}")
+            values[name] = value
+        return Manifest(**values)
+
+
+@dataclass(frozen=True)
+class EncodedVersion(Manifest):
+    """A manifest plus its payload, split into chunks.
+
+    The chunks are zero-copy slices of ``payload``, which lives in the encoder's buffers: they
+    stay valid until the next ``encode()`` call (copy them with ``bytes(chunk)`` to keep them
+    longer). Payloads of :meth:`Snapshot.encode` are immutable and never go stale.
+    """
+
+    #: the whole payload
+    payload: memoryview = field(repr=False, compare=False)
+    #: ``payload`` split into even chunks of at most ``chunk_bytes`` bytes
+    chunks: list[memoryview] = field(repr=False, compare=False)
+
+
+class Snapshot(NamedTuple):
+    """A full copy of the replicated parameters at one version, for catch-up."""
+
+    #: the version held
+    version: int
+    #: raw float32 bytes of the flat parameters
+    payload: bytes
+    #: :func:`checksum` of those bytes
+    checksum: str
+
+    def encode(self, layout_hash: str, chunk_bytes: int) -> EncodedVersion:
+        """This snapshot as a ``full`` version ready to send (chunks view the immutable bytes)."""
+        return _encoded(self.version, -1, "full", layout_hash, self.checksum, memoryview(self.payload), chunk_bytes)
+
+
+def _encoded(
+    version: int, base: int, encoding: str, layout_hash: str, digest: str, payload: memoryview, chunk_bytes: int
+) -> EncodedVersion:
+    chunks = split_chunks(payload, chunk_bytes)
+    return EncodedVersion(
+        version=version,
+        base_version=base,
+        encoding=encoding,
+        layout_hash=layout_hash,
+        checksum=digest,
+        n_chunks=len(chunks),
+        total_bytes=payload.nbytes,
+        payload=payload,
+        chunks=chunks,
+    )
+
+
+def _as_manifest(m: Manifest | Mapping[str, Any]) -> Manifest:
+    if isinstance(m, Manifest):
+        return m
+    if isinstance(m, Mapping):
+        return Manifest.from_dict(m)
+    raise CorruptPayload(f"expected a manifest, got {type(m).__name__}")
+
+
+# --------------------------------------------------------------------------------------------
+# Arithmetic shared by encoder and decoder. Replicas match the encoder bit for bit because both
+# sides run exactly these float32 operations on exactly the same inputs.
+
+
+def _apply_bf16(base: np.ndarray, q: np.ndarray, out: np.ndarray) -> None:
+    """out = base + float32(q); ``out`` must not alias ``base``."""
+    bf16_to_float32(q, out=out)
+    np.add(base, out, out=out)
+
+
+def _topk_new_values(base: np.ndarray, idx: np.ndarray, vals: np.ndarray) -> np.ndarray:
+    """base[idx] + vals, in float32."""
+    return np.add(base[idx], vals)
+
+
+def topk_count(numel: int, fraction: float) -> int:
+    """Entries sent per delta-topk version: ceil(fraction * numel), at least 1."""
+    return min(numel, max(1, math.ceil(fraction * numel)))
+
+
+# --------------------------------------------------------------------------------------------
+# Encoder
+
+
+class WeightEncoder:
+    """Actor side: encodes successive parameter vectors as versions, with error feedback.
+
+    ``published`` is what every replica holds after the versions encoded so far. Each delta is
+    ``true - published`` at encoding time, so whatever a version fails to transmit (bfloat16
+    rounding, entries outside the top-k) stays in the next delta instead of being lost.
+
+    A version is sent ``full`` when it is the first one, every ``snapshot_every`` versions
+    (versions 1, 1 + snapshot_every, ...), when ``encode(..., full=True)`` asks for it, when a
+    delta would not be smaller than a full payload (delta-topk with ``topk_fraction >= 0.5``),
+    and when the delta or its result is not finite (NaN/inf in the parameters, or a delta
+    overflowing bfloat16). Full versions copy the parameters exactly, NaNs included, so a
+    non-finite state is replicated faithfully and cleared by the next finite one.
+    """
+
+    def __init__(
+        self,
+        layout: ParamLayout,
+        encoding: str = "full",
+        topk_fraction: float = 0.05,
+        snapshot_every: int = 10,
+        chunk_bytes: int = 1 << 20,
+        *,
+        start_version: int = 0,
+    ) -> None:
+        if encoding not in ENCODINGS:
+            raise ValueError(f"encoding must be one of {ENCODINGS}, got {encoding!r}")
+        if not 0.0 < topk_fraction <= 1.0:
+            raise ValueError(f"topk_fraction must be in (0, 1], got {topk_fraction!r}")
+        if snapshot_every < 1:
+            raise ValueError(f"snapshot_every must be >= 1, got {snapshot_every!r}")
+        if chunk_bytes < 1:
+            raise ValueError(f"chunk_bytes must be >= 1, got {chunk_bytes!r}")
+        if not 0 < layout.numel < 2**32:
+            # Indices travel as uint32; an empty layout has nothing to replicate.
+            raise ValueError(f"layout must hold between 1 and 2**32 - 1 elements, has {layout.numel}")
+        if start_version < 0:
+            raise ValueError(f"start_version must be >= 0, got {start_version!r}")
+        self.layout = layout
+        self.encoding = encoding
+        self.topk_fraction = topk_fraction
+        self.snapshot_every = snapshot_every
+        self.chunk_bytes = chunk_bytes
+        #: last version encoded (0 before the first encode, or ``start_version`` when resuming)
+        self.version = start_version
+        self._fresh = True
+        self._checksum = ""
+        n = layout.numel
+        self._pub = np.zeros(n, dtype=np.float32)
+        # Buffers an encoding does not use are left empty rather than sized for the layout.
+        delta_n = n if encoding != "full" else 0
+        # Second buffer: bf16 computes the candidate result here and swaps it in only once it
+        # is known to be finite; topk uses it as |delta| scratch.
+        self._next = np.zeros(delta_n, dtype=np.float32)
+        self._delta = np.zeros(delta_n, dtype=np.float32)
+        self._bf16 = np.zeros(n if encoding == "delta-bf16" else 0, dtype=_U16)
+        self._k = topk_count(n, topk_fraction)
+        self._topk = np.zeros(2 * self._k if encoding == "delta-topk" else 0, dtype=_U32)
+
+    @classmethod
+    def from_config(cls, layout: ParamLayout, cfg: ReplicationConfig, *, start_version: int = 0) -> "WeightEncoder":
+        """An encoder with the settings of a :class:`ReplicationConfig`."""
+        return cls(
+            layout,
+            cfg.encoding,
+            topk_fraction=cfg.topk_fraction,
+            snapshot_every=cfg.snapshot_every,
+            chunk_bytes=cfg.chunk_bytes,
+            start_version=start_version,
+        )
+
+    @property
+    def published(self) -> np.ndarray:
+        """The flat parameters every up-to-date replica holds (read-only by contract).
+
+        The array object may change at each ``encode()``: read the property again afterwards.
+        """
+        return self._pub
+
+    @property
+    def checksum(self) -> str:
+        """:func:`checksum` of ``published``."""
+        return self._checksum
+
+    def _wants_full(self, version: int) -> bool:
+        if self.encoding == "full" or self._fresh:
+            return True
+        if (version - 1) % self.snapshot_every == 0:
+            return True
+        # A top-k payload (8 bytes per entry) at least as large as a full one buys nothing.
+        return self.encoding == "delta-topk" and 2 * self._k >= self.layout.numel
+
+    def encode(self, true_flat: np.ndarray, *, full: bool = False) -> EncodedVersion:
+        """Encode the next version from the current true parameters (flat float32)."""
+        if not isinstance(true_flat, np.ndarray) or true_flat.dtype != np.float32 or true_flat.shape != (self.layout.numel,):
+            raise LayoutMismatch(f"expected a float32 vector of {self.layout.numel} elements")
+        version = self.version + 1
+        payload = None
+        encoding = "full"
+        if not (full or self._wants_full(version)):
+            payload = self._encode_bf16(true_flat) if self.encoding == "delta-bf16" else self._encode_topk(true_flat)
+            encoding = self.encoding
+        if payload is None:
+            encoding = "full"
+            np.copyto(self._pub, true_flat)
+            payload = memoryview(self._pub).cast("B")
+        self.version = version
+        self._fresh = False
+        self._checksum = checksum(self._pub)
+        base = -1 if encoding == "full" else version - 1
+        return _encoded(version, base, encoding, self.layout.hash, self._checksum, payload, self.chunk_bytes)
+
+    def _encode_bf16(self, true_flat: np.ndarray) -> memoryview | None:
+        d = self._delta
+        np.subtract(true_flat, self._pub, out=d)
+        if not _all_finite(d):
+            return None
+        bf16_round_bits(d, out=self._bf16, scratch=self._next.view(np.uint32))
+        _apply_bf16(self._pub, self._bf16, out=self._next)
+        if not _all_finite(self._next):
+            return None
+        self._pub, self._next = self._next, self._pub
+        return memoryview(self._bf16).cast("B")
+
+    def _encode_topk(self, true_flat: np.ndarray) -> memoryview | None:
+        d = self._delta
+        np.subtract(true_flat, self._pub, out=d)
+        if not _all_finite(d):
+            return None
+        n, k = self.layout.numel, self._k
+        magnitude = np.abs(d, out=self._next)
+        chosen = np.argpartition(magnitude, n - k)[n - k :]
+        chosen.sort()  # ascending indices: cache-friendly scatter, and a cheap validity check
+        idx = self._topk[:k]
+        vals = self._topk[k:].view(_F32)
+        np.copyto(idx, chosen, casting="unsafe")  # < numel < 2**32
+        np.take(d, idx, out=vals)
+        new = _topk_new_values(self._pub, idx, vals)
+        if not _all_finite(new):
+            return None
+        self._pub[idx] = new
+        return memoryview(self._topk).cast("B")
+
+    def snapshot(self) -> Snapshot:
+        """(version, raw bytes, checksum) of ``published``, for serving catch-up."""
+        if self._fresh:
+            raise ReplicationError("nothing encoded yet")
+        return Snapshot(self.version, self._pub.tobytes(), self._checksum)
+
+
+# --------------------------------------------------------------------------------------------
+# Decoder
+
+
+class WeightDecoder:
+    """Relay/rollout side: applies versions into a staging buffer, verifies, swaps by reference.
+
+    Two preallocated buffers form a dual pool: ``active`` (what the replica uses) and staging
+    (where the next version is computed). :meth:`apply` decodes into staging and checks the
+    checksum; a failed version leaves ``active`` untouched. :meth:`swap` then makes staging
+    active by swapping references, so a reader of ``active`` sees either the old or the new
+    vector, never a mix. Calling :meth:`apply` while a verified result is still pending promotes
+    it first (two buffers hold at most one pending version).
+    """
+
+    def __init__(self, layout: ParamLayout) -> None:
+        if layout.numel < 1:
+            raise ValueError("layout holds no elements")
+        self.layout = layout
+        self._bufs = (np.zeros(layout.numel, dtype=np.float32), np.zeros(layout.numel, dtype=np.float32))
+        self._cur = 0
+        #: version held in ``active`` (0: none yet)
+        self.version = 0
+        self._checksum = ""
+        self._pending: tuple[int, str] | None = None
+
+    @property
+    def active(self) -> np.ndarray:
+        """Flat parameters of ``version`` (zeros before the first version)."""
+        return self._bufs[self._cur]
+
+    @property
+    def staging(self) -> np.ndarray:
+        """The other buffer of the pool: the pending result, or scratch."""
+        return self._bufs[1 - self._cur]
+
+    @property
+    def ready(self) -> bool:
+        """Whether ``active`` holds a verified version."""
+        return self.version > 0
+
+    @property
+    def checksum(self) -> str:
+        """:func:`checksum` of ``active`` ("" before the first version)."""
+        return self._checksum
+
+    @property
+    def pending_version(self) -> int | None:
+        """Version verified in staging and not yet swapped in, if any."""
+        return None if self._pending is None else self._pending[0]
+
+    @property
+    def latest_version(self) -> int:
+        """Newest verified version held (pending or active)."""
+        return self.version if self._pending is None else self._pending[0]
+
+    def reset(self) -> None:
+        """Forget everything held (e.g. when the actor restarts its version numbering)."""
+        self.version, self._checksum, self._pending = 0, "", None
+
+    def swap(self) -> np.ndarray:
+        """Make the pending version active (reference swap) and return ``active``.
+
+        A no-op when nothing is pending.
+        """
+        if self._pending is not None:
+            # Rebind the index before publishing the version: a reader never sees a version
+            # number paired with the other buffer's contents for longer than this one line.
+            self._cur = 1 - self._cur
+            self.version, self._checksum = self._pending
+            self._pending = None
+        return self.active
+
+    def apply(self, manifest: Manifest | Mapping[str, Any], payload: BytesLike, *, swap: bool = False) -> np.ndarray:
+        """Decode one version into staging, verify it, and return the staging buffer.
+
+        Raises :class:`LayoutMismatch` (sender's layout differs), :class:`CorruptPayload`
+        (malformed manifest or payload), :class:`StaleVersion` (not newer than what is held),
+        :class:`NeedSnapshot` (a delta whose base is not the held version) or
+        :class:`ChecksumMismatch` (result differs from the sender's). On any error ``active``
+        is unchanged and nothing is pending. With ``swap=True`` the result is swapped in.
+        """
+        m = _as_manifest(manifest)
+        view = memoryview(payload).cast("B")
+        self._check(m, view.nbytes)
+        self.swap()  # promote a pending result: it is the base of this version
+        if m.version <= self.version:
+            raise StaleVersion(f"version {m.version} is not newer than held version {self.version}")
+        if m.encoding != "full" and (not self.ready or m.base_version != self.version):
+            raise NeedSnapshot(have=self.version, base=m.base_version, version=m.version)
+        staging = self.staging
+        self._decode_into(m, view, staging)
+        digest = checksum(staging)
+        if digest != m.checksum:
+            raise ChecksumMismatch(f"version {m.version}: decoded checksum {digest} != manifest {m.checksum}")
+        self._pending = (m.version, digest)
+        return self.swap() if swap else staging
+
+    def load_snapshot(self, snap: Snapshot) -> np.ndarray:
+        """Apply a locally obtained :class:`Snapshot` (verified) and swap it in."""
+        enc = snap.encode(self.layout.hash, max(1, len(snap.payload)))
+        return self.apply(enc, enc.payload, swap=True)
+
+    def snapshot(self) -> Snapshot:
+        """(version, raw bytes, checksum) of the newest verified version held."""
+        if self._pending is not None:
+            version, digest = self._pending
+            return Snapshot(version, self.staging.tobytes(), digest)
+        if not self.ready:
+            raise ReplicationError("no version held yet")
+        return Snapshot(self.version, self.active.tobytes(), self._checksum)
+
+    def _check(self, m: Manifest, nbytes: int) -> None:
+        if m.layout_hash != self.layout.hash:
+            raise LayoutMismatch(f"sender layout {m.layout_hash} != local layout {self.layout.hash}")
+        if m.encoding not in ENCODINGS:
+            raise CorruptPayload(f"unknown encoding {m.encoding!r}")
+        if m.version < 1:
+            raise CorruptPayload(f"version must be >= 1, got {m.version}")
+        want_base = -1 if m.encoding == "full" else m.version - 1
+        if m.base_version != want_base:
+            raise CorruptPayload(f"{m.encoding} version {m.version} must have base {want_base}, got {m.base_version}")
+        if nbytes != m.total_bytes or not _spans_valid(m.n_chunks, m.total_bytes):
+            raise CorruptPayload(f"payload of {nbytes} bytes does not match manifest ({m.n_chunks}, {m.total_bytes})")
+        n = self.layout.numel
+        if m.encoding == "full" and nbytes != 4 * n:
+            raise CorruptPayload(f"full payload must be {4 * n} bytes, got {nbytes}")
+        if m.encoding == "delta-bf16" and nbytes != 2 * n:
+            raise CorruptPayload(f"delta-bf16 payload must be {2 * n} bytes, got {nbytes}")
+        if m.encoding == "delta-topk" and (nbytes % 8 or nbytes > 4 * n):
+            # Encoders never send a top-k payload larger than a full one.
+            raise CorruptPayload(f"delta-topk payload of {nbytes} bytes is not 8*k with 8*k <= {4 * n}")
+
+    def _decode_into(self, m: Manifest, view: memoryview, staging: np.ndarray) -> None:
+        n = self.layout.numel
+        if m.encoding == "full":
+            np.copyto(staging, np.frombuffer(view, dtype=_F32, count=n))
+        elif m.encoding == "delta-bf16":
+            _apply_bf16(self.active, np.frombuffer(view, dtype=_U16, count=n), out=staging)
+        else:
+            k = view.nbytes // 8
+            idx = np.frombuffer(view, dtype=_U32, count=k)
+            vals = np.frombuffer(view, dtype=_F32, count=k, offset=4 * k)
+            # Strictly increasing indices are what encoders send; this also rules out
+            # duplicates, whose scatter order would otherwise be ambiguous.
+            if idx[-1] >= n or (k > 1 and not bool(np.all(idx[1:] > idx[:-1]))):
+                raise CorruptPayload("delta-topk indices out of range or not strictly increasing")
+            np.copyto(staging, self.active)
+            staging[idx] = _topk_new_values(self.active, idx, vals)
+
+
+# --------------------------------------------------------------------------------------------
+# Chunk assembly
+
+
+class ChunkAssembler:
+    """Reassembles one payload from chunks arriving in any order, into a reusable buffer.
+
+    :meth:`add` returns True only for a chunk seen for the first time, which is exactly when a
+    relay should forward it to its children; duplicates are ignored. The buffer holds
+    ``max_bytes`` (use ``layout.nbytes``: no encoding produces more) and is reused across
+    versions through :meth:`reset`.
+    """
+
+    def __init__(self, n_chunks: int, total_bytes: int, max_bytes: int) -> None:
+        if max_bytes < 1:
+            raise ValueError(f"max_bytes must be >= 1, got {max_bytes}")
+        self.max_bytes = max_bytes
+        self._buf = bytearray(max_bytes)
+        self._view = memoryview(self._buf)
+        self.n_chunks = 0
+        self.total_bytes = 0
+        self._have = bytearray()
+        self._received = 0
+        self.reset(n_chunks, total_bytes)
+
+    @classmethod
+    def for_manifest(cls, m: Manifest, max_bytes: int) -> "ChunkAssembler":
+        """An assembler sized for ``max_bytes`` and expecting the payload of ``m``."""
+        return cls(m.n_chunks, m.total_bytes, max_bytes)
+
+    def reset(self, n_chunks: int, total_bytes: int) -> None:
+        """Start assembling a new payload (the buffer is reused, not reallocated)."""
+        if isinstance(n_chunks, bool) or isinstance(total_bytes, bool):
+            raise ReplicationError("n_chunks and total_bytes must be integers")
+        if not 1 <= total_bytes <= self.max_bytes:
+            raise ReplicationError(f"total_bytes {total_bytes} outside [1, {self.max_bytes}]")
+        if not _spans_valid(n_chunks, total_bytes):
+            raise ReplicationError(f"{n_chunks} chunks cannot split {total_bytes} bytes")
+        self.n_chunks = n_chunks
+        self.total_bytes = total_bytes
+        self._have = bytearray(n_chunks)
+        self._received = 0
+
+    @property
+    def complete(self) -> bool:
+        """Whether every chunk has arrived."""
+        return self._received == self.n_chunks
+
+    @property
+    def received(self) -> int:
+        """Number of distinct chunks received."""
+        return self._received
+
+    def missing(self) -> list[int]:
+        """Indices of chunks not received yet (for repair requests)."""
+        return [i for i in range(self.n_chunks) if not self._have[i]]
+
+    def add(self, index: int, data: BytesLike) -> bool:
+        """Store chunk ``index``; True if it was new, False for a duplicate.
+
+        An index out of range or a chunk whose size differs from its span raises
+        :class:`ReplicationError`.
+        """
+        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < self.n_chunks:
+            raise ReplicationError(f"chunk index {index!r} outside [0, {self.n_chunks})")
+        if self._have[index]:
+            return False
+        start, stop = chunk_span(index, self.n_chunks, self.total_bytes)
+        src = memoryview(data).cast("B")
+        if src.nbytes != stop - start:
+            raise ReplicationError(f"chunk {index} has {src.nbytes} bytes, expected {stop - start}")
+        self._view[start:stop] = src
+        self._have[index] = 1
+        self._received += 1
+        return True
+
+    def chunk(self, index: int) -> memoryview:
+        """The stored bytes of a received chunk (valid until :meth:`reset`)."""
+        if not (isinstance(index, int) and 0 <= index < self.n_chunks and self._have[index]):
+            raise ReplicationError(f"chunk {index!r} not held")
+        return self._view[slice(*chunk_span(index, self.n_chunks, self.total_bytes))]
+
+    def payload(self) -> memoryview:
+        """The assembled payload (valid until :meth:`reset`); raises if chunks are missing."""
+        if not self.complete:
+            raise ReplicationError(f"payload incomplete: {self._received}/{self.n_chunks} chunks")
+        return self._view[: self.total_bytes]

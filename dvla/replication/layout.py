@@ -1,0 +1,198 @@
+"""Parameter layout: the map between a torch state_dict and one flat float32 vector.
+
+This module owns :class:`ParamLayout` (which tensors are replicated, in which order, with which
+shapes and dtypes, and a stable digest of all that), :func:`flatten` and :func:`unflatten_into`,
+plus the root of the replication error hierarchy (:class:`ReplicationError`,
+:class:`LayoutMismatch`).
+
+Only floating-point tensors are replicated. Integer and boolean buffers (for example BatchNorm's
+``num_batches_tracked`` counter) are ignored: they are bookkeeping of the learner, not part of the
+policy function, and replicating them would break the single-dtype flat vector. Floating buffers
+(running means and variances) are carried like parameters.
+
+Every floating tensor is carried as float32 in the flat vector whatever its own dtype; float16
+and bfloat16 tensors convert exactly to float32 and back, float64 tensors are rounded.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Union
+
+import numpy as np
+import torch
+
+StateDictLike = Union[torch.nn.Module, Mapping[str, torch.Tensor]]
+"""Anything the layout functions read tensors from: a module or a name -> tensor mapping."""
+
+
+class ReplicationError(Exception):
+    """Base class of every error raised by ``dvla.replication`` for bad input or state."""
+
+
+class LayoutMismatch(ReplicationError):
+    """Two sides disagree on which tensors are replicated or on their shapes/dtypes."""
+
+
+@dataclass(frozen=True)
+class ParamLayout:
+    """Ordered names, shapes and dtypes of the replicated (floating) tensors of a model.
+
+    The order is the state_dict order, which torch keeps deterministic for a given module
+    definition, so the actor and every rollout building the same policy class agree on it.
+    """
+
+    #: tensor names, in flat-vector order
+    names: tuple[str, ...]
+    #: tensor shapes, parallel to ``names``
+    shapes: tuple[tuple[int, ...], ...]
+    #: torch dtype names (e.g. "float32"), parallel to ``names``
+    dtypes: tuple[str, ...]
+    #: start offset (in elements) of each tensor in the flat vector; derived
+    offsets: tuple[int, ...] = field(init=False, repr=False, compare=False)
+    #: total number of elements; derived
+    numel: int = field(init=False, compare=False)
+    #: hex digest of names, shapes and dtypes; derived
+    hash: str = field(init=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if not (len(self.names) == len(self.shapes) == len(self.dtypes)):
+            raise ValueError("names, shapes and dtypes must have the same length")
+        if len(set(self.names)) != len(self.names):
+            raise ValueError("tensor names must be unique")
+        offsets, total = [], 0
+        for shape in self.shapes:
+            offsets.append(total)
+            total += math.prod(shape)
+        # Frozen dataclass: derived fields are set once here and never change afterwards.
+        object.__setattr__(self, "offsets", tuple(offsets))
+        object.__setattr__(self, "numel", total)
+        object.__setattr__(self, "hash", _layout_digest(self.names, self.shapes, self.dtypes))
+
+    @staticmethod
+    def from_state_dict(sd: StateDictLike) -> "ParamLayout":
+        """The layout of the floating tensors of ``sd`` (a module or a state_dict)."""
+        names, shapes, dtypes = [], [], []
+        for name, tensor in _state_dict(sd).items():
+            if not torch.is_floating_point(tensor):
+                continue
+            names.append(name)
+            shapes.append(tuple(int(s) for s in tensor.shape))
+            dtypes.append(_dtype_name(tensor.dtype))
+        return ParamLayout(names=tuple(names), shapes=tuple(shapes), dtypes=tuple(dtypes))
+
+    @property
+    def nbytes(self) -> int:
+        """Size in bytes of the flat float32 vector (also the size of a full payload)."""
+        return 4 * self.numel
+
+    def span(self, i: int) -> tuple[int, int]:
+        """(start, stop) element offsets of tensor ``i`` in the flat vector."""
+        start = self.offsets[i]
+        return start, start + math.prod(self.shapes[i])
+
+    def empty(self) -> np.ndarray:
+        """A new zeroed flat float32 vector of this layout."""
+        return np.zeros(self.numel, dtype=np.float32)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-data form (JSON/msgpack friendly) for sending a layout to a peer."""
+        return {"names": list(self.names), "shapes": [list(s) for s in self.shapes], "dtypes": list(self.dtypes)}
+
+    @staticmethod
+    def from_dict(raw: Mapping[str, Any]) -> "ParamLayout":
+        """Inverse of :meth:`to_dict`; malformed input raises :class:`LayoutMismatch`."""
+        try:
+            names = tuple(str(n) for n in raw["names"])
+            shapes = tuple(tuple(int(d) for d in s) for s in raw["shapes"])
+            dtypes = tuple(str(d) for d in raw["dtypes"])
+            if any(d < 0 for s in shapes for d in s):
+                raise ValueError("negative dimension")
+            return ParamLayout(names=names, shapes=shapes, dtypes=dtypes)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise LayoutMismatch(f"malformed layout description: {exc}") from exc
+
+
+def _layout_digest(names: tuple[str, ...], shapes: tuple[tuple[int, ...], ...], dtypes: tuple[str, ...]) -> str:
+    # Canonical JSON so the digest depends only on the content, never on Python's repr details.
+    text = json.dumps([[n, list(s), d] for n, s, d in zip(names, shapes, dtypes)], separators=(",", ":"))
+    return hashlib.blake2b(text.encode("utf-8"), digest_size=16).hexdigest()
+
+
+def _dtype_name(dtype: torch.dtype) -> str:
+    return str(dtype).removeprefix("torch.")
+
+
+def _state_dict(sd: StateDictLike) -> Mapping[str, torch.Tensor]:
+    # Module.state_dict() returns detached tensors that share storage with the parameters, so
+    # in-place copies into them update the module itself.
+    return sd.state_dict() if isinstance(sd, torch.nn.Module) else sd
+
+
+def _check_flat(flat: np.ndarray, layout: ParamLayout) -> None:
+    if not isinstance(flat, np.ndarray) or flat.dtype != np.float32 or flat.shape != (layout.numel,):
+        raise LayoutMismatch(
+            f"flat vector must be float32 of shape ({layout.numel},), got "
+            f"{getattr(flat, 'dtype', type(flat).__name__)} {getattr(flat, 'shape', '')}"
+        )
+    if not flat.flags.c_contiguous:
+        raise LayoutMismatch("flat vector must be C-contiguous")
+
+
+def _tensor_for(tensors: Mapping[str, torch.Tensor], layout: ParamLayout, i: int) -> torch.Tensor:
+    name = layout.names[i]
+    tensor = tensors.get(name)
+    if tensor is None:
+        raise LayoutMismatch(f"tensor {name!r} of the layout is missing")
+    if tuple(tensor.shape) != layout.shapes[i]:
+        raise LayoutMismatch(f"tensor {name!r} has shape {tuple(tensor.shape)}, layout says {layout.shapes[i]}")
+    return tensor
+
+
+def flatten(sd: StateDictLike, layout: ParamLayout, out: np.ndarray | None = None) -> np.ndarray:
+    """Copy the layout's tensors of ``sd`` into one flat float32 vector and return it.
+
+    With ``out`` (a C-contiguous float32 vector of ``layout.numel`` elements) nothing is
+    allocated: the tensors are copied straight into it (from any device, converting dtype).
+    """
+    if out is None:
+        out = layout.empty()
+    else:
+        _check_flat(out, layout)
+    tensors = _state_dict(sd)
+    # A torch view of the numpy buffer lets Tensor.copy_ do device transfer and dtype
+    # conversion in one pass, with no intermediate copy.
+    out_t = torch.from_numpy(out)
+    with torch.no_grad():
+        for i in range(len(layout.names)):
+            tensor = _tensor_for(tensors, layout, i)
+            start, stop = layout.span(i)
+            out_t[start:stop].view(layout.shapes[i]).copy_(tensor.detach())
+    return out
+
+
+def unflatten_into(flat: np.ndarray, model_or_state_dict: StateDictLike, layout: ParamLayout) -> None:
+    """Copy ``flat`` into the existing tensors of a module or state_dict, in place.
+
+    No tensor storage is allocated: each slice of ``flat`` is viewed as a tensor
+    (``torch.from_numpy``) and copied into the target with ``Tensor.copy_``, which converts
+    dtype and moves to the target's device. Tensors outside the layout are left untouched.
+    """
+    _check_flat(flat, layout)
+    tensors = _state_dict(model_or_state_dict)
+    with warnings.catch_warnings():
+        if not flat.flags.writeable:
+            # A read-only source (e.g. np.frombuffer over bytes) is only read here; torch's
+            # warning about non-writable arrays does not apply.
+            warnings.simplefilter("ignore", UserWarning)
+        src = torch.from_numpy(flat)
+    with torch.no_grad():
+        for i in range(len(layout.names)):
+            tensor = _tensor_for(tensors, layout, i)
+            start, stop = layout.span(i)
+            tensor.copy_(src[start:stop].view(layout.shapes[i]))

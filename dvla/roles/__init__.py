@@ -1,0 +1,1 @@
+"""Role processes (rollout, actor, replicator) and the swimlane threading they share."""

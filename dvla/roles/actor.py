@@ -1,0 +1,265 @@
+"""Actor role: the learner. Consumes trajectory chunks, runs PPO, publishes weight versions.
+
+Lanes (and what flows between them):
+- ``ingest``:  data-plane inbox -> policy-lag filter -> a free slot of the preallocated pool.
+- ``batch``:   gathers slots until one learner batch is full, re-checks lag, stacks it.
+- ``learn``:   values and GAE with the current critic, PPO epochs, a new version.
+- ``publish``: encodes the version (full / delta with error feedback), signs and sends it to the
+               tree; serves snapshots; writes checkpoints. Overlaps the next ``learn``.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..config import RoleConfig, resolve_device
+from ..fabric import Fabric
+from ..fabric.fabric import DATA
+from ..fabric.messages import TrajectoryChunk, WeightChunk, WeightSnapshot
+from ..learn import PPOLearner, compute_gae, make_policy
+from ..learn.envs import probe_dims
+from ..replication import ParamLayout, WeightEncoder, flatten
+from .runtime import main
+from .slots import SlotPool
+from .swimlane import LaneContext, Swimlane
+
+log = logging.getLogger("dvla.actor")
+
+
+class Actor:
+    def __init__(self, cfg: RoleConfig, fabric: Fabric) -> None:
+        self.cfg = cfg
+        self.fabric = fabric
+        task = cfg.task
+        self.device = torch.device(resolve_device(task.device))
+        torch.manual_seed(cfg.seed)
+        self.obs_dim, self.act_dim = probe_dims(task)
+        self.policy = make_policy(task.policy, self.obs_dim, self.act_dim, **task.policy_kwargs).to(self.device)
+        self.learner = PPOLearner(self.policy, task.ppo, self.device)
+        self.layout = ParamLayout.from_state_dict(self.policy.state_dict())
+        rep = cfg.replication
+        self.encoder = WeightEncoder(
+            self.layout, rep.encoding, topk_fraction=rep.topk_fraction,
+            snapshot_every=rep.snapshot_every, chunk_bytes=rep.chunk_bytes,
+        )
+        n_group = max(1, task.envs_per_rollout - task.envs_per_rollout // 2)
+        chunks_per_batch = -(-task.ppo.batch_steps // (task.chunk_steps * max(1, task.envs_per_rollout // 2)))
+        self.slots = SlotPool(
+            n_slots=3 * chunks_per_batch + 8, T=task.chunk_steps, n_max=n_group,
+            obs_dim=self.obs_dim, act_dim=self.act_dim, pin=self.device.type == "cuda",
+        )
+        self.policy_version = 0
+        self.published_version = 0
+        self.env_steps = 0  # consumed by the learner
+        self.learn_stats: dict[str, float] = {}
+        self.lags: list[int] = []
+        self.bytes_published = 0
+        self._snapshot: bytes | None = None
+        self._snapshot_lock = threading.Lock()
+        self._flat = np.zeros(self.layout.numel, np.float32)  # reused for every version
+        self.ckpt_dir = Path(cfg.run_dir) / "checkpoints"
+
+    # -- wiring -------------------------------------------------------------------------------
+    def build(self, sl: Swimlane) -> None:
+        f, keys, ppo = self.fabric, self.fabric.keys, self.cfg.task.ppo
+        self.inbox = f.subscribe_traj(maxsize=64, expect=TrajectoryChunk)  # rollouts -> ingest
+        self.filled = sl.queue("filled", self.slots.n_slots)  # ingest -> batch: slot ids
+        self.batches = sl.queue("batches", 1)  # batch -> learn: one stacked batch
+        self.versions = sl.queue("versions", 2)  # learn -> publish: flat weights per version
+        f.serve(keys.snapshot(self.cfg.name), self._serve_snapshot)  # catch-up for children
+        self.max_lag = ppo.max_policy_lag
+        sl.lane("ingest", self._ingest)
+        sl.lane("batch", self._batch)
+        sl.lane("learn", self._learn)
+        sl.lane("publish", self._publish)
+        # Version 1: the initial weights, so rollouts can act before the first update.
+        self._snapshot_version(self.policy)
+
+    def _snapshot_version(self, module: torch.nn.Module) -> np.ndarray:
+        flat = np.empty(self.layout.numel, np.float32)
+        with torch.no_grad():
+            flatten(module.state_dict(), self.layout, out=flat)
+        self.versions.put(flat, threading.Event())
+        return flat
+
+    # -- lanes --------------------------------------------------------------------------------
+    def _ingest(self, ctx: LaneContext) -> None:
+        while ctx.running:
+            with ctx.waiting():
+                chunk = self.inbox.get(timeout=0.1)
+            if chunk is None:
+                continue
+            with ctx.busy():
+                lag = self.published_version - chunk.policy_version
+                if lag > self.max_lag:
+                    self.fabric.accounting.dropped(DATA, "stale", chunk.rollout)
+                    continue
+                slot = self.slots.acquire(ctx.stop)
+                if slot is None:
+                    return
+                err = self.slots.fill(slot, chunk)
+                if err is not None:
+                    self.slots.release(slot)
+                    self.fabric.accounting.rejected(DATA, "shape", chunk.rollout)
+                    log.warning("chunk %d from %s rejected: %s", chunk.seq, chunk.rollout, err)
+                    continue
+            self.filled.put(slot, ctx.stop, stats=ctx.stats)
+            ctx.count()
+        # Shutdown: chunks still arriving or queued are counted, never silently lost. Rollouts
+        # are stopped first, so a short quiet period catches their last chunks.
+        while (chunk := self.inbox.get(timeout=0.5)) is not None:
+            self.fabric.accounting.dropped(DATA, "shutdown", chunk.rollout)
+
+    def _batch(self, ctx: LaneContext) -> None:
+        target = self.cfg.task.ppo.batch_steps
+        held: list[int] = []
+        steps = 0
+        while ctx.running:
+            slot = self.filled.get(ctx.stop, stats=ctx.stats)
+            if slot is None:
+                break
+            with ctx.busy():
+                held.append(slot)
+                steps += self.slots.steps(slot)
+                if steps < target:
+                    continue
+                keep = []
+                for s in held:
+                    # Re-check lag: a chunk may have aged while waiting for its batch.
+                    if self.published_version - self.slots.version(s) > self.max_lag:
+                        self.fabric.accounting.dropped(DATA, "stale", self.slots.rollout(s))
+                        self.slots.release(s)
+                    else:
+                        keep.append(s)
+                held, steps = [], 0
+                if not keep:
+                    continue
+                batch = self.slots.stack(keep, self.device)
+                for s in keep:
+                    self.fabric.accounting.add(DATA, "consumed", self.slots.rollout(s))
+                    self.lags.append(self.published_version - self.slots.version(s))
+                    self.slots.release(s)
+                del self.lags[:-4096]
+            self.batches.put(batch, ctx.stop, stats=ctx.stats)
+            ctx.count()
+        while (slot := self.filled.get_nowait()) is not None:
+            held.append(slot)
+        for s in held:  # never-learned slots at shutdown are counted, not lost
+            self.fabric.accounting.dropped(DATA, "shutdown", self.slots.rollout(s))
+            self.slots.release(s)
+
+    def _learn(self, ctx: LaneContext) -> None:
+        ppo = self.cfg.task.ppo
+        while ctx.running:
+            batch = self.batches.get(ctx.stop, stats=ctx.stats)
+            if batch is None:
+                return
+            with ctx.busy():
+                t0 = time.perf_counter()
+                data = self._advantages(batch, ppo)
+                stats = self.learner.update(data)
+                self.env_steps += int(batch["steps"])
+                self.policy_version += 1
+                stats["learn_s"] = time.perf_counter() - t0
+                self.learn_stats = {k: float(v) for k, v in stats.items()}
+                flat = np.empty(self.layout.numel, np.float32)
+                with torch.no_grad():
+                    flatten(self.policy.state_dict(), self.layout, out=flat)
+            self.versions.put(flat, ctx.stop, stats=ctx.stats)
+            ctx.count()
+
+    def _advantages(self, b: dict[str, torch.Tensor], ppo: Any) -> dict[str, torch.Tensor]:
+        """Values of the current critic and GAE over [T, N] (N = envs of every slot stacked)."""
+        T, N = b["rewards"].shape
+        with torch.no_grad():
+            values = self.policy.value(b["obs"].reshape(T * N, -1)).reshape(T, N)
+            final_v = self.policy.value(b["final_obs"].reshape(T * N, -1)).reshape(T, N)
+            last_v = self.policy.value(b["next_obs"]).reshape(N)
+        ended = b["terminated"] | b["truncated"]
+        next_values = torch.empty_like(values)
+        next_values[:-1] = values[1:]
+        next_values[-1] = last_v
+        next_values = torch.where(ended, final_v, next_values)
+        adv, ret = compute_gae(
+            b["rewards"] * ppo.reward_scale, values, next_values, b["terminated"], ended, ppo.gamma, ppo.gae_lambda
+        )
+        return {
+            "obs": b["obs"].reshape(T * N, -1),
+            "actions": b["actions"].reshape(T * N, -1),
+            "logprobs": b["logprobs"].reshape(T * N),
+            "advantages": adv.reshape(T * N),
+            "returns": ret.reshape(T * N),
+            "values": values.reshape(T * N),
+        }
+
+    def _publish(self, ctx: LaneContext) -> None:
+        f, key = self.fabric, self.fabric.keys.weights(self.cfg.name)
+        every = 25
+        while ctx.running:
+            flat = self.versions.get(ctx.stop, stats=ctx.stats)
+            if flat is None:
+                return
+            with ctx.busy():
+                enc = self.encoder.encode(flat)
+                with self._snapshot_lock:
+                    self._snapshot = None  # rebuilt lazily on the next snapshot query
+                    self.published_version = enc.version
+                self.bytes_published += f.publish_ctrl(key, enc.manifest(self.cfg.name), weights=True)
+                for i, data in enumerate(enc.chunks):
+                    msg = WeightChunk(sender=self.cfg.name, version=enc.version, index=i, n_chunks=enc.n_chunks, data=bytes(data))
+                    self.bytes_published += f.publish_ctrl(key, msg, weights=True)
+                if enc.version % every == 0:
+                    self._checkpoint()
+            ctx.count()
+        self._checkpoint()
+
+    def _serve_snapshot(self, _req: Any) -> bytes | WeightSnapshot:
+        with self._snapshot_lock:
+            if self._snapshot is None:
+                version, payload, checksum = self.encoder.snapshot()
+                snap = WeightSnapshot(
+                    sender=self.cfg.name, version=version, layout_hash=self.layout.hash,
+                    checksum=checksum, data=bytes(payload), created_ns=time.time_ns(),
+                )
+                self._snapshot = self.fabric.sealed_reply(self.fabric.keys.snapshot(self.cfg.name), snap)
+            return self._snapshot
+
+    def _checkpoint(self) -> None:
+        from .checkpoint import save_checkpoint
+
+        try:
+            save_checkpoint(self.ckpt_dir, self.policy, self.learner, self.published_version, self.env_steps)
+        except OSError as err:
+            log.warning("checkpoint failed: %s", err)
+
+    # -- status -------------------------------------------------------------------------------
+    def status_extra(self) -> dict[str, Any]:
+        lags = sorted(self.lags[-1024:])
+        acct = self.fabric.accounting
+        return {
+            "published_version": self.published_version,
+            "inbox_depth": self.inbox.depth(),
+            "slots_free": self.slots.free_count(),
+            "slots_total": self.slots.n_slots,
+            "consumed_chunks": acct.get(DATA, "consumed"),
+            "dropped_stale": acct.get(DATA, "dropped.stale"),
+            "policy_lag_mean": float(np.mean(lags)) if lags else 0.0,
+            "policy_lag_p99": float(lags[min(len(lags) - 1, int(len(lags) * 0.99))]) if lags else 0.0,
+            "bytes_published": self.bytes_published,
+            "learn": self.learn_stats,
+        }
+
+    def close(self) -> None:
+        pass
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(Actor))

@@ -1,0 +1,119 @@
+"""Replicator role: a relay of the weight tree (one per rack, more where fan-out demands).
+
+Lanes (and what flows between them):
+- ``recv``:    weight messages from the parent (signature checked by the fabric); each one is
+               queued for forwarding at once (cut-through, chunk by chunk), then assembled and
+               verified (layout, base version, checksum) into the local dual pool.
+- ``forward``: re-signs each message under this replicator's key and sends it to the children.
+- ``serve``:   answers snapshot queries from the verified active pool (catch-up, repair), and
+               keeps the last verified version's snapshot ready.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from ..config import RoleConfig
+from ..fabric import Fabric
+from ..fabric.messages import WeightChunk, WeightManifest, WeightSnapshot
+from ..learn import make_policy
+from ..learn.envs import probe_dims
+from ..replication import ParamLayout, checksum
+from .runtime import main
+from .swimlane import LaneContext, Swimlane
+from .weightsync import WeightSync
+
+log = logging.getLogger("dvla.replicator")
+
+
+class Replicator:
+    def __init__(self, cfg: RoleConfig, fabric: Fabric) -> None:
+        self.cfg = cfg
+        self.fabric = fabric
+        obs_dim, act_dim = probe_dims(cfg.task)
+        policy = make_policy(cfg.task.policy, obs_dim, act_dim, **cfg.task.policy_kwargs)
+        self.layout = ParamLayout.from_state_dict(policy.state_dict())
+        self.policy_version = -1
+        self.env_steps = 0
+        self.forwarded = 0
+        self.bytes_forwarded = 0
+        self._snap_lock = threading.Lock()
+        self._snapshot: bytes | None = None
+        self._snap_version = -1
+        self._flat: np.ndarray | None = None
+
+    def build(self, sl: Swimlane) -> None:
+        f, keys = self.fabric, self.fabric.keys
+        self.outbox = sl.queue("forward", 256)  # recv -> forward: messages to re-sign and send
+        self.weights = WeightSync(  # parent -> recv (ancestors as fallback)
+            f, self.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version, on_message=self._cut_through
+        )
+        f.serve(keys.snapshot(self.cfg.name), self._serve_snapshot)  # children's catch-up
+        self._stop = sl.stop_event
+        sl.lane("recv", self._recv)
+        sl.lane("forward", self._forward)
+
+    def _cut_through(self, msg: Any) -> None:
+        if isinstance(msg, (WeightManifest, WeightChunk)):
+            self.outbox.put(msg, self._stop)
+
+    def _on_version(self, version: int, flat: np.ndarray) -> None:
+        with self._snap_lock:
+            self._flat = flat
+            self._snap_version = version
+            self._snapshot = None
+        self.policy_version = version
+
+    def _recv(self, ctx: LaneContext) -> None:
+        while ctx.running:
+            self.weights.step(ctx)
+
+    def _forward(self, ctx: LaneContext) -> None:
+        key = self.fabric.keys.weights(self.cfg.name)
+        while ctx.running:
+            msg = self.outbox.get(ctx.stop, stats=ctx.stats)
+            if msg is None:
+                return
+            with ctx.busy():
+                out = _with_sender(msg, self.cfg.name)
+                self.bytes_forwarded += self.fabric.publish_ctrl(key, out, weights=True)
+                self.forwarded += 1
+            ctx.count()
+
+    def _serve_snapshot(self, _req: Any) -> bytes | None:
+        with self._snap_lock:
+            if self._flat is None:
+                return None
+            if self._snapshot is None:
+                snap = WeightSnapshot(
+                    sender=self.cfg.name, version=self._snap_version, layout_hash=self.layout.hash,
+                    checksum=checksum(self._flat), data=self._flat.tobytes(), created_ns=time.time_ns(),
+                )
+                self._snapshot = self.fabric.sealed_reply(self.fabric.keys.snapshot(self.cfg.name), snap)
+            return self._snapshot
+
+    def status_extra(self) -> dict[str, Any]:
+        return {
+            "forwarded": self.forwarded,
+            "bytes_forwarded": self.bytes_forwarded,
+            "forward_depth": self.outbox.depth,
+            "weights": self.weights.status(),
+        }
+
+    def close(self) -> None:
+        pass
+
+
+def _with_sender(msg: Any, sender: str) -> Any:
+    import dataclasses
+
+    return dataclasses.replace(msg, sender=sender)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(Replicator))

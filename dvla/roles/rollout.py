@@ -1,0 +1,301 @@
+"""Rollout role: simulators plus a frozen inference copy of the policy; streams trajectory chunks.
+
+Lanes (and what flows between them):
+- ``sim``:   steps env group A while ``infer`` computes actions for group B (double-buffered
+             sampling); appends each transition to its group's chunk buffer.
+- ``infer``: policy forward for one group's observations; swaps in new weights between two
+             batches, never during one.
+- ``ship``:  encodes finished chunks and publishes them on the data plane.
+- ``sync``:  receives weight versions into the staging pool (see weightsync.py).
+
+In ``sync`` mode (the lock-step baseline) the sim lane stops after its share of one learner
+batch and waits for the next policy version before sampling again.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..config import RoleConfig
+from ..fabric import Fabric
+from ..fabric.messages import TrajectoryChunk
+from ..learn import EnvGroup, make_policy
+from ..replication import ParamLayout, unflatten_into
+from .runtime import main
+from .swimlane import LaneContext, Swimlane
+from .weightsync import WeightSync
+
+log = logging.getLogger("dvla.rollout")
+
+
+@dataclass
+class _Group:
+    """One env group and the chunk being filled for it."""
+
+    gid: int
+    envs: EnvGroup
+    obs: np.ndarray
+    t: int = 0
+    versions: list[int] = field(default_factory=list)
+    buf: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+class PolicyPool:
+    """Dual-pool weights: `active` serves inference, `staging` receives the next version.
+
+    The sync lane writes a verified version into `staging` and marks it pending; the infer lane
+    swaps the two references between batches. The sync lane waits for that swap before writing
+    again, so neither pool is ever written while it serves.
+    """
+
+    def __init__(self, make: Any) -> None:
+        self.active = make()
+        self.staging = make()
+        self.active_version = -1
+        self.layout = ParamLayout.from_state_dict(self.active.state_dict())
+        self._pending: int | None = None
+        self._cv = threading.Condition()
+        self.swaps = 0
+
+    def stage(self, version: int, flat: np.ndarray, stop: threading.Event) -> bool:
+        with self._cv:
+            while self._pending is not None and not stop.is_set():
+                self._cv.wait(0.05)
+            if stop.is_set():
+                return False
+        unflatten_into(flat, self.staging, self.layout)
+        with self._cv:
+            self._pending = version
+        return True
+
+    def maybe_swap(self) -> bool:
+        """Called by the infer lane between batches."""
+        if self._pending is None:
+            return False
+        with self._cv:
+            self.active, self.staging = self.staging, self.active
+            self.active_version = self._pending
+            self._pending = None
+            self.swaps += 1
+            self._cv.notify_all()
+        return True
+
+
+class Rollout:
+    """State of one rollout process; `build` declares its lanes and wiring."""
+
+    def __init__(self, cfg: RoleConfig, fabric: Fabric) -> None:
+        self.cfg = cfg
+        self.fabric = fabric
+        task = cfg.task
+        self.device = torch.device("cpu")  # inference of small policies stays on the host CPU
+        n = task.envs_per_rollout
+        n_a = max(1, n // 2) if n >= 2 else 1
+        sizes = [n_a, n - n_a] if n >= 2 else [n]
+        self.groups: list[_Group] = []
+        seed = cfg.seed * 10_000
+        for gid, size in enumerate(sizes):
+            envs = EnvGroup(task, size, seed + gid * 1000)
+            self.groups.append(_Group(gid, envs, envs.reset()))
+        g0 = self.groups[0].envs
+        self.obs_dim, self.act_dim = g0.obs_dim, g0.act_dim
+        self.pool = PolicyPool(lambda: make_policy(task.policy, self.obs_dim, self.act_dim, **task.policy_kwargs).eval())
+        self.T = task.chunk_steps
+        for g in self.groups:
+            g.buf = self._alloc(g.envs.n)
+        self.seq = 0
+        self.env_steps = 0
+        self.chunks_shipped = 0
+        self.bytes_shipped = 0
+        self.episodes = 0
+        self.successes = 0
+        self.infer_ms: list[float] = []
+        self.sync_mode = cfg.mode == "sync"
+        self._since_version = 0
+        self._ready = threading.Event()
+
+    @property
+    def policy_version(self) -> int:
+        return self.pool.active_version
+
+    def _alloc(self, n: int) -> dict[str, np.ndarray]:
+        T, D, A = self.T, self.obs_dim, self.act_dim
+        return {
+            "obs": np.zeros((T, n, D), np.float32),
+            "actions": np.zeros((T, n, A), np.float32),
+            "logprobs": np.zeros((T, n), np.float32),
+            "rewards": np.zeros((T, n), np.float32),
+            "terminated": np.zeros((T, n), bool),
+            "truncated": np.zeros((T, n), bool),
+            "success": np.zeros((T, n), bool),
+            "final_obs": np.zeros((T, n, D), np.float32),
+        }
+
+    # -- wiring -------------------------------------------------------------------------------
+    def build(self, sl: Swimlane) -> None:
+        self.to_infer = sl.queue("obs", len(self.groups))  # group ids whose obs await actions
+        self.to_sim = sl.queue("actions", len(self.groups))  # (group id, actions, logprobs)
+        self.to_ship = sl.queue("chunks", 8)  # finished TrajectoryChunks
+        self.weights = WeightSync(  # verified versions from the parent (ancestors as fallback)
+            self.fabric, self.pool.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version
+        )
+        sl.lane("sim", self._sim)
+        sl.lane("infer", self._infer)
+        sl.lane("ship", self._ship)
+        sl.lane("sync", self._sync)
+
+    def _on_version(self, version: int, flat: np.ndarray) -> None:
+        self.pool.stage(version, flat, self._stop)
+        self._ready.set()
+
+    # -- lanes --------------------------------------------------------------------------------
+    def _sync(self, ctx: LaneContext) -> None:
+        self._stop = ctx.stop
+        while ctx.running:
+            self.weights.step(ctx)
+
+    def _infer(self, ctx: LaneContext) -> None:
+        self._stop = ctx.stop
+        # No acting before the first verified weights: random initial weights on every rollout
+        # would make their log-probs meaningless to the learner.
+        while ctx.running and not self._ready.is_set():
+            with ctx.waiting():
+                self._ready.wait(0.1)
+        while ctx.running:
+            gid = self.to_infer.get(ctx.stop, stats=ctx.stats)
+            if gid is None:
+                return
+            with ctx.busy():
+                self.pool.maybe_swap()
+                g = self.groups[gid]
+                t0 = time.perf_counter()
+                with torch.no_grad():
+                    obs = torch.from_numpy(g.obs)
+                    action, logprob, _ = self.pool.active.act(obs)
+                self.infer_ms.append((time.perf_counter() - t0) * 1e3)
+                if len(self.infer_ms) > 2048:
+                    del self.infer_ms[:1024]
+                item = (gid, action.numpy(), logprob.numpy(), self.pool.active_version)
+            self.to_sim.put(item, ctx.stop, stats=ctx.stats)
+            ctx.count()
+
+    def _sim(self, ctx: LaneContext) -> None:
+        for g in self.groups:
+            self.to_infer.put(g.gid, ctx.stop, stats=ctx.stats)
+        while ctx.running:
+            item = self.to_sim.get(ctx.stop, stats=ctx.stats)
+            if item is None:
+                return
+            gid, actions, logprobs, version = item
+            g = self.groups[gid]
+            with ctx.busy():
+                self._record_step(g, actions, logprobs, version)
+                ctx.count(g.envs.n)
+            if g.t == self.T:
+                self._finish_chunk(g, ctx)
+            self.to_infer.put(gid, ctx.stop, stats=ctx.stats)
+
+    def _record_step(self, g: _Group, actions: np.ndarray, logprobs: np.ndarray, version: int) -> None:
+        b, t = g.buf, g.t
+        b["obs"][t] = g.obs
+        step = g.envs.step(actions)
+        b["actions"][t] = np.clip(actions, g.envs.action_low, g.envs.action_high)
+        b["logprobs"][t] = logprobs
+        b["rewards"][t] = step.reward
+        b["terminated"][t] = step.terminated
+        b["truncated"][t] = step.truncated
+        b["success"][t] = step.success
+        b["final_obs"][t] = step.final_obs
+        g.obs = step.next_obs
+        g.versions.append(version)
+        g.t += 1
+        self.env_steps += g.envs.n
+        done = int(step.episode_done.sum())
+        if done:
+            self.episodes += done
+            self.successes += int((step.episode_done & step.success).sum())
+
+    def _finish_chunk(self, g: _Group, ctx: LaneContext) -> None:
+        b = g.buf
+        chunk = TrajectoryChunk(
+            rollout=self.cfg.name,
+            seq=self.seq,
+            policy_version=min(g.versions),
+            env_steps=self.T * g.envs.n,
+            obs={"state": b["obs"]},
+            actions=b["actions"],
+            logprobs=b["logprobs"],
+            rewards=b["rewards"],
+            terminated=b["terminated"],
+            truncated=b["truncated"],
+            success=b["success"],
+            next_obs={"state": g.obs.copy()},
+            final_obs={"state": b["final_obs"]},
+            created_ns=time.time_ns(),
+        )
+        self.seq += 1
+        g.t = 0
+        g.versions = []
+        g.buf = self._alloc(g.envs.n)  # the shipped arrays belong to the chunk until encoded
+        self.to_ship.put(chunk, ctx.stop, stats=ctx.stats)
+        if self.sync_mode:
+            self._lockstep_wait(g, ctx)
+
+    def _lockstep_wait(self, g: _Group, ctx: LaneContext) -> None:
+        """Lock-step baseline: after this rollout's share of a batch, wait for a new version."""
+        self._since_version += self.T * g.envs.n
+        if self._since_version < self.cfg.lockstep_steps:
+            return
+        self._since_version = 0
+        start_version = self.pool.active_version
+        with ctx.waiting():
+            while ctx.running and self.pool.active_version <= start_version:
+                self.pool.maybe_swap()
+                ctx.sleep(0.005)
+
+    def _ship(self, ctx: LaneContext) -> None:
+        while ctx.running:
+            chunk = self.to_ship.get(ctx.stop, stats=ctx.stats)
+            if chunk is None:
+                break
+            with ctx.busy():
+                self.bytes_shipped += self.fabric.publish_traj(chunk)
+                self.chunks_shipped += 1
+            ctx.count()
+        # Flush what is already finished so that the accounting identity holds at shutdown.
+        while (chunk := self.to_ship.get_nowait()) is not None:
+            self.bytes_shipped += self.fabric.publish_traj(chunk)
+            self.chunks_shipped += 1
+
+    # -- status -------------------------------------------------------------------------------
+    def status_extra(self) -> dict[str, Any]:
+        ms = sorted(self.infer_ms[-512:])
+        return {
+            "chunks_produced": self.chunks_shipped,
+            "bytes_produced": self.bytes_shipped,
+            "episodes": self.episodes,
+            "train_success_rate": self.successes / self.episodes if self.episodes else 0.0,
+            "infer_ms_p50": ms[len(ms) // 2] if ms else 0.0,
+            "infer_ms_p99": ms[min(len(ms) - 1, int(len(ms) * 0.99))] if ms else 0.0,
+            "swaps": self.pool.swaps,
+            "weights": self.weights.status(),
+        }
+
+    def close(self) -> None:
+        for g in self.groups:
+            g.envs.close()
+
+
+def run(cfg: RoleConfig, fabric: Fabric) -> Rollout:
+    return Rollout(cfg, fabric)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(Rollout))

@@ -1,0 +1,206 @@
+"""What every role process shares: the `python -m dvla.roles.<role> --config FILE` entry, logging,
+CPU pinning, the fabric, signals, commands, the status queryable and the exit status.
+
+A role module provides a class with ``__init__(config, fabric)``, ``build(swimlane)`` (declares its
+lanes), ``status_extra() -> dict`` and ``policy_version`` / ``env_steps`` attributes; `main`
+does the rest, so each role file reads as its lanes and nothing else.
+"""
+
+from __future__ import annotations
+
+import argparse
+import enum
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Protocol
+
+from ..config import RoleConfig
+from ..fabric import Fabric, load_secret, plane_config
+from ..fabric.messages import Command, RoleStatus
+from .swimlane import Swimlane, pin_cpus, set_torch_threads
+
+log = logging.getLogger("dvla.role")
+
+
+class ExitStatus(enum.IntEnum):
+    """Process exit codes of roles (the orchestrator reads them)."""
+
+    OK = 0
+    ERROR = 1
+    CONFIG = 2
+
+
+class Role(Protocol):
+    policy_version: int
+    env_steps: int
+
+    def build(self, swimlane: Swimlane) -> None: ...
+
+    def status_extra(self) -> dict[str, Any]: ...
+
+    def close(self) -> None: ...
+
+
+def open_fabric(cfg: RoleConfig) -> Fabric:
+    """The role's two sessions, as the plan wired them."""
+    ctrl = plane_config(mode=cfg.ctrl.mode, listen=cfg.ctrl.listen, connect=cfg.ctrl.connect, shared_memory=cfg.shared_memory)
+    data = None
+    if cfg.data.listen or cfg.data.connect:
+        data = plane_config(mode=cfg.data.mode, listen=cfg.data.listen, connect=cfg.data.connect, shared_memory=cfg.shared_memory)
+    return Fabric(run=cfg.run, name=cfg.name, ctrl_conf=ctrl, data_conf=data, secret=load_secret(None, cfg.secret_env))
+
+
+def setup_logging(name: str) -> None:
+    logging.basicConfig(
+        level=os.environ.get("DVLA_LOG_LEVEL", "INFO"),
+        format=f"%(asctime)s %(levelname)s {name} %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+
+
+class RoleHost:
+    """Runs one role: lanes, commands, status, signals; returns the exit status."""
+
+    def __init__(self, cfg: RoleConfig, fabric: Fabric, role: Role) -> None:
+        self.cfg = cfg
+        self.fabric = fabric
+        self.role = role
+        self.swimlane = Swimlane(cfg.name)
+        self.state = "starting"
+        self.started = time.time()
+        self._rate_mark = (time.monotonic(), 0)
+        self._rate = 0.0
+        self._rate_lock = threading.Lock()
+
+    def _on_command(self, sender: str, cmd: Command) -> None:
+        log.info("command %s from %s", cmd.verb, sender)
+        if cmd.verb == "stop":
+            self.state = "stopping"
+            self.swimlane.stop()
+        else:
+            handler = getattr(self.role, "on_command", None)
+            if handler is not None:
+                handler(cmd)
+
+    def steps_per_s(self) -> float:
+        with self._rate_lock:
+            t0, s0 = self._rate_mark
+            now, steps = time.monotonic(), self.role.env_steps
+            if now - t0 >= 1.0:
+                self._rate = (steps - s0) / (now - t0)
+                self._rate_mark = (now, steps)
+            return self._rate
+
+    def status(self, _req: Any = None) -> RoleStatus:
+        return RoleStatus(
+            name=self.cfg.name,
+            kind=self.cfg.kind,
+            node=self.cfg.node,
+            rack=self.cfg.rack,
+            pid=os.getpid(),
+            state=self.state,
+            policy_version=int(self.role.policy_version),
+            env_steps=int(self.role.env_steps),
+            steps_per_s=float(self.steps_per_s()),
+            lanes=self.swimlane.stats(),
+            planes=_ints(self.fabric.accounting.snapshot()),
+            extra=self.role.status_extra(),
+            time_ns=time.time_ns(),
+        )
+
+    def run(self) -> ExitStatus:
+        keys = self.fabric.keys
+        # Wiring of the shared parts; each role wires its own data flow in build().
+        self.fabric.on_ctrl(keys.cmd(self.cfg.name), Command, self._on_command)  # commands for this role
+        self.fabric.on_ctrl(keys.cmd("all"), Command, self._on_command)  # commands for every role
+        self.fabric.serve(keys.status(self.cfg.name), self.status)  # `dvla status` and the orchestrator
+        self.role.build(self.swimlane)
+        self.fabric.declare_alive()  # membership: gone when this process is
+        self.swimlane.start()
+        self.state = "running"
+        log.info("%s running (pid %d)", self.cfg.name, os.getpid())
+        self.swimlane.wait()
+        self.state = "stopping"
+        unjoined = self.swimlane.join(timeout=10.0)
+        if unjoined:
+            log.error("lanes did not exit: %s", ", ".join(unjoined))
+        error = self.swimlane.error
+        self._write_summary(error)
+        if error is not None:
+            self.state = "error"
+            log.error("%s stopped with an error in lane %s", self.cfg.name, error)
+            return ExitStatus.ERROR
+        log.info("%s stopped cleanly", self.cfg.name)
+        return ExitStatus.OK
+
+    def _write_summary(self, error: Any) -> None:
+        path = Path(self.cfg.run_dir) / "summaries" / f"{self.cfg.name}.json"
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            st = self.status()
+            doc = {
+                "name": st.name,
+                "kind": st.kind,
+                "policy_version": st.policy_version,
+                "env_steps": st.env_steps,
+                "lanes": st.lanes,
+                "planes": st.planes,
+                "extra": st.extra,
+                "error": None if error is None else str(error),
+                "wall_s": time.time() - self.started,
+            }
+            tmp = path.with_suffix(".tmp")
+            tmp.write_text(json.dumps(doc, indent=1, sort_keys=True, default=str))
+            tmp.replace(path)
+        except OSError as err:
+            log.warning("cannot write summary %s: %s", path, err)
+
+
+def _ints(d: dict[str, Any]) -> dict[str, Any]:
+    return {k: (_ints(v) if isinstance(v, dict) else int(v)) for k, v in d.items()}
+
+
+def main(role_factory: Any, argv: list[str] | None = None) -> int:
+    """Entry point shared by `python -m dvla.roles.<role>`."""
+    parser = argparse.ArgumentParser(description="run one dvla role process")
+    parser.add_argument("--config", required=True, help="RoleConfig JSON written by the orchestrator")
+    args = parser.parse_args(argv)
+    try:
+        cfg = RoleConfig.from_json(Path(args.config).read_text())
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        print(f"dvla role: cannot read config {args.config}: {err}", file=sys.stderr)
+        return ExitStatus.CONFIG
+    setup_logging(cfg.name)
+    if cfg.cpus:
+        pin_cpus(cfg.cpus)
+    set_torch_threads(1)
+    fabric = open_fabric(cfg)
+    role = None
+    host: RoleHost | None = None
+    try:
+        role = role_factory(cfg, fabric)
+        host = RoleHost(cfg, fabric, role)
+
+        def _on_signal(signum: int, _frame: Any) -> None:
+            log.info("signal %d: stopping", signum)
+            host.swimlane.stop()
+
+        signal.signal(signal.SIGTERM, _on_signal)
+        signal.signal(signal.SIGINT, _on_signal)
+        return int(host.run())
+    except Exception:
+        log.exception("%s failed", cfg.name)
+        return ExitStatus.ERROR
+    finally:
+        if role is not None:
+            try:
+                role.close()
+            except Exception:
+                log.exception("closing %s", cfg.name)
+        fabric.close()

@@ -1,0 +1,95 @@
+#!/usr/bin/env bash
+# Idempotent set-up for dvla on a Debian-based machine.
+#   1. system packages: a Vulkan driver for SAPIEN (Mesa lavapipe >= 24.3 when no GPU driver
+#      is present), iproute2/iptables for emulated clusters;
+#   2. Python packages: a CPU torch on machines without CUDA, the stock (CUDA) torch otherwise;
+#   3. dvla itself, editable, with its test extras.
+# Re-running it skips every step that is already done.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PY=${PYTHON:-python3}
+log() { printf '[setup] %s\n' "$*" >&2; }
+SUDO=""
+[ "$(id -u)" = 0 ] || SUDO="sudo"
+
+have_gpu() { command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; }
+
+# --- 1. system packages --------------------------------------------------------------------
+lavapipe_ok() {
+  # dpkg version of Mesa's Vulkan drivers, compared against 24.3 (older lavapipe crashes SAPIEN).
+  local v
+  v=$(dpkg-query -W -f='${Version}' mesa-vulkan-drivers 2>/dev/null || true)
+  [ -n "$v" ] && dpkg --compare-versions "$v" ge 24.3
+}
+
+add_backports_suite() {
+  # Derive the mirror from the URIs this machine already uses for its main Debian suite, so
+  # no registry host is written into the project.
+  local codename uri list=/etc/apt/sources.list.d/dvla-backports.sources
+  [ -f "$list" ] && return 0
+  codename=$(. /etc/os-release && echo "${VERSION_CODENAME:-}")
+  [ -n "$codename" ] || { log "cannot tell the Debian codename; install mesa-vulkan-drivers >= 24.3 by hand"; return 1; }
+  uri=$( { grep -hE '^URIs:' /etc/apt/sources.list.d/*.sources 2>/dev/null | awk '{print $2}';
+           grep -hE '^deb ' /etc/apt/sources.list 2>/dev/null | awk '{print $2}'; } \
+         | grep -v -- '-security' | grep -i debian | head -n1 || true)
+  [ -n "$uri" ] || { log "no Debian mirror found in the apt sources"; return 1; }
+  log "adding ${codename}-backports from $uri"
+  printf 'Types: deb\nURIs: %s\nSuites: %s-backports\nComponents: main\nSigned-By: /usr/share/keyrings/debian-archive-keyring.gpg\n' \
+    "$uri" "$codename" | $SUDO tee "$list" >/dev/null
+}
+
+system_packages() {
+  command -v apt-get >/dev/null 2>&1 || { log "no apt-get: install a Vulkan driver, iproute2 and iptables yourself"; return 0; }
+  local need=()
+  command -v ip >/dev/null 2>&1 || need+=(iproute2)
+  command -v iptables >/dev/null 2>&1 || need+=(iptables)
+  command -v tc >/dev/null 2>&1 || need+=(iproute2)
+  dpkg-query -W -f='${Status}' libvulkan1 2>/dev/null | grep -q 'ok installed' || need+=(libvulkan1)
+  local want_mesa=0
+  if ! have_gpu && ! lavapipe_ok; then want_mesa=1; fi
+  if [ ${#need[@]} -eq 0 ] && [ $want_mesa = 0 ]; then log "system packages present"; return 0; fi
+  if [ $want_mesa = 1 ]; then
+    add_backports_suite
+  fi
+  log "apt-get update"
+  $SUDO apt-get update -qq
+  if [ ${#need[@]} -gt 0 ]; then
+    log "installing ${need[*]}"
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null
+  fi
+  if [ $want_mesa = 1 ]; then
+    local codename; codename=$(. /etc/os-release && echo "$VERSION_CODENAME")
+    log "installing mesa-vulkan-drivers from ${codename}-backports"
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends \
+      -t "${codename}-backports" mesa-vulkan-drivers libvulkan1 >/dev/null
+  fi
+}
+
+# --- 2/3. Python packages ------------------------------------------------------------------
+python_packages() {
+  if ! $PY -c 'import torch' 2>/dev/null; then
+    if have_gpu; then
+      log "CUDA machine: installing the stock torch wheel"
+      $PY -m pip install -q "torch>=2.4"
+    else
+      # The CPU wheel; set DVLA_TORCH_INDEX to a CPU-only index where the local file is absent.
+      log "CPU machine: installing torch==2.13.0 (CPU build)"
+      $PY -m pip install -q ${DVLA_TORCH_INDEX:+--index-url "$DVLA_TORCH_INDEX"} "torch==2.13.0"
+    fi
+  fi
+  if ! $PY -c 'import dvla, zenoh, mani_skill, hypothesis' 2>/dev/null \
+     || [ pyproject.toml -nt "$($PY -c 'import dvla,os;print(os.path.dirname(dvla.__file__))' 2>/dev/null || echo /nonexistent)" ]; then
+    log "installing dvla and its dependencies"
+    $PY -m pip install -q -e ".[test]"
+  else
+    log "python packages present"
+  fi
+}
+
+case "${1:-all}" in
+  system) system_packages ;;
+  python) python_packages ;;
+  all) system_packages; python_packages ;;
+  *) echo "usage: $0 [all|system|python]" >&2; exit 2 ;;
+esac

@@ -1,0 +1,197 @@
+#!/usr/bin/env python3
+"""Tune PPO hyper-parameters in one process, with the data layout of the distributed system.
+
+The distributed run samples 25-step trajectory chunks on rollout processes that hold slightly
+stale weights, and the actor learns one policy version per ``batch_steps`` transitions. This
+tool reproduces that on one core: an EnvGroup of ``--envs`` envs yields chunks acted on by the
+policy of ``--lag`` versions ago, ``batch_from_chunks`` + ``PPOLearner`` learn from them, and a
+separate eval group plays ``--eval-episodes`` deterministic episodes every ``--eval-every``
+versions. It stops once eval success_once >= ``--target`` for ``--consecutive`` evals in a row
+(or at ``--max-steps`` / ``--max-wall``) and prints a final ``RESULT {json}`` line.
+
+Env steps count training transitions only; ``train_s`` excludes evaluation time (in the real
+system an evaluator process does that), ``wall_s`` includes it.
+
+Example::
+
+    python scripts/tune_ppo.py --seed 1 --batch-steps 1600 --minibatches 8 --epochs 4
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import copy
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from dvla.config import PPOConfig, TaskConfig  # noqa: E402
+from dvla.learn.envs import EnvGroup, run_eval_episodes  # noqa: E402
+from dvla.learn.policies import make_policy  # noqa: E402
+from dvla.learn.ppo import PPOLearner, batch_from_chunks  # noqa: E402
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    d = PPOConfig()
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--env", default="PushCube-v1")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--envs", type=int, default=8, help="training envs (one EnvGroup)")
+    p.add_argument("--chunk-steps", type=int, default=25)
+    p.add_argument("--lag", type=int, default=1, help="versions the behaviour policy lags behind")
+    p.add_argument("--batch-steps", type=int, default=d.batch_steps)
+    p.add_argument("--minibatches", type=int, default=d.minibatches)
+    p.add_argument("--epochs", type=int, default=d.update_epochs)
+    p.add_argument("--lr", type=float, default=d.lr)
+    p.add_argument("--gamma", type=float, default=d.gamma)
+    p.add_argument("--lam", type=float, default=d.gae_lambda)
+    p.add_argument("--clip", type=float, default=d.clip)
+    p.add_argument("--target-kl", type=float, default=d.target_kl, help="<= 0 disables the early stop")
+    p.add_argument("--ent-coef", type=float, default=d.ent_coef)
+    p.add_argument("--vf-coef", type=float, default=d.vf_coef)
+    p.add_argument("--max-grad-norm", type=float, default=d.max_grad_norm)
+    p.add_argument("--reward-scale", type=float, default=d.reward_scale)
+    p.add_argument("--eval-every", type=int, default=2, help="versions between evals")
+    p.add_argument("--eval-episodes", type=int, default=16)
+    p.add_argument("--eval-envs", type=int, default=8)
+    p.add_argument("--target", type=float, default=0.8)
+    p.add_argument("--consecutive", type=int, default=3)
+    p.add_argument("--max-steps", type=int, default=200_000)
+    p.add_argument("--max-wall", type=float, default=240.0, help="seconds")
+    p.add_argument("--quiet", action="store_true", help="print only the RESULT line")
+    return p.parse_args(argv)
+
+
+def ppo_config(a: argparse.Namespace) -> PPOConfig:
+    return PPOConfig(
+        gamma=a.gamma,
+        gae_lambda=a.lam,
+        lr=a.lr,
+        clip=a.clip,
+        update_epochs=a.epochs,
+        minibatches=a.minibatches,
+        batch_steps=a.batch_steps,
+        ent_coef=a.ent_coef,
+        vf_coef=a.vf_coef,
+        max_grad_norm=a.max_grad_norm,
+        target_kl=a.target_kl if a.target_kl > 0 else None,
+        reward_scale=a.reward_scale,
+    )
+
+
+class ChunkSampler:
+    """Steps the training group and cuts its stream into chunks (the rollout side)."""
+
+    def __init__(self, group: EnvGroup, chunk_steps: int):
+        self.group = group
+        self.chunk_steps = chunk_steps
+        self.obs = group.reset()
+        self.episode_success = np.zeros(group.n, dtype=bool)
+        self.finished: collections.deque[bool] = collections.deque(maxlen=64)
+
+    def chunk(self, policy: torch.nn.Module) -> dict[str, np.ndarray]:
+        g, T = self.group, self.chunk_steps
+        out = {
+            "obs": np.empty((T, g.n, g.obs_dim), np.float32),
+            "actions": np.empty((T, g.n, g.act_dim), np.float32),
+            "logprobs": np.empty((T, g.n), np.float32),
+            "rewards": np.empty((T, g.n), np.float32),
+            "terminated": np.empty((T, g.n), bool),
+            "truncated": np.empty((T, g.n), bool),
+            "final_obs": np.empty((T, g.n, g.obs_dim), np.float32),
+        }
+        for t in range(T):
+            action, logprob, _ = policy.act(torch.from_numpy(self.obs))
+            res = g.step(action.numpy())
+            out["obs"][t] = self.obs
+            out["actions"][t] = action.numpy()
+            out["logprobs"][t] = logprob.numpy()
+            out["rewards"][t] = res.reward
+            out["terminated"][t] = res.terminated
+            out["truncated"][t] = res.truncated
+            out["final_obs"][t] = res.final_obs
+            self._track(res)
+            self.obs = res.next_obs
+        out["next_obs"] = self.obs.copy()
+        return out
+
+    def _track(self, res) -> None:
+        self.episode_success |= res.success
+        for i in np.flatnonzero(res.episode_done):
+            self.finished.append(bool(self.episode_success[i]))
+        self.episode_success[res.episode_done] = False
+
+    def train_success(self) -> float:
+        return float(np.mean(self.finished)) if self.finished else float("nan")
+
+
+def train(a: argparse.Namespace) -> dict:
+    torch.set_num_threads(1)
+    torch.manual_seed(a.seed)
+    np.random.seed(a.seed)
+    cfg = ppo_config(a)
+    per_chunk = a.envs * a.chunk_steps
+    if a.batch_steps % per_chunk:
+        raise SystemExit(f"--batch-steps must be a multiple of envs*chunk_steps = {per_chunk}")
+    task = TaskConfig(env=a.env, ppo=cfg, sim_backend="physx_cpu", device="cpu")
+    started = time.perf_counter()
+    group = EnvGroup(task, a.envs, a.seed * 10_000)
+    eval_group = EnvGroup(task, a.eval_envs, a.seed * 10_000 + 1_000_000, ignore_terminations=True)
+    policy = make_policy("mlp", group.obs_dim, group.act_dim)
+    behaviour = copy.deepcopy(policy)
+    learner = PPOLearner(policy, cfg, "cpu", seed=a.seed)
+    history = collections.deque([copy.deepcopy(policy.state_dict())], maxlen=a.lag + 1)
+    sampler = ChunkSampler(group, a.chunk_steps)
+    env_steps, version, streak, eval_s = 0, 0, 0, 0.0
+    evals: list[dict] = []
+    result = {"reached": False}
+    try:
+        while env_steps < a.max_steps and time.perf_counter() - started < a.max_wall:
+            behaviour.load_state_dict(history[0])  # the oldest kept version acts
+            chunks = [sampler.chunk(behaviour) for _ in range(a.batch_steps // per_chunk)]
+            env_steps += a.batch_steps
+            stats = learner.update(batch_from_chunks(policy, chunks, cfg))
+            version += 1
+            history.append(copy.deepcopy(policy.state_dict()))
+            if version % a.eval_every:
+                continue
+            t0 = time.perf_counter()
+            ev = run_eval_episodes(policy, task, a.eval_episodes, a.seed * 7 + 1_000_000, "cpu", group=eval_group)
+            eval_s += time.perf_counter() - t0
+            wall = time.perf_counter() - started
+            row = dict(version=version, env_steps=env_steps, wall_s=round(wall, 1), train_s=round(wall - eval_s, 1),
+                       success_once=ev["success_once"], success_at_end=ev["success_at_end"],
+                       eval_return=round(ev["return_mean"], 2), train_success=round(sampler.train_success(), 2),
+                       kl=round(stats["approx_kl"], 4), bkl=round(stats["behaviour_kl"], 4),
+                       epochs=stats["epochs_run"], ent=round(stats["entropy"], 2), v_loss=round(stats["v_loss"], 4))
+            evals.append(row)
+            if not a.quiet:
+                print(" ".join(f"{k}={v}" for k, v in row.items()), flush=True)
+            streak = streak + 1 if ev["success_once"] >= a.target else 0
+            if streak >= a.consecutive:
+                result = {"reached": True, **{k: row[k] for k in ("version", "env_steps", "wall_s", "train_s")}}
+                break
+    finally:
+        group.close()
+        eval_group.close()
+    if not result["reached"]:
+        wall = time.perf_counter() - started
+        result.update(version=version, env_steps=env_steps, wall_s=round(wall, 1), train_s=round(wall - eval_s, 1))
+    best = max((e["success_once"] for e in evals), default=float("nan"))
+    return {**result, "seed": a.seed, "best_success_once": best, "config": vars(a)}
+
+
+def main(argv: list[str] | None = None) -> None:
+    result = train(parse_args(argv))
+    print("RESULT " + json.dumps(result), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,462 @@
+"""Unit tests of dvla.replication: layout, encodings, chunking, verified decoding and catch-up."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from dvla.config import ENCODINGS, ReplicationConfig
+from dvla.replication import (
+    ChecksumMismatch,
+    ChunkAssembler,
+    CorruptPayload,
+    EncodedVersion,
+    LayoutMismatch,
+    Manifest,
+    NeedSnapshot,
+    ParamLayout,
+    ReplicationError,
+    StaleVersion,
+    WeightDecoder,
+    WeightEncoder,
+    bf16_round_bits,
+    bf16_to_float32,
+    checksum,
+    chunk_count,
+    split_chunks,
+    flatten,
+    unflatten_into,
+)
+
+CHUNK_BYTES = 16_384  # small, so every version of the ~50k-param model spans many chunks
+TOPK_FRACTION = 0.05
+JUMP_VERSIONS = (40, 75, 130, 165)  # one "large jump" pair in each half of the run
+
+
+def _mlp(hidden: int = 128, seed: int = 0) -> torch.nn.Module:
+    """~50k floating parameters plus an integer counter buffer."""
+    torch.manual_seed(seed)
+    model = torch.nn.Sequential(
+        torch.nn.Linear(64, hidden),
+        torch.nn.Tanh(),
+        torch.nn.Linear(hidden, 256),
+        torch.nn.LayerNorm(256),
+        torch.nn.Tanh(),
+        torch.nn.Linear(256, 32),
+    )
+    model.register_buffer("steps", torch.zeros((), dtype=torch.int64))
+    return model
+
+
+@pytest.fixture(scope="module")
+def layout() -> ParamLayout:
+    return ParamLayout.from_state_dict(_mlp())
+
+
+# --------------------------------------------------------------------------------------------
+# Layout
+
+
+def test_layout_covers_float_tensors_only_and_hash_is_stable(layout: ParamLayout) -> None:
+    assert "steps" not in layout.names
+    assert layout.numel == 50_080
+    assert layout.nbytes == 4 * layout.numel
+    assert ParamLayout.from_state_dict(_mlp(seed=7).state_dict()).hash == layout.hash
+    assert ParamLayout.from_dict(layout.to_dict()) == layout
+    assert ParamLayout.from_dict(layout.to_dict()).hash == layout.hash
+
+
+def test_layout_hash_depends_on_names_shapes_dtypes(layout: ParamLayout) -> None:
+    assert ParamLayout.from_state_dict(_mlp(hidden=96)).hash != layout.hash
+    renamed = ParamLayout(names=("x",) + layout.names[1:], shapes=layout.shapes, dtypes=layout.dtypes)
+    assert renamed.hash != layout.hash
+    half = ParamLayout(names=layout.names, shapes=layout.shapes, dtypes=("float16",) + layout.dtypes[1:])
+    assert half.hash != layout.hash
+    with pytest.raises(LayoutMismatch):
+        ParamLayout.from_dict({"names": ["a"], "shapes": [[-1]], "dtypes": ["float32"]})
+
+
+def test_flatten_and_unflatten_work_in_place(layout: ParamLayout) -> None:
+    src, dst = _mlp(seed=1), _mlp(seed=2)
+    dst.steps.fill_(5)
+    buf = layout.empty()
+    assert flatten(src, layout, out=buf) is buf
+    assert np.array_equal(buf, flatten(src.state_dict(), layout))
+    ptrs = {name: t.data_ptr() for name, t in dst.state_dict().items()}
+    unflatten_into(buf, dst, layout)
+    assert {name: t.data_ptr() for name, t in dst.state_dict().items()} == ptrs
+    for name, tensor in src.state_dict().items():
+        if name != "steps":
+            assert torch.equal(dst.state_dict()[name], tensor)
+    assert int(dst.steps) == 5  # non-float buffers are not replicated
+    x = torch.randn(3, 64)
+    assert torch.equal(src(x), dst(x))
+    # A read-only source (e.g. a received payload) works too.
+    unflatten_into(np.frombuffer(buf.tobytes(), dtype=np.float32), dst, layout)
+
+
+def test_flatten_rejects_mismatches(layout: ParamLayout) -> None:
+    with pytest.raises(LayoutMismatch):
+        flatten(_mlp(hidden=96), layout)
+    sd = dict(_mlp().state_dict())
+    del sd["0.bias"]
+    with pytest.raises(LayoutMismatch):
+        flatten(sd, layout)
+    with pytest.raises(LayoutMismatch):
+        flatten(_mlp(), layout, out=np.zeros(layout.numel, dtype=np.float64))
+    with pytest.raises(LayoutMismatch):
+        unflatten_into(np.zeros(layout.numel - 1, dtype=np.float32), _mlp(), layout)
+
+
+# --------------------------------------------------------------------------------------------
+# bfloat16, checksum, chunks
+
+
+def test_bf16_rounding_matches_torch() -> None:
+    rng = np.random.default_rng(3)
+    bits = rng.integers(0, 2**32, size=200_000, dtype=np.uint64).astype(np.uint32)
+    # Exact ties (low half 0x8000) with both parities of the kept bit, and neighbours.
+    bits[:3000] = (bits[:3000] & 0xFFFF0000) | 0x8000
+    bits[3000:6000] = (bits[3000:6000] & 0xFFFF0000) | 0x7FFF
+    x = bits.view(np.float32)
+    x = x[np.isfinite(x)]
+    specials = np.array([0.0, -0.0, np.inf, -np.inf, 3.4e38, -3.4e38, 1e-40, -1e-45, 1.0, 1.00390625], np.float32)
+    x = np.concatenate([x, specials])
+    ours = bf16_round_bits(x)
+    ref = torch.from_numpy(x).to(torch.bfloat16).view(torch.int16).numpy().view(np.uint16)
+    assert np.array_equal(ours, ref)
+    assert np.array_equal(bf16_to_float32(ours), torch.from_numpy(x).to(torch.bfloat16).float().numpy())
+
+
+def test_bf16_keeps_nan_as_nan() -> None:
+    x = np.array([1.5, -2.0], np.float32)
+    nan_bits = np.array([0x7F800001, 0xFFFFFFFF, 0x7FC00000], np.uint32)  # would round to inf/wrap
+    x = np.concatenate([x, nan_bits.view(np.float32)])
+    back = bf16_to_float32(bf16_round_bits(x))
+    assert back[0] == 1.5 and back[1] == -2.0
+    assert np.isnan(back[2:]).all()
+    assert np.signbit(back[3]) and not np.signbit(back[2])
+
+
+def test_checksum_is_bit_exact() -> None:
+    a = np.linspace(-1, 1, 1000, dtype=np.float32)
+    b = a.copy()
+    assert checksum(a) == checksum(b) and len(checksum(a)) == 32
+    b.view(np.uint32)[500] ^= 1
+    assert checksum(a) != checksum(b)
+    with pytest.raises(ValueError):
+        checksum(a[::2])
+
+
+@pytest.mark.parametrize("total, chunk", [(1, 1), (10, 4), (9, 4), (100, 100), (101, 100), (200_320, 16_384)])
+def test_split_chunks_is_even_and_bounded(total: int, chunk: int) -> None:
+    payload = bytes(range(256)) * (total // 256 + 1)
+    payload = payload[:total]
+    chunks = split_chunks(payload, chunk)
+    assert len(chunks) == chunk_count(total, chunk) == math.ceil(total / chunk)
+    assert all(0 < c.nbytes <= chunk for c in chunks)
+    assert b"".join(bytes(c) for c in chunks) == payload
+    asm = ChunkAssembler(len(chunks), total, max_bytes=total + 7)
+    for i in reversed(range(len(chunks))):
+        assert asm.add(i, chunks[i])
+    assert bytes(asm.payload()) == payload
+
+
+def test_chunk_assembler_rules() -> None:
+    payload = np.arange(1000, dtype=np.float32).tobytes()
+    chunks = split_chunks(payload, 1024)
+    asm = ChunkAssembler(len(chunks), len(payload), max_bytes=8000)
+    buffer_id = id(asm._buf)
+    assert asm.add(2, chunks[2]) and not asm.add(2, b"\0" * chunks[2].nbytes)  # duplicate ignored
+    assert asm.missing() == [0, 1, 3] and not asm.complete
+    with pytest.raises(ReplicationError):
+        asm.payload()
+    for bad in (-1, 4, True, 1.0):
+        with pytest.raises(ReplicationError):
+            asm.add(bad, chunks[0])  # type: ignore[arg-type]
+    with pytest.raises(ReplicationError):
+        asm.add(0, bytes(chunks[0]) + b"x")  # oversize
+    with pytest.raises(ReplicationError):
+        asm.add(3, bytes(chunks[3])[:-1])  # undersize
+    for i in (0, 1, 3):
+        asm.add(i, chunks[i])
+    assert asm.complete and bytes(asm.payload()) == payload
+    assert bytes(asm.chunk(1)) == bytes(chunks[1])
+    asm.reset(1, 10)  # reused, not reallocated
+    assert id(asm._buf) == buffer_id and asm.missing() == [0]
+    with pytest.raises(ReplicationError):
+        asm.reset(1, 8001)  # larger than the buffer
+    with pytest.raises(ReplicationError):
+        asm.reset(4, 9)  # 4 even chunks of 3 bytes cannot make 9 bytes
+    with pytest.raises(ReplicationError):
+        asm.reset(0, 9)
+
+
+# --------------------------------------------------------------------------------------------
+# End-to-end replication
+
+
+def _deliver(ev: EncodedVersion, asm: ChunkAssembler, rng: np.random.Generator) -> memoryview:
+    """Send every chunk in a random order, with a few duplicates, as a network would."""
+    asm.reset(ev.n_chunks, ev.total_bytes)
+    order = list(rng.permutation(ev.n_chunks)) + list(rng.integers(0, ev.n_chunks, size=2))
+    for i in order:
+        asm.add(int(i), bytes(ev.chunks[i]))
+    return asm.payload()
+
+
+def _step(true: np.ndarray, version: int, rng: np.random.Generator) -> None:
+    """Random-walk update of varied scale, with occasional large jumps."""
+    scale = 10.0 ** rng.uniform(-4, -2)
+    if version in JUMP_VERSIONS:
+        scale = 0.05
+    true += (scale * rng.standard_normal(true.size)).astype(np.float32)
+
+
+@pytest.mark.parametrize("snapshot_every", [10, 10**9], ids=["snap10", "nosnap"])
+@pytest.mark.parametrize("encoding", ENCODINGS)
+def test_replicas_are_bit_exact_and_gap_is_bounded(layout: ParamLayout, encoding: str, snapshot_every: int) -> None:
+    rng = np.random.default_rng(11)
+    enc = WeightEncoder(layout, encoding, topk_fraction=TOPK_FRACTION, snapshot_every=snapshot_every, chunk_bytes=CHUNK_BYTES)
+    replicas = [(WeightDecoder(layout), ChunkAssembler(1, 1, layout.nbytes)) for _ in range(2)]
+    true = flatten(_mlp(), layout)
+    gaps, delta_ratios = [0.0], []
+    for version in range(1, 201):
+        if version > 1:
+            _step(true, version, rng)
+        before = float(np.linalg.norm(true - enc.published))
+        ev = enc.encode(true)
+        assert (ev.version, ev.layout_hash, ev.checksum) == (version, layout.hash, checksum(enc.published))
+        assert all(c.nbytes <= CHUNK_BYTES for c in ev.chunks) and sum(c.nbytes for c in ev.chunks) == ev.total_bytes
+        expect_full = encoding == "full" or (version - 1) % snapshot_every == 0
+        assert ev.encoding == ("full" if expect_full else encoding)
+        assert ev.base_version == (-1 if expect_full else version - 1)
+        for dec, asm in replicas:
+            out = dec.apply(ev.manifest().to_dict(), _deliver(ev, asm, rng), swap=True)
+            assert out is dec.active and dec.version == version
+            assert np.array_equal(dec.active, enc.published) and dec.checksum == ev.checksum
+        gap = float(np.linalg.norm(true - enc.published))
+        gaps.append(gap)
+        if ev.encoding == "delta-bf16":
+            # Each element is off by at most half a bfloat16 ulp of its delta (2**-9 relative).
+            assert gap <= 2.0**-8 * before
+        if ev.encoding != "full":
+            delta_ratios.append(ev.total_bytes / layout.nbytes)
+        else:
+            assert gap == 0.0
+    # Error feedback: the gap does not accumulate.
+    assert max(gaps[101:201]) <= 2 * max(gaps[20:101])
+    if encoding == "delta-topk":
+        assert np.median(gaps[150:201]) <= 1.5 * np.median(gaps[50:101])
+    if encoding == "delta-bf16":
+        assert max(delta_ratios) < 0.55
+    if encoding == "delta-topk":
+        assert max(delta_ratios) < 0.15
+
+
+@pytest.mark.parametrize("encoding", ["delta-bf16", "delta-topk"])
+def test_missed_version_needs_snapshot_then_recovers(layout: ParamLayout, encoding: str) -> None:
+    rng = np.random.default_rng(5)
+    enc = WeightEncoder(layout, encoding, snapshot_every=1000, chunk_bytes=CHUNK_BYTES)
+    relay, late = WeightDecoder(layout), WeightDecoder(layout)
+    asm = ChunkAssembler(1, 1, layout.nbytes)
+    true = flatten(_mlp(), layout)
+    for version in range(1, 13):
+        _step(true, version, rng)
+        ev = enc.encode(true)
+        payload = _deliver(ev, asm, rng)
+        relay.apply(ev, payload, swap=True)
+        if version == 6:
+            continue  # lost on the way to `late`
+        if version < 6:
+            late.apply(ev, payload, swap=True)
+            continue
+        if version == 7:
+            with pytest.raises(NeedSnapshot) as info:
+                late.apply(ev, payload, swap=True)
+            assert (info.value.have, info.value.base, info.value.version) == (5, 6, 7)
+            assert late.version == 5
+            # Catch up from the relay's snapshot, sent as a chunked full version.
+            snap = relay.snapshot()
+            assert snap.version == 7 and snap.checksum == enc.checksum
+            full = snap.encode(layout.hash, CHUNK_BYTES)
+            assert full.encoding == "full" and full.base_version == -1
+            late.apply(full.manifest(), _deliver(full, asm, rng), swap=True)
+        else:
+            late.apply(ev, payload, swap=True)
+        assert np.array_equal(late.active, enc.published) and late.version == version
+    # The encoder serves the same snapshot as an up-to-date relay.
+    assert enc.snapshot() == relay.snapshot()
+    fresh = WeightDecoder(layout)
+    fresh.load_snapshot(enc.snapshot())
+    assert fresh.version == 12 and np.array_equal(fresh.active, enc.published)
+
+
+@pytest.mark.parametrize("encoding", ENCODINGS)
+def test_corrupted_chunk_is_rejected_and_active_kept(layout: ParamLayout, encoding: str) -> None:
+    rng = np.random.default_rng(9)
+    enc = WeightEncoder(layout, encoding, snapshot_every=1000, chunk_bytes=CHUNK_BYTES)
+    dec = WeightDecoder(layout)
+    true = flatten(_mlp(), layout)
+    dec.apply(enc.encode(true).manifest(), enc.snapshot().payload, swap=True)
+    _step(true, 2, rng)
+    ev = enc.encode(true)
+    kept, kept_version = dec.active.copy(), dec.version
+    payload = bytearray(ev.payload)
+    # Flip a bit of a value (for top-k: in the value half, so indices stay valid).
+    lo = ev.total_bytes // 2 if encoding == "delta-topk" else 0
+    pos = int(rng.integers(lo, ev.total_bytes))
+    payload[pos] ^= 0x10
+    chunks = split_chunks(payload, CHUNK_BYTES)
+    asm = ChunkAssembler(ev.n_chunks, ev.total_bytes, layout.nbytes)
+    for i in rng.permutation(len(chunks)):
+        asm.add(int(i), chunks[i])
+    with pytest.raises(ChecksumMismatch):
+        dec.apply(ev.manifest(), asm.payload(), swap=True)
+    assert dec.version == kept_version and dec.pending_version is None
+    assert np.array_equal(dec.active, kept)
+    dec.apply(ev, ev.payload, swap=True)  # the intact payload still applies
+    assert np.array_equal(dec.active, enc.published)
+
+
+def test_corrupted_topk_index_is_rejected(layout: ParamLayout) -> None:
+    enc = WeightEncoder(layout, "delta-topk", snapshot_every=1000)
+    dec = WeightDecoder(layout)
+    true = flatten(_mlp(), layout)
+    ev = enc.encode(true)
+    dec.apply(ev, ev.payload, swap=True)
+    true[::3] += 0.01
+    ev = enc.encode(true)
+    for pos in (3, 4):  # high byte of the first index (out of range); low byte of the second (disorder)
+        payload = bytearray(ev.payload)
+        payload[pos] ^= 0xFF
+        with pytest.raises(CorruptPayload):
+            dec.apply(ev, payload)
+    assert dec.version == 1
+
+
+def test_layout_mismatch_is_detected(layout: ParamLayout) -> None:
+    enc = WeightEncoder(layout, "delta-bf16")
+    ev = enc.encode(flatten(_mlp(), layout))
+    other = WeightDecoder(ParamLayout.from_state_dict(_mlp(hidden=96)))
+    with pytest.raises(LayoutMismatch):
+        other.apply(ev, ev.payload)
+    forged = dict(ev.to_dict(), layout_hash="0" * 32)
+    with pytest.raises(LayoutMismatch):
+        WeightDecoder(layout).apply(forged, ev.payload)
+    with pytest.raises(LayoutMismatch):
+        enc.encode(np.zeros(layout.numel + 1, dtype=np.float32))
+    assert issubclass(LayoutMismatch, ReplicationError)
+
+
+def test_stale_and_malformed_versions(layout: ParamLayout) -> None:
+    enc = WeightEncoder(layout, "delta-bf16")
+    dec = WeightDecoder(layout)
+    true = flatten(_mlp(), layout)
+    v1 = enc.encode(true)
+    dec.apply(v1, v1.payload, swap=True)
+    with pytest.raises(StaleVersion):
+        dec.apply(v1, v1.payload)
+    true += 0.01
+    v2 = enc.encode(true)
+    bad = [
+        dict(v2.to_dict(), version=True),
+        dict(v2.to_dict(), base_version=0),
+        dict(v2.to_dict(), encoding="gzip"),
+        dict(v2.to_dict(), total_bytes=v2.total_bytes + 1),
+        {k: v for k, v in v2.to_dict().items() if k != "checksum"},
+    ]
+    for manifest in bad:
+        with pytest.raises(CorruptPayload):
+            dec.apply(manifest, v2.payload)
+    with pytest.raises(CorruptPayload):
+        dec.apply(v2, bytes(v2.payload)[:-2])
+    assert dec.version == 1
+    dec.apply(v2, v2.payload, swap=True)
+    assert Manifest.from_dict(v2.to_dict()) == v2.manifest()
+
+
+def test_pending_result_and_swap(layout: ParamLayout) -> None:
+    enc = WeightEncoder(layout, "delta-topk", snapshot_every=1000)
+    dec = WeightDecoder(layout)
+    true = flatten(_mlp(), layout)
+    v1 = enc.encode(true)
+    staged = dec.apply(v1, v1.payload)
+    assert dec.version == 0 and dec.pending_version == 1 and not dec.ready
+    assert staged is dec.staging and dec.snapshot().version == 1
+    old_active = dec.active
+    assert dec.swap() is staged and dec.active is staged and dec.version == 1
+    assert dec.staging is old_active
+    p1 = enc.published.copy()
+    true[:100] += 1.0
+    v2 = enc.encode(true)
+    dec.apply(v2, v2.payload)
+    true[100:200] -= 1.0
+    v3 = enc.encode(true)
+    dec.apply(v3, v3.payload)  # promotes v2 first, then stages v3 on top of it
+    assert dec.version == 2 and dec.pending_version == 3
+    assert not np.array_equal(dec.active, p1)
+    dec.swap()
+    assert np.array_equal(dec.active, enc.published) and dec.swap() is dec.active
+
+
+def test_non_finite_parameters_go_out_as_full(layout: ParamLayout) -> None:
+    enc = WeightEncoder(layout, "delta-bf16", snapshot_every=1000)
+    dec = WeightDecoder(layout)
+    true = flatten(_mlp(), layout)
+    encodings = []
+    for change in (None, "nan", "heal", "small", "huge"):
+        if change == "nan":
+            true[7] = np.nan
+        elif change == "heal":
+            true[7] = 0.5
+        elif change == "small":
+            true += 1e-3
+        elif change == "huge":
+            true[9] = 3.4e38  # the delta rounds to bfloat16 infinity
+        ev = enc.encode(true)
+        encodings.append(ev.encoding)
+        dec.apply(ev, ev.payload, swap=True)
+        assert dec.checksum == checksum(enc.published)
+        assert np.array_equal(dec.active, enc.published, equal_nan=True)
+    assert encodings == ["full", "full", "full", "delta-bf16", "full"]
+    assert enc.published[9] == np.float32(3.4e38)
+
+
+def test_encoder_configuration(layout: ParamLayout) -> None:
+    cfg = ReplicationConfig(encoding="delta-topk", topk_fraction=0.6, snapshot_every=3, chunk_bytes=4096)
+    enc = WeightEncoder.from_config(layout, cfg, start_version=41)
+    true = flatten(_mlp(), layout)
+    # A top-k payload at least as large as a full one is never sent.
+    assert [enc.encode(true).encoding for _ in range(3)] == ["full"] * 3
+    assert enc.version == 44
+    for kwargs in ({"encoding": "zstd"}, {"topk_fraction": 0.0}, {"snapshot_every": 0}, {"chunk_bytes": 0}):
+        with pytest.raises(ValueError):
+            WeightEncoder(layout, **{"encoding": "full", **kwargs})
+    with pytest.raises(ReplicationError):
+        WeightEncoder(layout).snapshot()
+    with pytest.raises(ReplicationError):
+        WeightDecoder(layout).snapshot()
+
+
+def test_decoded_weights_drive_the_policy(layout: ParamLayout) -> None:
+    learner, rollout = _mlp(seed=1), _mlp(seed=2)
+    enc = WeightEncoder(layout, "delta-bf16", snapshot_every=1000)
+    dec = WeightDecoder(layout)
+    buf = layout.empty()
+    opt = torch.optim.SGD(learner.parameters(), lr=0.1)
+    x = torch.randn(16, 64)
+    for _ in range(5):
+        opt.zero_grad()
+        learner(x).pow(2).mean().backward()
+        opt.step()
+        ev = enc.encode(flatten(learner, layout, out=buf))
+        dec.apply(ev, ev.payload, swap=True)
+    unflatten_into(dec.active, rollout, layout)
+    published = _mlp(seed=3)
+    unflatten_into(enc.published, published, layout)
+    assert torch.equal(rollout(x), published(x))
+    assert torch.allclose(rollout(x), learner(x), atol=1e-3)

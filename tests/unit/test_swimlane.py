@@ -1,0 +1,449 @@
+"""Unit tests of dvla.roles.swimlane: fail-fast lanes, prompt shutdown, bounded queues, stats."""
+
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from dvla.roles.swimlane import (
+    BoundedQueue,
+    LaneContext,
+    LaneError,
+    LaneStats,
+    Swimlane,
+    current_lane,
+    pin_cpus,
+)
+
+REPO_ROOT = str(Path(__file__).resolve().parents[2])
+
+
+class FakeClock:
+    """A settable clock so window arithmetic is tested exactly, not against wall time."""
+
+    def __init__(self) -> None:
+        self.t = 1000.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _idle(ctx: LaneContext) -> None:
+    while ctx.running:
+        ctx.sleep(0.01)
+
+
+# -- lanes --------------------------------------------------------------------------------------
+
+
+def test_lane_exception_stops_all_lanes_and_names_the_lane(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    def boom(ctx: LaneContext) -> None:
+        ctx.sleep(0.1)
+        raise ValueError("sim exploded")
+
+    sl = Swimlane("rollout")
+    for name in ("infer", "ship", "sync"):
+        sl.lane(name, _idle)
+    sl.lane("sim", boom)
+    with caplog.at_level(logging.ERROR, logger="dvla.swimlane"):
+        sl.start()
+        assert sl.wait(timeout=3.0), "a failing lane must set the stop event"
+        t0 = time.monotonic()
+        stuck = sl.join(timeout=2.0)
+    assert stuck == []
+    assert time.monotonic() - t0 < 1.0
+    assert isinstance(sl.error, LaneError)
+    assert sl.error.lane == "sim" and sl.error.role == "rollout"
+    assert "rollout/sim" in str(sl.error) and "sim exploded" in str(sl.error)
+    assert isinstance(sl.error.exc, ValueError)
+    assert "raise ValueError" in sl.error.traceback
+    assert sl.state == "error"
+    stats = sl.stats()
+    assert stats["sim"]["errors"] == 1 and stats["infer"]["errors"] == 0
+    assert not any(s["alive"] for s in stats.values())
+    records = [
+        r for r in caplog.records if r.name == "dvla.swimlane" and r.levelno == logging.ERROR
+    ]
+    assert len(records) == 1
+    assert "rollout/sim" in records[0].getMessage()
+    assert records[0].exc_info is not None and records[0].exc_info[0] is ValueError
+
+
+def test_first_error_wins() -> None:
+    def fail_first(ctx: LaneContext) -> None:
+        raise KeyError("first")
+
+    def fail_later(ctx: LaneContext) -> None:
+        ctx.stop.wait(2.0)
+        raise RuntimeError("second")
+
+    sl = Swimlane("actor")
+    sl.lane("a", fail_first)
+    sl.lane("b", fail_later)
+    sl.start()
+    sl.wait(timeout=2.0)
+    assert sl.join() == []
+    assert sl.error is not None and sl.error.lane == "a"
+    assert sl.stats()["b"]["errors"] == 1
+
+
+def test_stop_joins_four_blocked_lanes_quickly() -> None:
+    empty: BoundedQueue[int] = BoundedQueue(2, "empty")
+    full: BoundedQueue[int] = BoundedQueue(1, "full")
+    full.put_nowait_or_drop(0)
+    entered = threading.Barrier(5, timeout=2.0)
+    thread_names: list[str] = []
+
+    def getter(ctx: LaneContext) -> None:
+        thread_names.append(threading.current_thread().name)
+        entered.wait()
+        assert empty.get(ctx.stop) is None
+
+    def putter(ctx: LaneContext) -> None:
+        entered.wait()
+        assert full.put(1, ctx.stop) is False
+
+    def sleeper(ctx: LaneContext) -> None:
+        entered.wait()
+        assert ctx.sleep(60.0) is False
+
+    def waiter(ctx: LaneContext) -> None:
+        entered.wait()
+        with ctx.waiting():
+            ctx.stop.wait(60.0)
+
+    sl = Swimlane("rollout")
+    for name, fn in (("sim", getter), ("infer", putter), ("ship", sleeper), ("sync", waiter)):
+        sl.lane(name, fn)
+    sl.start()
+    entered.wait()
+    time.sleep(0.15)  # let every lane actually block
+    assert all(s["alive"] for s in sl.stats().values())
+    assert sl.state == "running"
+    t0 = time.monotonic()
+    sl.stop()
+    stuck = sl.join(timeout=2.0)
+    elapsed = time.monotonic() - t0
+    assert stuck == []
+    assert elapsed < 0.5, f"lanes took {elapsed:.2f}s to stop"
+    assert sl.error is None, sl.error
+    assert sl.state == "stopped"
+    assert thread_names == ["rollout/sim"]
+    # Blocking queue waits were charged to the lanes that blocked.
+    stats = sl.stats()
+    assert stats["sim"]["wait_s"] >= 0.1 and stats["infer"]["wait_s"] >= 0.1
+    assert stats["sync"]["wait_s"] >= 0.1
+    assert stats["ship"]["wait_s"] == 0.0  # ctx.sleep is not charged
+
+
+def test_join_reports_a_lane_that_ignores_stop() -> None:
+    release = threading.Event()
+
+    def stubborn(ctx: LaneContext) -> None:
+        release.wait(5.0)
+
+    sl = Swimlane("replicator")
+    sl.lane("fanout", stubborn)
+    sl.lane("recv", _idle)
+    sl.start()
+    sl.stop()
+    t0 = time.monotonic()
+    stuck = sl.join(timeout=0.3)
+    assert stuck == ["fanout"]
+    assert time.monotonic() - t0 < 1.0
+    release.set()
+    assert sl.join(timeout=2.0) == []
+
+
+def test_lane_returning_stops_the_role_cleanly() -> None:
+    sl = Swimlane("rollout")
+    sl.lane("once", lambda ctx: ctx.count(3))
+    sl.lane("loop", _idle)
+    sl.start()
+    assert sl.wait(timeout=2.0)
+    assert sl.join() == []
+    assert sl.error is None and sl.state == "stopped"
+    assert sl.stats()["once"]["items"] == 3
+
+
+def test_context_manager_stops_and_joins() -> None:
+    with Swimlane("actor") as sl:
+        ctx = sl.lane("learn", _idle)
+        sl.start()
+        assert not sl.wait(timeout=0.1)
+        assert sl.stats()["learn"]["alive"]
+    assert ctx.stop.is_set()
+    assert not sl.stats()["learn"]["alive"]
+
+
+def test_registration_errors() -> None:
+    sl = Swimlane("rollout")
+    with pytest.raises(ValueError):
+        sl.start()  # no lanes
+    sl.lane("sim", _idle)
+    with pytest.raises(ValueError):
+        sl.lane("sim", _idle)
+    sl.start()
+    with pytest.raises(RuntimeError):
+        sl.lane("late", _idle)
+    with pytest.raises(RuntimeError):
+        sl.start()
+    assert sl.close() == []
+
+
+def test_current_lane_is_set_only_inside_lane_threads() -> None:
+    seen: list[LaneContext | None] = []
+    sl = Swimlane("rollout")
+    ctx = sl.lane("probe", lambda c: seen.append(current_lane()))
+    sl.start()
+    sl.wait(timeout=2.0)
+    sl.join()
+    assert seen == [ctx]
+    assert current_lane() is None
+
+
+# -- queues -------------------------------------------------------------------------------------
+
+
+def test_queue_stays_bounded_under_fast_producer_slow_consumer() -> None:
+    n_items, maxsize = 60, 4
+    q: BoundedQueue[int] = BoundedQueue(maxsize, "obs")
+    received: list[int] = []
+    depths: list[int] = []
+
+    def producer(ctx: LaneContext) -> None:
+        for i in range(n_items):
+            if not q.put(i, ctx.stop):
+                return
+            depths.append(q.depth)
+        while ctx.running:  # stay alive so the role stops only when the consumer is done
+            ctx.sleep(0.01)
+
+    def consumer(ctx: LaneContext) -> None:
+        while len(received) < n_items:
+            item = q.get(ctx.stop)
+            if item is None:
+                return
+            with ctx.busy():
+                time.sleep(0.005)
+            received.append(item)
+            ctx.count()
+
+    sl = Swimlane("rollout")
+    sl.lane("sim", producer)
+    sl.lane("ship", consumer)
+    sl.start()
+    assert sl.wait(timeout=5.0)
+    assert sl.join() == [] and sl.error is None
+    assert received == list(range(n_items))
+    assert max(depths) <= maxsize
+    assert q.high_watermark == maxsize
+    assert q.dropped == 0
+    stats = sl.stats()
+    # The producer spent most of the ~0.3 s run blocked on the full queue; the consumer did not.
+    assert stats["sim"]["wait_s"] >= 0.15
+    assert stats["ship"]["busy_s"] >= n_items * 0.005 * 0.9
+    assert stats["ship"]["wait_s"] < stats["sim"]["wait_s"]
+    assert stats["ship"]["items"] == n_items
+
+
+def test_put_nowait_or_drop_counts_drops() -> None:
+    q: BoundedQueue[str] = BoundedQueue(2, "status")
+    results = [q.put_nowait_or_drop(f"m{i}") for i in range(5)]
+    assert results == [True, True, False, False, False]
+    assert q.dropped == 3
+    assert q.status() == {
+        "name": "status", "depth": 2, "maxsize": 2, "high_watermark": 2, "dropped": 3,
+    }
+    assert q.get_nowait() == "m0"
+    assert q.put_nowait_or_drop("m5") is True
+    assert q.dropped == 3
+
+
+def test_queue_timeout_and_stop_without_a_lane() -> None:
+    stop = threading.Event()
+    q: BoundedQueue[int] = BoundedQueue(1)
+    t0 = time.monotonic()
+    assert q.get(stop, timeout=0.12) is None
+    assert 0.1 <= time.monotonic() - t0 < 0.5
+    stats = LaneStats()
+    assert q.put(1, stop, stats=stats) is True
+    assert q.put(2, stop, timeout=0.1, stats=stats) is False
+    assert stats.wait_s >= 0.09
+    stop.set()
+    assert q.get(stop) is None  # stop wins even with an item queued
+    assert q.put(3, stop) is False
+    assert q.depth == 1
+
+
+def test_stop_ends_a_queue_wait_promptly() -> None:
+    stop = threading.Event()
+    q: BoundedQueue[int] = BoundedQueue(1)
+    done = threading.Event()
+
+    def block() -> None:
+        q.get(stop)
+        done.set()
+
+    t = threading.Thread(target=block, daemon=True)
+    t.start()
+    time.sleep(0.1)
+    assert not done.is_set()
+    stop.set()
+    assert done.wait(0.3)
+    t.join(1.0)
+
+
+def test_queue_rejects_bad_input() -> None:
+    for bad in (0, -1, None):
+        with pytest.raises(ValueError):
+            BoundedQueue(bad)  # type: ignore[arg-type]
+    q: BoundedQueue[int | None] = BoundedQueue(1)
+    with pytest.raises(ValueError):
+        q.put(None, threading.Event())
+    with pytest.raises(ValueError):
+        q.put_nowait_or_drop(None)
+
+
+# -- stats --------------------------------------------------------------------------------------
+
+
+def test_busy_section_measures_busy_time_and_utilisation() -> None:
+    stats = LaneStats()
+    with stats.busy():
+        time.sleep(0.2)
+    stats.count()
+    time.sleep(0.2)
+    snap = stats.snapshot()
+    assert 0.19 <= snap["busy_s"] < 0.3
+    assert snap["wait_s"] == 0.0
+    assert snap["items"] == 1
+    expected = snap["busy_s"] / snap["uptime_s"]
+    assert 0.35 <= snap["utilisation"] <= 0.6
+    assert snap["utilisation"] == pytest.approx(expected, rel=0.05)
+    assert 0.15 <= snap["last_item_age_s"] < 0.5
+
+
+def test_lane_busy_stats_through_swimlane() -> None:
+    def work(ctx: LaneContext) -> None:
+        with ctx.busy():
+            time.sleep(0.2)
+        ctx.count()
+        ctx.sleep(10.0)
+
+    sl = Swimlane("actor")
+    sl.lane("learn", work)
+    sl.start()
+    time.sleep(0.3)
+    snap = sl.stats()["learn"]
+    sl.close()
+    assert 0.19 <= snap["busy_s"] < 0.28
+    assert 0.5 <= snap["utilisation"] <= 0.8  # ~0.2 busy of ~0.3 wall
+    assert snap["items"] == 1
+
+
+def test_waiting_inside_busy_pauses_the_busy_clock() -> None:
+    clock = FakeClock()
+    stats = LaneStats(clock=clock)
+    with stats.busy():
+        clock.t += 1.0
+        with stats.waiting():
+            clock.t += 3.0
+        clock.t += 1.0
+        with stats.busy():  # nested busy is a no-op, not double counted
+            clock.t += 0.5
+    snap = stats.snapshot()
+    assert snap["busy_s"] == pytest.approx(2.5)
+    assert snap["wait_s"] == pytest.approx(3.0)
+    assert snap["utilisation"] == pytest.approx(2.5 / 5.5)
+    assert snap["wait_fraction"] == pytest.approx(3.0 / 5.5)
+
+
+def test_open_busy_section_counts_in_snapshot() -> None:
+    clock = FakeClock()
+    stats = LaneStats(clock=clock)
+    with stats.busy():
+        clock.t += 4.0
+        snap = stats.snapshot()
+        assert snap["busy_s"] == pytest.approx(4.0)
+        assert snap["utilisation"] == pytest.approx(1.0)
+
+
+def test_items_per_s_uses_a_sliding_window() -> None:
+    clock = FakeClock()
+    stats = LaneStats(window_s=10.0, clock=clock)
+    for _ in range(100):  # 100 items/s for 5 s
+        clock.t += 0.05
+        stats.count(5)
+    snap = stats.snapshot()
+    assert snap["items"] == 500
+    assert snap["items_per_s"] == pytest.approx(100.0, rel=0.02)
+    for _ in range(20):  # then idle for 20 s, polled once a second
+        clock.t += 1.0
+        stats.snapshot()
+    snap = stats.snapshot()
+    assert snap["items_per_s"] == pytest.approx(0.0, abs=0.1)
+    assert snap["items"] == 500
+    for _ in range(20):  # then 2 items/s for 20 s: only the last window counts
+        clock.t += 1.0
+        stats.count(2)
+    assert stats.snapshot()["items_per_s"] == pytest.approx(2.0, rel=0.1)
+    assert stats.snapshot()["utilisation"] == 0.0
+
+
+def test_lane_stats_rejects_bad_window() -> None:
+    with pytest.raises(ValueError):
+        LaneStats(window_s=0.0)
+
+
+# -- placement helpers --------------------------------------------------------------------------
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="no CPU affinity on this OS")
+def test_pin_cpus_in_a_thread() -> None:
+    allowed = os.sched_getaffinity(0)
+    target = {min(allowed)}
+    result: dict[str, object] = {}
+
+    def pin() -> None:  # pin a helper thread so the test process keeps its affinity
+        result["pinned"] = pin_cpus(target)
+        result["seen"] = os.sched_getaffinity(0)
+
+    t = threading.Thread(target=pin)
+    t.start()
+    t.join(2.0)
+    assert result["pinned"] == target and result["seen"] == target
+    assert os.sched_getaffinity(0) == allowed
+    with pytest.raises(ValueError):
+        pin_cpus([])
+
+
+def test_pin_cpus_unsupported_is_a_warning(monkeypatch: pytest.MonkeyPatch,
+                                           caplog: pytest.LogCaptureFixture) -> None:
+    monkeypatch.delattr(os, "sched_setaffinity", raising=False)
+    with caplog.at_level(logging.WARNING, logger="dvla.swimlane"):
+        assert pin_cpus([0]) is None
+    assert any("not supported" in r.getMessage() for r in caplog.records)
+
+
+def test_set_torch_threads_in_a_fresh_process() -> None:
+    pytest.importorskip("torch")
+    code = (
+        "from dvla.roles.swimlane import set_torch_threads; import torch;"
+        "r = set_torch_threads(1);"
+        "print(r['intra'], r['interop'], torch.get_num_threads())"
+    )
+    pythonpath = os.pathsep.join([REPO_ROOT, os.environ.get("PYTHONPATH", "")])
+    env = dict(os.environ, PYTHONPATH=pythonpath)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=60, env=env, check=True)
+    assert out.stdout.split() == ["1", "1", "1"]

@@ -1,0 +1,384 @@
+"""Tests of topology parsing and validation (dvla.orchestrator.topology).
+
+Each file in topologies_bad/ is a broken topology whose header says which problem must be
+reported: ``# expect: <message substring>``, ``# expect-line: <line>``, ``# expect-path: <key path>``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from pathlib import Path
+
+import pytest
+
+from dvla.config import ENCODINGS, LinkConfig, NodeConfig, RackConfig, RolePlacement, TaskConfig, Topology
+from dvla.orchestrator.topology import (
+    Problem,
+    TopologyError,
+    dump_topology_yaml,
+    load_topology,
+    parse_topology,
+    topology_to_dict,
+)
+
+HERE = Path(__file__).resolve().parent
+BAD_DIR = HERE / "topologies_bad"
+TOPOLOGY_DIR = HERE.parents[1] / "topologies"
+BAD_FILES = sorted(BAD_DIR.glob("*.yaml"))
+GOOD_FILES = sorted(TOPOLOGY_DIR.glob("*.yaml"))
+
+#: every problem renders as file:line: key.path: message
+PROBLEM_LINE_RE = re.compile(r"^.+:\d+: \S+: .+$")
+
+MINIMAL = """\
+run: t
+racks:
+  - name: r0
+    nodes:
+      - name: n0
+        roles:
+          - role: actor
+          - role: rollout
+"""
+
+
+def _header(path: Path) -> dict[str, str]:
+    found = dict(re.findall(r"^# (expect|expect-line|expect-path): (.*)$", path.read_text(), re.M))
+    missing = {"expect", "expect-line", "expect-path"} - found.keys()
+    if missing:
+        pytest.fail(f"{path.name} lacks header(s) {sorted(missing)}")
+    return found
+
+
+def _problems(text: str, source: str = "t.yaml") -> list[Problem]:
+    with pytest.raises(TopologyError) as info:
+        parse_topology(text, source)
+    return info.value.problems
+
+
+# ------------------------------------------------------------------------------------------
+# malformed files
+
+
+def test_enough_bad_files() -> None:
+    assert len(BAD_FILES) >= 30
+
+
+@pytest.mark.parametrize("path", BAD_FILES, ids=lambda p: p.name)
+def test_bad_file_reports_expected_problem(path: Path) -> None:
+    want = _header(path)
+    with pytest.raises(TopologyError) as info:
+        load_topology(path)
+    text = str(info.value)
+    prefix = f"{path.name}:{want['expect-line']}: {want['expect-path']}: "
+    hits = [line for line in text.splitlines() if prefix in line and want["expect"] in line]
+    assert hits, f"expected a problem starting {prefix!r} containing {want['expect']!r}, got:\n{text}"
+
+
+@pytest.mark.parametrize("path", BAD_FILES, ids=lambda p: p.name)
+def test_every_problem_is_one_formatted_line(path: Path) -> None:
+    with pytest.raises(TopologyError) as info:
+        load_topology(path)
+    lines = str(info.value).splitlines()
+    assert len(lines) == len(info.value.problems)
+    for line in lines:
+        assert PROBLEM_LINE_RE.match(line), line
+        assert line.startswith(str(path) + ":")
+
+
+def test_independent_problems_are_all_reported() -> None:
+    text = """\
+run: Bad Id
+task:
+  envs_per_rollout: 0
+racks:
+  - name: r0
+    nodes:
+      - name: n0
+        roles:
+          - role: actor
+          - role: rollout
+            cnt: 2
+"""
+    problems = _problems(text)
+    assert [(p.line, p.path) for p in problems] == [
+        (1, "run"),
+        (3, "task.envs_per_rollout"),
+        (11, "racks[0].nodes[0].roles[1].cnt"),
+    ]
+
+
+def test_problems_in_sibling_and_nested_objects_do_not_hide_each_other() -> None:
+    text = MINIMAL + (
+        "links:\n  node_gbit: 0\n"
+        "replication:\n  encoding: zip\n  fanout: zero\n"
+        "task:\n  ppo:\n    gamma: 2.0\n"
+    )
+    paths = {p.path for p in _problems(text)}
+    assert {"links.node_gbit", "replication.encoding", "replication.fanout", "task.ppo.gamma"} <= paths
+
+
+def test_unknown_role_does_not_also_claim_the_actor_is_missing() -> None:
+    text = MINIMAL.replace("role: actor", "role: learner")
+    problems = _problems(text, "8node.yaml")
+    assert [str(p) for p in problems] == [
+        "8node.yaml:7: racks[0].nodes[0].roles[0].role: unknown role 'learner' "
+        "(expected actor, rollout, replicator, evaluator)"
+    ]
+
+
+def test_problems_are_sorted_by_line() -> None:
+    text = "seed: x\nbase_port: 1\n" + MINIMAL.replace("run: t", "run: T")
+    problems = _problems(text)
+    assert [(p.line, p.path) for p in problems] == [(1, "seed"), (2, "base_port"), (3, "run")]
+
+
+def test_anchors_aliases_and_merge_keys() -> None:
+    text = """\
+run: m
+racks:
+  - name: r0
+    nodes:
+      - &worker
+        name: n0
+        roles: &just_rollout
+          - role: rollout
+      - <<: *worker
+        name: n1
+        roles: [{role: actor}]
+      - name: n2
+        roles: *just_rollout
+      - <<: *worker
+        name: n3
+        rolez: []
+"""
+    (problem,) = _problems(text)
+    assert (problem.line, problem.path) == (16, "racks[0].nodes[3].rolez")
+    assert "did you mean 'roles'?" in problem.message
+    topo = parse_topology(text.replace("        rolez: []\n", ""))
+    assert [n.name for _, n in topo.nodes()] == ["n0", "n1", "n2", "n3"]
+    assert [n.roles[0].role for _, n in topo.nodes()] == ["rollout", "actor", "rollout", "rollout"]
+
+
+# ------------------------------------------------------------------------------------------
+# scalar typing
+
+
+def test_bool_is_not_accepted_as_int() -> None:
+    for field in ("seed: true", "base_port: false"):
+        (problem,) = _problems(MINIMAL + field + "\n")
+        assert "expected an integer, got boolean" in problem.message
+
+
+def test_bool_is_not_accepted_as_float() -> None:
+    (problem,) = _problems(MINIMAL + "links:\n  node_gbit: true\n")
+    assert problem.path == "links.node_gbit"
+    assert "expected a number, got boolean true" in problem.message
+
+
+def test_int_is_accepted_as_float() -> None:
+    topo = parse_topology(MINIMAL + "links:\n  node_gbit: 2\n")
+    assert topo.links.node_gbit == 2.0 and type(topo.links.node_gbit) is float
+
+
+def test_exponent_without_dot_is_a_float() -> None:
+    # YAML 1.1 reads 3e-4 as a string; nobody writing a learning rate means that
+    topo = parse_topology(MINIMAL + "task:\n  ppo:\n    lr: 3e-4\n")
+    assert topo.task.ppo.lr == pytest.approx(3e-4)
+
+
+def test_quoted_number_is_not_a_float() -> None:
+    (problem,) = _problems(MINIMAL + "task:\n  ppo:\n    lr: '0.001'\n")
+    assert problem.path == "task.ppo.lr" and "got string '0.001'" in problem.message
+
+
+def test_optional_fields_accept_null() -> None:
+    topo = parse_topology(MINIMAL + "task:\n  budget:\n    max_env_steps: null\n    max_wall_s: 60\n")
+    assert topo.task.budget.max_env_steps is None
+    assert topo.task.budget.max_wall_s == 60.0
+
+
+def test_dates_and_numbers_are_not_strings() -> None:
+    problems = _problems(MINIMAL.replace("run: t", "run: 2024-01-01").replace("name: n0", "name: 0"))
+    assert [p.message for p in problems] == [
+        "expected a string, got date 2024-01-01 (quote it to make it a string)",
+        "expected a string, got integer 0 (quote it to make it a string)",
+    ]
+
+
+def test_policy_kwargs_take_any_values() -> None:
+    topo = parse_topology(MINIMAL + "task:\n  policy_kwargs:\n    hidden: [256, 256]\n    act: tanh\n")
+    assert topo.task.policy_kwargs == {"hidden": [256, 256], "act": "tanh"}
+
+
+def test_cpus_become_a_tuple() -> None:
+    topo = parse_topology(MINIMAL.replace("        roles:", "        cpus: [2, 3]\n        roles:"))
+    assert topo.racks[0].nodes[0].cpus == (2, 3)
+
+
+# ------------------------------------------------------------------------------------------
+# semantics not covered by one bad file each
+
+
+def test_defaults_apply() -> None:
+    topo = parse_topology(MINIMAL)
+    assert topo.task == TaskConfig()
+    assert topo.links == LinkConfig()
+    assert topo.racks == (
+        RackConfig(
+            name="r0",
+            nodes=(NodeConfig(name="n0", roles=(RolePlacement(role="actor"), RolePlacement(role="rollout"))),),
+        ),
+    )
+
+
+def test_every_encoding_is_accepted() -> None:
+    for encoding in ENCODINGS:
+        assert parse_topology(MINIMAL + f"replication:\n  encoding: {encoding}\n").replication.encoding == encoding
+
+
+def test_netns_accepts_local_hosts() -> None:
+    text = MINIMAL.replace("      - name: n0\n", "      - name: n0\n        host: 127.0.0.1\n")
+    assert parse_topology(text + "emulate: netns\n").emulate == "netns"
+
+
+def test_remote_host_is_fine_without_netns() -> None:
+    text = MINIMAL.replace("      - name: n0\n", "      - name: n0\n        host: gpu-7.lab\n")
+    assert parse_topology(text).racks[0].nodes[0].host == "gpu-7.lab"
+
+
+def test_single_envs_per_rollout_is_allowed() -> None:
+    assert parse_topology(MINIMAL + "task:\n  envs_per_rollout: 1\n").task.envs_per_rollout == 1
+
+
+def test_until_success_alone_is_a_stop_condition() -> None:
+    text = MINIMAL + "task:\n  budget:\n    max_env_steps: null\n    until_success: 1\n"
+    assert parse_topology(text).task.budget.until_success == 1.0
+
+
+def test_secret_file_resolves_relative_to_the_topology(tmp_path: Path) -> None:
+    (tmp_path / "keys").mkdir()
+    secret = tmp_path / "keys" / "cluster.secret"
+    secret.write_text("00" * 32)
+    topo_file = tmp_path / "t.yaml"
+    topo_file.write_text(MINIMAL + "secret_file: keys/cluster.secret\n")
+    topo = load_topology(topo_file)
+    assert topo.secret_file == str(secret)
+    assert topo.source == str(topo_file)
+
+
+def test_missing_secret_file_names_the_resolved_path(tmp_path: Path) -> None:
+    topo_file = tmp_path / "t.yaml"
+    topo_file.write_text(MINIMAL + "secret_file: nope.secret\n")
+    with pytest.raises(TopologyError) as info:
+        load_topology(topo_file)
+    assert str(tmp_path / "nope.secret") in str(info.value)
+
+
+def test_unreadable_file_is_a_topology_error(tmp_path: Path) -> None:
+    with pytest.raises(TopologyError) as info:
+        load_topology(tmp_path / "absent.yaml")
+    assert "absent.yaml" in str(info.value) and "cannot read" in str(info.value)
+
+
+def test_source_defaults_to_memory() -> None:
+    assert parse_topology(MINIMAL).source == "<memory>"
+
+
+def test_error_is_a_value_error_with_problem_list() -> None:
+    with pytest.raises(ValueError) as info:
+        parse_topology("run: t\n", "x.yaml")
+    assert isinstance(info.value, TopologyError)
+    assert all(isinstance(p, Problem) for p in info.value.problems)
+
+
+# ------------------------------------------------------------------------------------------
+# shipped topologies and round trip
+
+
+def test_shipped_topologies_exist() -> None:
+    assert {p.name for p in GOOD_FILES} >= {"local.yaml", "8node.yaml", "tiny.yaml"}
+
+
+@pytest.mark.parametrize("path", GOOD_FILES, ids=lambda p: p.name)
+def test_shipped_topology_loads(path: Path) -> None:
+    topo = load_topology(path)
+    assert topo.source == str(path)
+    kinds = {placement.role for _, node in topo.nodes() for placement in node.roles}
+    assert {"actor", "rollout"} <= kinds
+
+
+def test_local_topology() -> None:
+    topo = load_topology(TOPOLOGY_DIR / "local.yaml")
+    assert topo.run == "local"
+    ((rack, node),) = topo.nodes()
+    assert (rack.name, node.name, node.host) == ("rack0", "node0", "localhost")
+    assert {p.role: p.count for p in node.roles} == {"actor": 1, "replicator": 1, "rollout": 2, "evaluator": 1}
+    assert topo.task.env == "PushCube-v1" and topo.task.obs_mode == "state" and topo.task.algorithm == "ppo"
+    assert (topo.task.budget.max_env_steps, topo.task.budget.until_success) == (300_000, 0.8)
+    assert topo.task.budget.consecutive == 3
+    assert topo.replication.encoding == "full"
+
+
+def test_8node_topology() -> None:
+    topo = load_topology(TOPOLOGY_DIR / "8node.yaml")
+    assert (topo.run, topo.emulate) == ("cluster8", "netns")
+    names = [node.name for _, node in topo.nodes()]
+    assert names == [f"r{r}n{n}" for r in range(2) for n in range(4)]
+    roles = {node.name: sorted(p.role for p in node.roles for _ in range(p.count)) for _, node in topo.nodes()}
+    assert roles["r0n0"] == ["actor", "evaluator", "rollout"]
+    assert [n for n, r in roles.items() if "replicator" in r] == ["r0n1", "r1n0"]
+    assert all(r.count("rollout") == 1 for r in roles.values())
+    assert (topo.links.node_gbit, topo.links.rack_uplink_gbit) == (1.0, 0.2)
+    assert (topo.replication.encoding, topo.replication.fanout) == ("full", 4)
+
+
+def test_tiny_topology() -> None:
+    topo = load_topology(TOPOLOGY_DIR / "tiny.yaml")
+    ((_, node),) = topo.nodes()
+    assert {p.role: p.count for p in node.roles} == {"actor": 1, "replicator": 1, "rollout": 2, "evaluator": 1}
+    assert (topo.task.envs_per_rollout, topo.task.chunk_steps) == (2, 10)
+    assert topo.task.budget.max_env_steps == 3000
+    ppo = topo.task.ppo
+    assert (ppo.batch_steps, ppo.minibatches, ppo.update_epochs) == (400, 4, 2)
+
+
+@pytest.mark.parametrize("path", GOOD_FILES, ids=lambda p: p.name)
+def test_round_trip_of_shipped_topologies(path: Path) -> None:
+    topo = load_topology(path)
+    assert parse_topology(dump_topology_yaml(topo), topo.source) == topo
+
+
+def test_round_trip_of_non_default_values(tmp_path: Path) -> None:
+    secret = tmp_path / "s.key"
+    secret.write_text("ab" * 32)
+    topo = parse_topology(MINIMAL + f"secret_file: {secret}\n")
+    node = dataclasses.replace(topo.racks[0].nodes[0], host="10.0.0.7", address="10.0.0.7", cpus=(0, 5))
+    topo = dataclasses.replace(
+        topo,
+        seed=7,
+        mode="sync",
+        shared_memory=True,
+        racks=(dataclasses.replace(topo.racks[0], nodes=(node,)),),
+        task=dataclasses.replace(topo.task, policy_kwargs={"hidden": [64, 64], "act": "yes"}, device="cpu"),
+        links=LinkConfig(node_gbit=0.125, rack_uplink_gbit=1e-3),
+    )
+    again = parse_topology(dump_topology_yaml(topo))
+    assert again == topo
+    assert parse_topology(dump_topology_yaml(again)) == again
+
+
+def test_topology_to_dict_is_plain() -> None:
+    def plain(value: object) -> bool:
+        if isinstance(value, dict):
+            return all(isinstance(k, str) and plain(v) for k, v in value.items())
+        if isinstance(value, list):
+            return all(plain(v) for v in value)
+        return value is None or type(value) in (str, int, float, bool)
+
+    d = topology_to_dict(load_topology(TOPOLOGY_DIR / "8node.yaml"))
+    assert plain(d)
+    assert "source" not in d
+    assert isinstance(d["racks"], list) and isinstance(d["racks"][0]["nodes"][0]["roles"], list)
+    assert set(d) == {f.name for f in dataclasses.fields(Topology)} - {"source"}
