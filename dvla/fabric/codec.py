@@ -45,7 +45,7 @@ __all__ = [
 ]
 
 SCHEMA_VERSION = 1
-"""Version of the envelope and of every message schema; bumped on any incompatible change."""
+"""Version of the top-level layout and of every message schema; bumped on any incompatible change."""
 
 ARRAY_EXT_CODE = 1
 """msgpack ext type code of a numpy array."""
@@ -103,65 +103,76 @@ DEFAULT_LIMITS = Limits()
 # Field schemas, compiled once from the message dataclasses' type hints.
 # --------------------------------------------------------------------------------------------
 
-Checker = Callable[[Any, str], Any]
+Path = Any
+"""Where a value sits, for error messages: a field name, or ``(parent path, key)``. Kept as
+nested tuples so the string is only built when an error is actually raised."""
+
+Checker = Callable[[Any, Path], Any]
 """Takes a field value and its path; returns the normalised value or raises CodecError("type")."""
 
 
-def _type_error(path: str, value: Any, expected: str) -> CodecError:
-    return CodecError("type", f"{path}: {type(value).__name__}, expected {expected}")
+def _path_str(path: Path) -> str:
+    if isinstance(path, tuple):
+        parent, key = path
+        return f"{_path_str(parent)}[{key!r}]"
+    return str(path)
 
 
-def _check_str(value: Any, path: str) -> str:
+def _type_error(path: Path, value: Any, expected: str) -> CodecError:
+    return CodecError("type", f"{_path_str(path)}: {type(value).__name__}, expected {expected}")
+
+
+def _check_str(value: Any, path: Path) -> str:
     if not isinstance(value, str):
         raise _type_error(path, value, "str")
     return value
 
 
-def _check_int(value: Any, path: str) -> int:
+def _check_int(value: Any, path: Path) -> int:
     # bool is an int subclass in Python but a distinct msgpack type; keep them apart.
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
         raise _type_error(path, value, "int")
     return int(value)
 
 
-def _check_float(value: Any, path: str) -> float:
+def _check_float(value: Any, path: Path) -> float:
     # Integers are accepted because other encoders may write 1 for 1.0.
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (float, int, np.floating, np.integer)):
         raise _type_error(path, value, "float")
     return float(value)
 
 
-def _check_bool(value: Any, path: str) -> bool:
+def _check_bool(value: Any, path: Path) -> bool:
     if not isinstance(value, (bool, np.bool_)):
         raise _type_error(path, value, "bool")
     return bool(value)
 
 
-def _check_bytes(value: Any, path: str) -> Any:
+def _check_bytes(value: Any, path: Path) -> Any:
     if not isinstance(value, (bytes, bytearray, memoryview)):
         raise _type_error(path, value, "bytes")
     return value
 
 
-def _check_ndarray(value: Any, path: str) -> np.ndarray:
+def _check_ndarray(value: Any, path: Path) -> np.ndarray:
     if not isinstance(value, np.ndarray):
         raise _type_error(path, value, "numpy.ndarray")
     return value
 
 
-def _check_any(value: Any, path: str) -> Any:
+def _check_any(value: Any, path: Path) -> Any:
     return value
 
 
 def _dict_checker(value_checker: Checker) -> Checker:
-    def check(value: Any, path: str) -> dict[str, Any]:
+    def check(value: Any, path: Path) -> dict[str, Any]:
         if not isinstance(value, dict):
             raise _type_error(path, value, "dict")
         out = {}
         for key, item in value.items():
             if not isinstance(key, str):
-                raise CodecError("type", f"{path}: key {key!r} is not a str")
-            out[key] = value_checker(item, f"{path}[{key!r}]")
+                raise CodecError("type", f"{_path_str(path)}: key {key!r} is not a str")
+            out[key] = value_checker(item, (path, key))
         return out
 
     return check
@@ -214,7 +225,7 @@ _MAX_DIM = (1 << 32) - 1
 
 
 def _ext_frame(length: int, kind: int) -> bytes:
-    """msgpack ext 8/16/32 header. ``kind`` (0, 1, 2) is chosen by the caller, see _write_array."""
+    """msgpack ext 8/16/32 header; ``kind`` (0, 1, 2) is chosen by :meth:`_Writer.array`."""
     if kind == 0:
         return struct.pack(">BBb", 0xC7, length, ARRAY_EXT_CODE)
     if kind == 1:
@@ -234,22 +245,22 @@ def _bin_frame(length: int) -> bytes:
     return struct.pack(">BI", 0xC6, length)
 
 
-def _wire_array(arr: np.ndarray, path: str, limits: Limits) -> tuple[bytes, np.ndarray]:
+def _wire_array(arr: np.ndarray, path: Path, limits: Limits) -> tuple[bytes, np.ndarray]:
     """Check an array against the allowlist/limits; return (wire dtype name, C-contiguous LE array)."""
     dtype = arr.dtype
     name = _WIRE_NAME_BY_DTYPE.get(dtype)
     if name is None and dtype.byteorder == ">":
         name = _WIRE_NAME_BY_DTYPE.get(dtype.newbyteorder("<"))
     if name is None:
-        raise CodecError("type", f"{path}: dtype {dtype} not in {sorted(DTYPES)}")
+        raise CodecError("type", f"{_path_str(path)}: dtype {dtype} not in {sorted(DTYPES)}")
     if arr.ndim > limits.max_ndim:
-        raise CodecError("oversize", f"{path}: ndim {arr.ndim} > {limits.max_ndim}")
+        raise CodecError("oversize", f"{_path_str(path)}: ndim {arr.ndim} > {limits.max_ndim}")
     if arr.ndim and max(arr.shape) > _MAX_DIM:
-        raise CodecError("oversize", f"{path}: a dimension of {arr.shape} exceeds uint32")
+        raise CodecError("oversize", f"{_path_str(path)}: a dimension of {arr.shape} exceeds uint32")
     if arr.nbytes > limits.max_array_bytes:
-        raise CodecError("oversize", f"{path}: {arr.nbytes} bytes > {limits.max_array_bytes}")
+        raise CodecError("oversize", f"{_path_str(path)}: {arr.nbytes} bytes > {limits.max_array_bytes}")
     if dtype.byteorder == ">":
-        arr = arr.astype(dtype.newbyteorder("<"))  # byte-swap (the one copy)
+        arr = arr.astype(dtype.newbyteorder("<"), order="C")  # byte-swap (the one copy)
     elif not arr.flags.c_contiguous:
         arr = np.ascontiguousarray(arr)  # gather strided data (the one copy)
     return name, arr
@@ -261,7 +272,9 @@ class _Writer:
 
     def __init__(self, limits: Limits) -> None:
         self.limits = limits
-        self.packer = msgpack.Packer(use_bin_type=True, autoreset=False)
+        # Small initial buffer: only headers and scalars go through the packer (its 256 KiB
+        # default would be an extra large allocation per message).
+        self.packer = msgpack.Packer(use_bin_type=True, autoreset=False, buf_size=4096)
         self.pieces: list[Any] = []
         self.offset = 0  # bytes in ``pieces``
 
@@ -282,18 +295,18 @@ class _Writer:
             raise CodecError("oversize", f"message {self.offset} bytes > {self.limits.max_message_bytes}")
         return b"".join(self.pieces)
 
-    def map_header(self, n: int, path: str) -> None:
+    def map_header(self, n: int, path: Path) -> None:
         if n > self.limits.max_map_len:
-            raise CodecError("oversize", f"{path}: map of {n} entries > {self.limits.max_map_len}")
+            raise CodecError("oversize", f"{_path_str(path)}: map of {n} entries > {self.limits.max_map_len}")
         self.packer.pack_map_header(n)
 
-    def string(self, value: str, path: str) -> None:
+    def string(self, value: str, path: Path) -> None:
         # A char is at most 4 UTF-8 bytes: only long strings need the exact (encoding) check.
         if len(value) * 4 > self.limits.max_str_len and len(value.encode("utf-8")) > self.limits.max_str_len:
-            raise CodecError("oversize", f"{path}: string longer than {self.limits.max_str_len} bytes")
+            raise CodecError("oversize", f"{_path_str(path)}: string longer than {self.limits.max_str_len} bytes")
         self.packer.pack(value)
 
-    def value(self, value: Any, path: str, depth: int) -> None:
+    def value(self, value: Any, path: Path, depth: int) -> None:
         if value is None or isinstance(value, (bool, int, float)):
             self.packer.pack(value)
         elif isinstance(value, str):
@@ -309,40 +322,40 @@ class _Writer:
         elif isinstance(value, np.generic):
             self.value(value.item(), path, depth)
         else:
-            raise CodecError("type", f"{path}: cannot encode {type(value).__name__}")
+            raise CodecError("type", f"{_path_str(path)}: cannot encode {type(value).__name__}")
 
-    def _enter(self, depth: int, path: str) -> None:
+    def _enter(self, depth: int, path: Path) -> None:
         if depth > self.limits.max_depth:
-            raise CodecError("oversize", f"{path}: nesting deeper than {self.limits.max_depth}")
+            raise CodecError("oversize", f"{_path_str(path)}: nesting deeper than {self.limits.max_depth}")
 
-    def mapping(self, value: dict, path: str, depth: int) -> None:
+    def mapping(self, value: dict, path: Path, depth: int) -> None:
         self._enter(depth, path)
         self.map_header(len(value), path)
         for key, item in value.items():
             if not isinstance(key, str):
-                raise CodecError("type", f"{path}: key {key!r} is not a str")
+                raise CodecError("type", f"{_path_str(path)}: key {key!r} is not a str")
             self.string(key, path)
-            self.value(item, f"{path}[{key!r}]", depth)
+            self.value(item, (path, key), depth)
 
-    def sequence(self, value: list | tuple, path: str, depth: int) -> None:
+    def sequence(self, value: list | tuple, path: Path, depth: int) -> None:
         self._enter(depth, path)
         if len(value) > self.limits.max_list_len:
-            raise CodecError("oversize", f"{path}: list of {len(value)} items > {self.limits.max_list_len}")
+            raise CodecError("oversize", f"{_path_str(path)}: list of {len(value)} items > {self.limits.max_list_len}")
         self.packer.pack_array_header(len(value))
         for i, item in enumerate(value):
-            self.value(item, f"{path}[{i}]", depth)
+            self.value(item, (path, i), depth)
 
-    def binary(self, value: bytes | bytearray | memoryview, path: str) -> None:
+    def binary(self, value: bytes | bytearray | memoryview, path: Path) -> None:
         view = memoryview(value).cast("B") if isinstance(value, memoryview) else value
         n = len(view)
         if n > self.limits.max_array_bytes:
-            raise CodecError("oversize", f"{path}: {n} bytes > {self.limits.max_array_bytes}")
+            raise CodecError("oversize", f"{_path_str(path)}: {n} bytes > {self.limits.max_array_bytes}")
         self._flush()
         frame = _bin_frame(n)
         self._raw(frame, len(frame))
         self._raw(view, n)
 
-    def array(self, value: np.ndarray, path: str) -> None:
+    def array(self, value: np.ndarray, path: Path) -> None:
         name, arr = _wire_array(value, path, self.limits)
         header = b"".join((_U8.pack(len(name)), name, _U8.pack(arr.ndim), _SHAPE_STRUCTS[arr.ndim].pack(*arr.shape)))
         nbytes = arr.nbytes
@@ -600,7 +613,7 @@ def _as_byte_sequence(buf: Any) -> bytes | bytearray | memoryview:
     return mv
 
 
-def _read_envelope(data: bytes | bytearray | memoryview, limits: Limits) -> dict:
+def _read_top(data: bytes | bytearray | memoryview, limits: Limits) -> dict:
     reader = _Reader(data, limits)
     top = reader.value(0)
     if reader.pos != reader.end:
@@ -643,8 +656,10 @@ def decode(
     expect: type | tuple[type, ...] | None = None,
     limits: Limits = DEFAULT_LIMITS,
 ) -> Message:
-    """Decode one message; arrays are read-only (for ``bytes`` input) views into ``buf``.
+    """Decode one message whose arrays are views into ``buf`` (no copy).
 
+    With ``bytes`` input the arrays are read-only; with a ``bytearray`` or writable memoryview
+    they are writable and alias it, so don't reuse that buffer while the message is alive.
     ``expect`` restricts the accepted message classes. Any bad input raises
     :class:`CodecError` (and nothing else).
     """
@@ -652,7 +667,7 @@ def decode(
         data = _as_byte_sequence(buf)
         if len(data) > limits.max_message_bytes:
             raise CodecError("oversize", f"message {len(data)} bytes > {limits.max_message_bytes}")
-        top = _read_envelope(data, limits)
+        top = _read_top(data, limits)
         return _build(_schema_for(top, expect), top["b"])
     except CodecError:
         raise

@@ -245,22 +245,22 @@ class Fabric:
         """Queryable on `key`: `handler(request_msg_or_None)` returns a message to reply with."""
 
         def _cb(query: zenoh.Query) -> None:
-            req = None
-            if query.payload is not None:
-                got = self.open_signed(key, query.payload.to_bytes(), expect)
-                if got is None:
-                    return
-                req = got[1]
             try:
+                req = None
+                if query.payload is not None:
+                    got = self.open_signed(key, query.payload.to_bytes(), expect)
+                    if got is None:
+                        return
+                    req = got[1]
                 reply = handler(req)
-            except Exception:
+                if reply is None:
+                    return
+                payload = reply if isinstance(reply, (bytes, bytearray)) else self.seal(key, reply)
+                query.reply(key, payload)
+                self.accounting.sent(CTRL, len(payload), "reply")
+            except Exception:  # never let a bad request or a handler bug kill Zenoh's thread
+                self.accounting.add(CTRL, "queryable_errors")
                 log.exception("queryable %s failed", key)
-                return
-            if reply is None:
-                return
-            payload = reply if isinstance(reply, (bytes, bytearray)) else self.seal(key, reply)
-            query.reply(key, payload)
-            self.accounting.sent(CTRL, len(payload), "reply")
 
         self._declared.append(self.ctrl.declare_queryable(key, _cb))
 

@@ -162,7 +162,8 @@ class WeightManifest(Message):
     n_chunks: int
     #: total payload bytes over all chunks
     total_bytes: int
-    #: hex digest of the concatenated payload
+    #: hex digest of the flat float32 parameters *after* applying this version (what every
+    #: replica must hold, bit for bit)
     checksum: str
     #: wall-clock creation time, ns since the Unix epoch
     created_ns: int = field(default_factory=_now_ns)
@@ -241,7 +242,7 @@ class RoleStatus(Message):
     #: per-link float metrics, lane name -> metric name -> value
     lanes: dict[str, dict[str, float]] = field(default_factory=dict)
     #: per-plane counters, plane name -> counter name -> value
-    planes: dict[str, dict[str, int]] = field(default_factory=dict)
+    planes: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: anything else (msgpack-able scalars, strings, lists, nested dicts)
     extra: dict[str, Any] = field(default_factory=dict)
     #: wall-clock report time, ns since the Unix epoch
@@ -288,8 +289,32 @@ class SnapshotRequest(Message):
     have_version: int
 
 
+@dataclass(frozen=True, kw_only=True)
+class WeightSnapshot(Message):
+    """Reply of a ``snapshot`` queryable: the sender's latest verified full weights (catch-up)."""
+
+    TYPE_TAG: ClassVar[str] = "snapshot"
+
+    #: role that serves the snapshot
+    sender: str
+    #: policy version held
+    version: int
+    #: hash of parameter names/shapes/dtypes
+    layout_hash: str
+    #: hex digest of `data` (the flat float32 parameters)
+    checksum: str
+    #: the flat float32 parameters, little-endian
+    data: bytes
+    #: wall-clock creation time, ns since the Unix epoch
+    created_ns: int = field(default_factory=_now_ns)
+
+    def validate(self) -> None:
+        _require(self.version >= 0, "schema", f"version {self.version} < 0")
+        _require(len(self.data) % 4 == 0, "shape", f"snapshot of {len(self.data)} bytes is not float32")
+
+
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.TYPE_TAG: cls
-    for cls in (TrajectoryChunk, WeightManifest, WeightChunk, Command, RoleStatus, EvalResult, SnapshotRequest)
+    for cls in (TrajectoryChunk, WeightManifest, WeightChunk, Command, RoleStatus, EvalResult, SnapshotRequest, WeightSnapshot)
 }
 """Wire type tag -> message class."""

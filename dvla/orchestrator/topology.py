@@ -116,7 +116,6 @@ class _Context:
         self.source = source
         self.problems: list[Problem] = []
         self.lines: dict[str, int] = {"": 1}
-        self._constructor = yaml.constructor.SafeConstructor()
 
     def report(self, path: str, message: str, line: int | None = None) -> None:
         if line is None:
@@ -131,8 +130,9 @@ class _Context:
 
     def construct(self, node: Node, path: str) -> Any:
         """Python value of a node, by YAML's own rules (tags, ints, floats, bools)."""
+        # a fresh constructor per value: a failed construction leaves a constructor's state dirty
         try:
-            return self._constructor.construct_object(node, deep=True)
+            return yaml.constructor.SafeConstructor().construct_object(node, deep=True)
         except yaml.YAMLError as err:
             self.report(path, f"cannot read value: {_yaml_reason(err)}", _line(node))
             return INVALID

@@ -243,6 +243,13 @@ def _encoded(
     )
 
 
+def _byte_view(data: BytesLike) -> memoryview:
+    try:
+        return memoryview(data).cast("B")
+    except TypeError as exc:  # not a buffer, or not contiguous
+        raise CorruptPayload(f"payload must be contiguous bytes: {exc}") from exc
+
+
 def _as_manifest(m: Manifest | Mapping[str, Any]) -> Manifest:
     if isinstance(m, Manifest):
         return m
@@ -370,14 +377,14 @@ class WeightEncoder:
 
     def encode(self, true_flat: np.ndarray, *, full: bool = False) -> EncodedVersion:
         """Encode the next version from the current true parameters (flat float32)."""
-        if not isinstance(true_flat, np.ndarray) or true_flat.dtype != np.float32 or true_flat.shape != (self.layout.numel,):
-            raise LayoutMismatch(f"expected a float32 vector of {self.layout.numel} elements")
+        n = self.layout.numel
+        if not isinstance(true_flat, np.ndarray) or true_flat.dtype != np.float32 or true_flat.shape != (n,):
+            raise LayoutMismatch(f"expected a float32 vector of {n} elements")
         version = self.version + 1
-        payload = None
-        encoding = "full"
+        payload: memoryview | None = None
+        encoding = self.encoding
         if not (full or self._wants_full(version)):
-            payload = self._encode_bf16(true_flat) if self.encoding == "delta-bf16" else self._encode_topk(true_flat)
-            encoding = self.encoding
+            payload = self._encode_bf16(true_flat) if encoding == "delta-bf16" else self._encode_topk(true_flat)
         if payload is None:
             encoding = "full"
             np.copyto(self._pub, true_flat)
@@ -509,7 +516,7 @@ class WeightDecoder:
         is unchanged and nothing is pending. With ``swap=True`` the result is swapped in.
         """
         m = _as_manifest(manifest)
-        view = memoryview(payload).cast("B")
+        view = _byte_view(payload)
         self._check(m, view.nbytes)
         self.swap()  # promote a pending result: it is the base of this version
         if m.version <= self.version:
@@ -609,7 +616,7 @@ class ChunkAssembler:
 
     def reset(self, n_chunks: int, total_bytes: int) -> None:
         """Start assembling a new payload (the buffer is reused, not reallocated)."""
-        if isinstance(n_chunks, bool) or isinstance(total_bytes, bool):
+        if not all(isinstance(x, int) and not isinstance(x, bool) for x in (n_chunks, total_bytes)):
             raise ReplicationError("n_chunks and total_bytes must be integers")
         if not 1 <= total_bytes <= self.max_bytes:
             raise ReplicationError(f"total_bytes {total_bytes} outside [1, {self.max_bytes}]")
@@ -645,7 +652,7 @@ class ChunkAssembler:
         if self._have[index]:
             return False
         start, stop = chunk_span(index, self.n_chunks, self.total_bytes)
-        src = memoryview(data).cast("B")
+        src = _byte_view(data)
         if src.nbytes != stop - start:
             raise ReplicationError(f"chunk {index} has {src.nbytes} bytes, expected {stop - start}")
         self._view[start:stop] = src

@@ -23,10 +23,10 @@ import torch
 from ..config import RoleConfig, resolve_device
 from ..fabric import Fabric
 from ..fabric.fabric import DATA
-from ..fabric.messages import TrajectoryChunk, WeightChunk, WeightSnapshot
+from ..fabric.messages import TrajectoryChunk, WeightChunk, WeightManifest, WeightSnapshot
 from ..learn import PPOLearner, compute_gae, make_policy
-from ..learn.envs import probe_dims
-from ..replication import ParamLayout, WeightEncoder, flatten
+from ..learn.dims import probe_dims
+from ..replication import ParamLayout, ReplicationError, WeightEncoder, flatten
 from .runtime import main
 from .slots import SlotPool
 from .swimlane import LaneContext, Swimlane
@@ -212,7 +212,8 @@ class Actor:
                 with self._snapshot_lock:
                     self._snapshot = None  # rebuilt lazily on the next snapshot query
                     self.published_version = enc.version
-                self.bytes_published += f.publish_ctrl(key, enc.manifest(self.cfg.name), weights=True)
+                manifest = WeightManifest(sender=self.cfg.name, **enc.to_dict())
+                self.bytes_published += f.publish_ctrl(key, manifest, weights=True)
                 for i, data in enumerate(enc.chunks):
                     msg = WeightChunk(sender=self.cfg.name, version=enc.version, index=i, n_chunks=enc.n_chunks, data=bytes(data))
                     self.bytes_published += f.publish_ctrl(key, msg, weights=True)
@@ -224,7 +225,10 @@ class Actor:
     def _serve_snapshot(self, _req: Any) -> bytes | WeightSnapshot:
         with self._snapshot_lock:
             if self._snapshot is None:
-                version, payload, checksum = self.encoder.snapshot()
+                try:
+                    version, payload, checksum = self.encoder.snapshot()
+                except ReplicationError:
+                    return None  # nothing published yet
                 snap = WeightSnapshot(
                     sender=self.cfg.name, version=version, layout_hash=self.layout.hash,
                     checksum=checksum, data=bytes(payload), created_ns=time.time_ns(),

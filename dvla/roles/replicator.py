@@ -22,7 +22,7 @@ from ..config import RoleConfig
 from ..fabric import Fabric
 from ..fabric.messages import WeightChunk, WeightManifest, WeightSnapshot
 from ..learn import make_policy
-from ..learn.envs import probe_dims
+from ..learn.dims import probe_dims
 from ..replication import ParamLayout, checksum
 from .runtime import main
 from .swimlane import LaneContext, Swimlane

@@ -108,7 +108,7 @@ class RoleHost:
             policy_version=int(self.role.policy_version),
             env_steps=int(self.role.env_steps),
             steps_per_s=float(self.steps_per_s()),
-            lanes=self.swimlane.stats(),
+            lanes=_lane_floats(self.swimlane.stats()),
             planes=_ints(self.fabric.accounting.snapshot()),
             extra=self.role.status_extra(),
             time_ns=time.time_ns(),
@@ -160,6 +160,14 @@ class RoleHost:
             tmp.replace(path)
         except OSError as err:
             log.warning("cannot write summary %s: %s", path, err)
+
+
+def _lane_floats(stats: dict[str, dict[str, Any]]) -> dict[str, dict[str, float]]:
+    """Lane stats as the float map RoleStatus carries (booleans become 0/1)."""
+    return {
+        lane: {k: float(v) for k, v in st.items() if isinstance(v, (int, float)) and v is not None}
+        for lane, st in stats.items()
+    }
 
 
 def _ints(d: dict[str, Any]) -> dict[str, Any]:

@@ -27,6 +27,8 @@ from ..replication import (
     NeedSnapshot,
     ParamLayout,
     ReplicationError,
+    Snapshot,
+    StaleVersion,
     WeightDecoder,
 )
 from .swimlane import LaneContext
@@ -149,7 +151,9 @@ class WeightSync:
         if m.version <= self.version:
             return
         try:
-            flat = self.decoder.apply(m, payload)
+            flat = self.decoder.apply(manifest_dict(m), payload, swap=True)
+        except StaleVersion:
+            return
         except NeedSnapshot:
             self.counters["repairs"] += 1
             self._want_snapshot = True
@@ -165,7 +169,6 @@ class WeightSync:
             log.warning("weights: v%d rejected: %s", m.version, err)
             self._want_snapshot = True
             return
-        self.decoder.swap()
         self.version = m.version
         self.counters["versions"] += 1
         self.on_version(m.version, flat)
@@ -185,12 +188,14 @@ class WeightSync:
                     self._want_snapshot = False
                     return True
                 try:
-                    flat = self.decoder.load_full(snap.version, snap.layout_hash, snap.checksum, snap.data)
+                    if snap.layout_hash != self.layout.hash:
+                        raise ReplicationError(f"layout {snap.layout_hash} != ours {self.layout.hash}")
+                    self.decoder.reset()
+                    flat = self.decoder.load_snapshot(Snapshot(snap.version, snap.data, snap.checksum))
                 except ReplicationError as err:
                     self.counters["rejected"] += 1
                     log.warning("weights: snapshot v%d from %s rejected: %s", snap.version, p, err)
                     continue
-                self.decoder.swap()
                 self.version = snap.version
                 self.counters["snapshots"] += 1
                 self._want_snapshot = False
@@ -202,3 +207,12 @@ class WeightSync:
 
     def status(self) -> dict[str, Any]:
         return {"parent": self.parent, "version": self.version, **self.counters}
+
+
+def manifest_dict(m: WeightManifest) -> dict[str, Any]:
+    """The replication manifest fields of a WeightManifest message."""
+    return {
+        "version": m.version, "base_version": m.base_version, "encoding": m.encoding,
+        "layout_hash": m.layout_hash, "checksum": m.checksum, "n_chunks": m.n_chunks,
+        "total_bytes": m.total_bytes,
+    }

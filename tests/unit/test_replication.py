@@ -216,13 +216,19 @@ def _step(true: np.ndarray, version: int, rng: np.random.Generator) -> None:
     true += (scale * rng.standard_normal(true.size)).astype(np.float32)
 
 
-@pytest.mark.parametrize("snapshot_every", [10, 10**9], ids=["snap10", "nosnap"])
-@pytest.mark.parametrize("encoding", ENCODINGS)
+@pytest.mark.parametrize(
+    "encoding, snapshot_every",
+    [(e, s) for e in ENCODINGS for s in (10, 10**9) if not (e == "full" and s > 10)],  # full ignores cadence
+    ids=lambda v: v if isinstance(v, str) else ("snap10" if v == 10 else "nosnap"),
+)
 def test_replicas_are_bit_exact_and_gap_is_bounded(layout: ParamLayout, encoding: str, snapshot_every: int) -> None:
     rng = np.random.default_rng(11)
-    enc = WeightEncoder(layout, encoding, topk_fraction=TOPK_FRACTION, snapshot_every=snapshot_every, chunk_bytes=CHUNK_BYTES)
+    enc = WeightEncoder(
+        layout, encoding, topk_fraction=TOPK_FRACTION, snapshot_every=snapshot_every, chunk_bytes=CHUNK_BYTES
+    )
     replicas = [(WeightDecoder(layout), ChunkAssembler(1, 1, layout.nbytes)) for _ in range(2)]
     true = flatten(_mlp(), layout)
+    start = true.copy()
     gaps, delta_ratios = [0.0], []
     for version in range(1, 201):
         if version > 1:
@@ -251,6 +257,8 @@ def test_replicas_are_bit_exact_and_gap_is_bounded(layout: ParamLayout, encoding
     assert max(gaps[101:201]) <= 2 * max(gaps[20:101])
     if encoding == "delta-topk":
         assert np.median(gaps[150:201]) <= 1.5 * np.median(gaps[50:101])
+        # Without error feedback the unsent 95% would pile up to ~0.8x the total drift.
+        assert np.median(gaps[150:201]) < 0.25 * float(np.linalg.norm(true - start))
     if encoding == "delta-bf16":
         assert max(delta_ratios) < 0.55
     if encoding == "delta-topk":
@@ -330,7 +338,7 @@ def test_corrupted_topk_index_is_rejected(layout: ParamLayout) -> None:
     dec.apply(ev, ev.payload, swap=True)
     true[::3] += 0.01
     ev = enc.encode(true)
-    for pos in (3, 4):  # high byte of the first index (out of range); low byte of the second (disorder)
+    for pos in (3, 4):  # high byte of the first index (out of range); low byte of the second (wrong index)
         payload = bytearray(ev.payload)
         payload[pos] ^= 0xFF
         with pytest.raises(CorruptPayload):
@@ -447,12 +455,11 @@ def test_decoded_weights_drive_the_policy(layout: ParamLayout) -> None:
     enc = WeightEncoder(layout, "delta-bf16", snapshot_every=1000)
     dec = WeightDecoder(layout)
     buf = layout.empty()
-    opt = torch.optim.SGD(learner.parameters(), lr=0.1)
     x = torch.randn(16, 64)
     for _ in range(5):
-        opt.zero_grad()
-        learner(x).pow(2).mean().backward()
-        opt.step()
+        with torch.no_grad():  # stands in for a learner step
+            for param in learner.parameters():
+                param.add_(0.01 * torch.randn_like(param))
         ev = enc.encode(flatten(learner, layout, out=buf))
         dec.apply(ev, ev.payload, swap=True)
     unflatten_into(dec.active, rollout, layout)

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import logging
 import os
-import subprocess
 import sys
 import threading
 import time
-from pathlib import Path
+import types
 
 import pytest
 
@@ -20,10 +19,8 @@ from dvla.roles.swimlane import (
     Swimlane,
     current_lane,
     pin_cpus,
+    set_torch_threads,
 )
-
-REPO_ROOT = str(Path(__file__).resolve().parents[2])
-
 
 class FakeClock:
     """A settable clock so window arithmetic is tested exactly, not against wall time."""
@@ -435,15 +432,47 @@ def test_pin_cpus_unsupported_is_a_warning(monkeypatch: pytest.MonkeyPatch,
     assert any("not supported" in r.getMessage() for r in caplog.records)
 
 
-def test_set_torch_threads_in_a_fresh_process() -> None:
-    pytest.importorskip("torch")
-    code = (
-        "from dvla.roles.swimlane import set_torch_threads; import torch;"
-        "r = set_torch_threads(1);"
-        "print(r['intra'], r['interop'], torch.get_num_threads())"
-    )
-    pythonpath = os.pathsep.join([REPO_ROOT, os.environ.get("PYTHONPATH", "")])
-    env = dict(os.environ, PYTHONPATH=pythonpath)
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         timeout=60, env=env, check=True)
-    assert out.stdout.split() == ["1", "1", "1"]
+class FakeTorch(types.ModuleType):
+    """Stands in for torch: importing the real one costs seconds and its thread pools are global."""
+
+    def __init__(self, intra: int, interop: int, interop_locked: bool) -> None:
+        super().__init__("torch")
+        self.intra, self.interop, self.interop_locked = intra, interop, interop_locked
+
+    def set_num_threads(self, n: int) -> None:
+        self.intra = n
+
+    def get_num_threads(self) -> int:
+        return self.intra
+
+    def set_num_interop_threads(self, n: int) -> None:
+        if self.interop_locked:  # what torch does once parallel work has started
+            raise RuntimeError("Error: cannot set number of interop threads after parallel work")
+        self.interop = n
+
+    def get_num_interop_threads(self) -> int:
+        return self.interop
+
+
+def test_set_torch_threads_sets_intra_and_interop(monkeypatch: pytest.MonkeyPatch) -> None:
+    fake = FakeTorch(intra=8, interop=8, interop_locked=False)
+    monkeypatch.setitem(sys.modules, "torch", fake)
+    assert set_torch_threads(2) == {"intra": 2, "interop": 1}
+    assert (fake.intra, fake.interop) == (2, 1)
+    with pytest.raises(ValueError):
+        set_torch_threads(0)
+
+
+def test_set_torch_threads_tolerates_locked_interop(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    fake = FakeTorch(intra=8, interop=4, interop_locked=True)
+    monkeypatch.setitem(sys.modules, "torch", fake)
+    with caplog.at_level(logging.WARNING, logger="dvla.swimlane"):
+        assert set_torch_threads(1) == {"intra": 1, "interop": 4}
+    assert any("inter-op threads stay at 4" in r.getMessage() for r in caplog.records)
+
+
+def test_set_torch_threads_without_torch(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "torch", None)  # makes `import torch` raise ImportError
+    assert set_torch_threads(1) is None

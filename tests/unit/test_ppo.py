@@ -1,0 +1,196 @@
+"""Unit tests of dvla.learn.ppo and dvla.learn.policies (no simulator)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from dvla.config import PPOConfig
+from dvla.learn.policies import MLPPolicy, Policy, make_policy, register_policy
+from dvla.learn.ppo import PPOLearner, batch_from_chunks, compute_gae, grpo_advantages
+
+GAMMA, LAM = 0.5, 0.5
+
+
+def _gae_case():
+    """One env, 4 steps: the episode is truncated after step 1, terminated after step 3.
+
+    values v = [1, 2, 3, 4]; next_values: step 0 -> v1 = 2, step 1 -> V(final_obs) = 10,
+    step 2 -> v3 = 4, step 3 -> V(final_obs) = 7 (ignored: terminated).
+    """
+    r = np.array([[1.0], [1.0], [1.0], [1.0]], np.float32)
+    v = np.array([[1.0], [2.0], [3.0], [4.0]], np.float32)
+    nv = np.array([[2.0], [10.0], [4.0], [7.0]], np.float32)
+    term = np.array([[0], [0], [0], [1]], bool)
+    end = np.array([[0], [1], [0], [1]], bool)
+    # deltas: d0 = 1 + .5*2 - 1 = 1; d1 = 1 + .5*10 - 2 = 4 (truncation bootstraps);
+    #         d2 = 1 + .5*4 - 3 = 0; d3 = 1 + 0 - 4 = -3 (termination does not).
+    # advantages: A3 = -3; A2 = 0 + .25*A3 = -0.75; A1 = 4 (recursion cut at the episode end);
+    #             A0 = 1 + .25*4 = 2.
+    expected = np.array([[2.0], [4.0], [-0.75], [-3.0]], np.float32)
+    return r, v, nv, term, end, expected
+
+
+def test_gae_hand_computed_numpy():
+    r, v, nv, term, end, expected = _gae_case()
+    adv, ret = compute_gae(r, v, nv, term, end, GAMMA, LAM)
+    np.testing.assert_allclose(adv, expected, rtol=1e-6)
+    np.testing.assert_allclose(ret, expected + v, rtol=1e-6)
+
+
+def test_gae_hand_computed_torch():
+    r, v, nv, term, end, expected = _gae_case()
+    t = torch.as_tensor
+    adv, ret = compute_gae(t(r), t(v), t(nv), t(term), t(end), GAMMA, LAM)
+    assert isinstance(adv, torch.Tensor)
+    np.testing.assert_allclose(adv.numpy(), expected, rtol=1e-6)
+    np.testing.assert_allclose(ret.numpy(), expected + v, rtol=1e-6)
+
+
+def test_gae_lambda_one_no_ends_is_discounted_return_minus_value():
+    rng = np.random.default_rng(0)
+    r = rng.normal(size=(6, 3)).astype(np.float32)
+    v = rng.normal(size=(6, 3)).astype(np.float32)
+    nv = np.vstack([v[1:], rng.normal(size=(1, 3)).astype(np.float32)])
+    zeros = np.zeros((6, 3), bool)
+    adv, ret = compute_gae(r, v, nv, zeros, zeros, 0.9, 1.0)
+    g = nv[-1].copy()
+    for t in range(5, -1, -1):
+        g = r[t] + 0.9 * g
+        np.testing.assert_allclose(ret[t], g, rtol=1e-5, atol=1e-5)
+
+
+def test_grpo_advantages():
+    adv = grpo_advantages(np.array([1.0, 3.0, 10.0, 10.0, 5.0]), np.array([7, 7, 2, 2, 9]))
+    np.testing.assert_allclose(adv, [-1.0, 1.0, 0.0, 0.0, 0.0], atol=1e-6)
+    t = grpo_advantages(torch.tensor([0.0, 2.0, 4.0]), torch.tensor([1, 1, 1]))
+    assert isinstance(t, torch.Tensor)
+    std = np.std([0.0, 2.0, 4.0])
+    np.testing.assert_allclose(t.numpy(), [-2 / std, 0.0, 2 / std], rtol=1e-5)
+    with pytest.raises(ValueError):
+        grpo_advantages(np.zeros(3), np.zeros(2))
+
+
+def test_mlp_policy_protocol_and_shapes():
+    torch.manual_seed(0)
+    policy = make_policy("mlp", 5, 2, hidden=(16, 16))
+    assert isinstance(policy, MLPPolicy) and isinstance(policy, Policy)
+    obs = torch.randn(7, 5)
+    action, logprob, value = policy.act(obs)
+    assert action.shape == (7, 2) and logprob.shape == (7,) and value.shape == (7,)
+    assert not action.requires_grad
+    mean, _, _ = policy.act(obs, deterministic=True)
+    torch.testing.assert_close(mean, policy.actor(obs))
+    lp, ent, val = policy.evaluate(obs, action)
+    torch.testing.assert_close(lp, logprob)
+    assert ent.shape == (7,) and lp.requires_grad
+    torch.testing.assert_close(policy.log_std.detach(), torch.full((2,), -0.5))
+
+
+def test_make_policy_by_module_path_and_errors():
+    assert isinstance(make_policy("dvla.learn.policies:MLPPolicy", 3, 1), MLPPolicy)
+    with pytest.raises(ValueError):
+        make_policy("no-such-policy", 3, 1)
+
+    @register_policy("test-tiny")
+    class Tiny(MLPPolicy):
+        def __init__(self, obs_dim, act_dim):
+            super().__init__(obs_dim, act_dim, hidden=(4,))
+
+    assert isinstance(make_policy("test-tiny", 3, 1), Tiny)
+
+
+def _fixed_batch(n=512, obs_dim=4, act_dim=2, seed=0):
+    """Actions correlated with obs and advantages favouring a target action: learnable."""
+    g = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    policy = MLPPolicy(obs_dim, act_dim, hidden=(32, 32))
+    obs = torch.randn(n, obs_dim, generator=g)
+    action, logprob, value = policy.act(obs)
+    target = obs[:, :act_dim].tanh()
+    advantages = -((action - target) ** 2).sum(-1)
+    returns = obs[:, 0] * 2.0
+    batch = dict(obs=obs, actions=action, logprobs=logprob, advantages=advantages, returns=returns, values=value)
+    return policy, batch
+
+
+def _surrogate(policy, batch):
+    with torch.no_grad():
+        lp, _, v = policy.evaluate(batch["obs"], batch["actions"])
+        adv = batch["advantages"]
+        adv = (adv - adv.mean()) / (adv.std(unbiased=False) + 1e-8)
+        return float(-(adv * (lp - batch["logprobs"]).exp()).mean()), float(((v - batch["returns"]) ** 2).mean())
+
+
+def test_ppo_update_reduces_losses_on_fixed_batch():
+    policy, batch = _fixed_batch()
+    cfg = PPOConfig(update_epochs=8, minibatches=4, batch_steps=512, lr=1e-3, target_kl=None)
+    learner = PPOLearner(policy, cfg, "cpu", seed=0)
+    pg0, v0 = _surrogate(policy, batch)
+    for _ in range(3):
+        stats = learner.update(batch)
+    pg1, v1 = _surrogate(policy, batch)
+    assert pg1 < pg0 - 0.01
+    assert v1 < 0.5 * v0
+    for key in ("pg_loss", "v_loss", "entropy", "approx_kl", "clipfrac", "epochs_run", "update_s"):
+        assert np.isfinite(stats[key]), key
+    assert stats["epochs_run"] == 8
+
+
+def test_ppo_target_kl_stops_early_and_checkpoint_roundtrip():
+    policy, batch = _fixed_batch()
+    cfg = PPOConfig(update_epochs=50, minibatches=4, batch_steps=512, lr=3e-3, target_kl=0.01)
+    learner = PPOLearner(policy, cfg, "cpu", seed=0)
+    stats = learner.update(batch)
+    assert stats["early_stop"] == 1.0 and stats["epochs_run"] < 50
+    state = learner.state_dict()
+    other_policy, _ = _fixed_batch(seed=1)
+    other = PPOLearner(other_policy, cfg, "cpu")
+    other.load_state_dict(state)
+    for a, b in zip(policy.parameters(), other_policy.parameters()):
+        torch.testing.assert_close(a, b)
+
+
+def test_ppo_rejects_bad_batches():
+    policy, batch = _fixed_batch(n=8)
+    learner = PPOLearner(policy, PPOConfig(minibatches=16, batch_steps=16), "cpu")
+    with pytest.raises(ValueError):
+        learner.update(batch)
+    with pytest.raises(KeyError):
+        learner.update({k: v for k, v in batch.items() if k != "returns"})
+
+
+def test_batch_from_chunks_matches_manual_gae():
+    torch.manual_seed(0)
+    cfg = PPOConfig(gamma=0.8, gae_lambda=0.9, reward_scale=2.0)
+    policy = MLPPolicy(3, 1, hidden=(8,))
+    rng = np.random.default_rng(1)
+    T, N = 5, 2
+    chunk = {
+        "obs": rng.normal(size=(T, N, 3)).astype(np.float32),
+        "actions": rng.normal(size=(T, N, 1)).astype(np.float32),
+        "logprobs": rng.normal(size=(T, N)).astype(np.float32),
+        "rewards": rng.normal(size=(T, N)).astype(np.float32),
+        "terminated": np.zeros((T, N), bool),
+        "truncated": np.zeros((T, N), bool),
+        "final_obs": np.zeros((T, N, 3), np.float32),
+        "next_obs": rng.normal(size=(N, 3)).astype(np.float32),
+    }
+    chunk["terminated"][1, 0] = True
+    chunk["truncated"][3, 1] = True
+    chunk["final_obs"][1, 0] = rng.normal(size=3)
+    chunk["final_obs"][3, 1] = rng.normal(size=3)
+    batch = batch_from_chunks(policy, [chunk, chunk], cfg)
+    assert batch["obs"].shape == (2 * T * N, 3) and batch["advantages"].shape == (2 * T * N,)
+
+    with torch.no_grad():
+        V = lambda x: policy.value(torch.as_tensor(x)).numpy()  # noqa: E731
+        v = V(chunk["obs"].reshape(-1, 3)).reshape(T, N)
+        nv = np.vstack([v[1:], V(chunk["next_obs"])[None]])
+        nv[1, 0] = V(chunk["final_obs"][1, 0][None])[0]
+        nv[3, 1] = V(chunk["final_obs"][3, 1][None])[0]
+    end = chunk["terminated"] | chunk["truncated"]
+    adv, ret = compute_gae(chunk["rewards"] * 2.0, v, nv, chunk["terminated"], end, 0.8, 0.9)
+    np.testing.assert_allclose(batch["advantages"][: T * N].numpy(), adv.reshape(-1), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(batch["returns"][T * N :].numpy(), ret.reshape(-1), rtol=1e-5, atol=1e-6)

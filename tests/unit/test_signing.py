@@ -1,0 +1,307 @@
+"""Tests of dvla.fabric.signing: envelope round trip, tamper/replay/staleness rejection,
+bounded replay memory, thread safety and secret loading."""
+
+from __future__ import annotations
+
+import struct
+import threading
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from dvla.fabric.errors import FabricError
+from dvla.fabric.signing import (
+    MAGIC,
+    MIN_SECRET_BYTES,
+    SecretError,
+    SignatureError,
+    Signer,
+    Verifier,
+    load_secret,
+    new_secret,
+)
+
+SECRET = bytes(range(32))
+KEY = "dvla/run1/ctrl/cmd/all"
+SEC = 1_000_000_000
+T0 = 1_700_000_000 * SEC
+
+
+class Clock:
+    """A settable ns clock shared by a signer and a verifier."""
+
+    def __init__(self, now: int = T0) -> None:
+        self.now = now
+
+    def __call__(self) -> int:
+        return self.now
+
+
+def reason_of(verifier: Verifier, key: str, envelope) -> str | None:
+    try:
+        verifier.open(key, envelope)
+    except SignatureError as err:
+        assert isinstance(err, FabricError) and isinstance(err, ValueError)
+        return err.reason
+    return None
+
+
+def test_round_trip():
+    signer, verifier = Signer(SECRET, "actor"), Verifier(SECRET)
+    for payload in (b"", b"hello", bytes(range(256)) * 100):
+        sender, out = verifier.open(KEY, signer.seal(KEY, payload))
+        assert sender == "actor" and out == payload and isinstance(out, bytes)
+
+
+def test_accepts_buffer_types():
+    signer, verifier = Signer(SECRET, "rollout-ü"), Verifier(SECRET)
+    env = signer.seal(KEY, memoryview(bytearray(b"payload")))
+    assert verifier.open(KEY, memoryview(bytearray(env))) == ("rollout-ü", b"payload")
+
+
+def test_envelope_layout_matches_documentation():
+    clock = Clock()
+    env = Signer(SECRET, "actor", clock=clock).seal(KEY, b"xyz")
+    assert env[:4] == MAGIC and env[4] == 5 and env[5:10] == b"actor"
+    ts, _nonce, plen = struct.unpack_from("<Q16sI", env, 10)
+    assert ts == T0 and plen == 3 and env[38:41] == b"xyz" and len(env) == 41 + 32
+    import hashlib
+    import hmac
+    key = KEY.encode()
+    tag = hmac.new(SECRET, struct.pack("<H", len(key)) + key + env[:41], hashlib.sha256).digest()
+    assert env[41:] == tag
+
+
+def flip(env: bytes, index: int) -> bytes:
+    out = bytearray(env)
+    out[index] ^= 0x01
+    return bytes(out)
+
+
+def test_tampering_is_detected():
+    signer = Signer(SECRET, "actor")
+    env = signer.seal(KEY, b"payload-bytes")
+    verifier = Verifier(SECRET)
+    assert reason_of(verifier, KEY, flip(env, len(env) - 32 - 3)) == "bad_signature"  # payload
+    assert reason_of(verifier, KEY, flip(env, 6)) == "bad_signature"  # sender "actor" -> "aator"
+    assert reason_of(verifier, KEY, flip(env, 12)) == "bad_signature"  # timestamp
+    assert reason_of(verifier, KEY, flip(env, 20)) == "bad_signature"  # nonce
+    assert reason_of(verifier, KEY, flip(env, len(env) - 1)) == "bad_signature"  # tag
+    assert reason_of(verifier, "dvla/run1/ctrl/cmd/actor", env) == "bad_signature"  # other key
+    assert reason_of(Verifier(b"x" * 32), KEY, env) == "bad_signature"  # other secret
+    assert reason_of(verifier, KEY, env) is None  # the original still verifies
+
+
+def test_sender_is_authenticated():
+    env = Signer(SECRET, "rollout-1").seal(KEY, b"p")
+    forged = env[:4] + bytes([9]) + b"rollout-2" + env[14:]
+    assert reason_of(Verifier(SECRET), KEY, forged) == "bad_signature"
+
+
+def test_unsigned_and_malformed():
+    verifier = Verifier(SECRET)
+    env = Signer(SECRET, "a").seal(KEY, b"p")
+    assert reason_of(verifier, KEY, b"") == "unsigned"
+    assert reason_of(verifier, KEY, b"\x83\xa1v\x01") == "unsigned"  # a bare codec message
+    assert reason_of(verifier, KEY, b"DVS") == "unsigned"
+    assert reason_of(verifier, KEY, "DVS1 text") == "unsigned"
+    assert reason_of(verifier, KEY, None) == "unsigned"
+    assert reason_of(verifier, KEY, MAGIC + b"\x01a") == "malformed"  # too short
+    assert reason_of(verifier, KEY, env[:-1]) == "malformed"  # payload length disagrees
+    assert reason_of(verifier, KEY, env + b"\x00") == "malformed"
+    assert reason_of(verifier, KEY, MAGIC + b"\x00" + env[5:]) == "malformed"  # empty sender
+    bad_utf8 = bytearray(env)
+    bad_utf8[5] = 0xFF
+    assert reason_of(verifier, KEY, bytes(bad_utf8)) == "malformed"
+
+
+def test_replay_is_rejected():
+    signer, verifier = Signer(SECRET, "actor"), Verifier(SECRET)
+    env = signer.seal(KEY, b"cmd")
+    assert reason_of(verifier, KEY, env) is None
+    assert reason_of(verifier, KEY, env) == "replay"
+    assert reason_of(verifier, KEY, signer.seal(KEY, b"cmd")) is None  # same payload, new nonce
+
+
+def test_stale_and_future_timestamps():
+    clock = Clock()
+    verifier = Verifier(SECRET, max_age_s=30.0, clock=clock)
+    old = Signer(SECRET, "a", clock=Clock(T0 - 31 * SEC)).seal(KEY, b"p")
+    future = Signer(SECRET, "a", clock=Clock(T0 + 31 * SEC)).seal(KEY, b"p")
+    edge = Signer(SECRET, "a", clock=Clock(T0 - 29 * SEC)).seal(KEY, b"p")
+    assert reason_of(verifier, KEY, old) == "stale"
+    assert reason_of(verifier, KEY, future) == "stale"
+    assert reason_of(verifier, KEY, edge) is None
+    clock.now += 2 * SEC  # the accepted envelope has aged out: a replay is now stale
+    assert reason_of(verifier, KEY, edge) == "stale"
+
+
+def test_replay_memory_is_bounded_and_evicted_nonces_stay_rejected():
+    clock = Clock()
+    signer = Signer(SECRET, "actor", clock=clock)
+    verifier = Verifier(SECRET, max_age_s=30.0, replay_window=4, clock=clock)
+    envs = []
+    for _ in range(10):
+        clock.now += 1000
+        envs.append(signer.seal(KEY, b"p"))
+        assert reason_of(verifier, KEY, envs[-1]) is None
+        assert len(verifier._seen) <= 4
+    assert reason_of(verifier, KEY, envs[-1]) == "replay"
+    # Forgotten nonces are behind the sender's horizon: still refused.
+    assert reason_of(verifier, KEY, envs[0]) == "stale"
+    assert reason_of(verifier, KEY, envs[5]) == "stale"
+    # Another sender is not affected by this sender's horizon.
+    other = Signer(SECRET, "other", clock=Clock(T0 + 1)).seal(KEY, b"p")
+    assert reason_of(verifier, KEY, other) is None
+
+
+def test_expired_nonces_are_forgotten():
+    clock = Clock()
+    signer = Signer(SECRET, "a", clock=clock)
+    verifier = Verifier(SECRET, max_age_s=1.0, replay_window=1000, clock=clock)
+    for _ in range(50):
+        assert reason_of(verifier, KEY, signer.seal(KEY, b"p")) is None
+    assert len(verifier._seen) == 50
+    clock.now += 2 * SEC
+    assert reason_of(verifier, KEY, signer.seal(KEY, b"p")) is None
+    assert len(verifier._seen) == 1
+
+
+def test_concurrent_replays_accept_exactly_once():
+    signer, verifier = Signer(SECRET, "a"), Verifier(SECRET)
+    envs = [signer.seal(KEY, bytes([i])) for i in range(20)]
+    results: list[str | None] = []
+    lock = threading.Lock()
+
+    def worker():
+        for env in envs:
+            r = reason_of(verifier, KEY, env)
+            with lock:
+                results.append(r)
+
+    threads = [threading.Thread(target=worker) for _ in range(6)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert results.count(None) == len(envs)
+    assert results.count("replay") == len(envs) * 5
+
+
+def test_constructor_checks():
+    with pytest.raises(SecretError):
+        Signer(b"short", "a")
+    with pytest.raises(SecretError):
+        Verifier(b"short")
+    with pytest.raises(SecretError):
+        Verifier("not bytes" * 4)  # type: ignore[arg-type]
+    with pytest.raises(ValueError):
+        Signer(SECRET, "")
+    with pytest.raises(ValueError):
+        Signer(SECRET, "x" * 256)
+    with pytest.raises(ValueError):
+        Verifier(SECRET, max_age_s=0)
+
+
+@settings(max_examples=150, deadline=None, database=None)
+@given(st.binary(max_size=200))
+def test_fuzz_random_bytes(data):
+    assert reason_of(Verifier(SECRET), KEY, data) in {"unsigned", "malformed", "bad_signature"}
+    assert reason_of(Verifier(SECRET), KEY, MAGIC + data) in {"malformed", "bad_signature"}
+
+
+ENVELOPE = Signer(SECRET, "actor").seal(KEY, b"some control payload")
+
+
+@settings(max_examples=150, deadline=None, database=None)
+@given(st.integers(0, len(ENVELOPE) - 1), st.integers(1, 255))
+def test_fuzz_any_byte_change_is_rejected(index, xor):
+    out = bytearray(ENVELOPE)
+    out[index] ^= xor
+    assert reason_of(Verifier(SECRET), KEY, bytes(out)) in {"unsigned", "malformed", "bad_signature"}
+
+
+@settings(max_examples=100, deadline=None, database=None)
+@given(st.integers(0, len(ENVELOPE) - 1))
+def test_fuzz_truncation_is_rejected(cut):
+    assert reason_of(Verifier(SECRET), KEY, ENVELOPE[:cut]) in {"unsigned", "malformed"}
+
+
+# ----------------------------------------------------------------------------- secrets
+
+def test_new_secret_is_hex_and_loadable(tmp_path, monkeypatch):
+    s = new_secret()
+    assert len(s) == 64 and bytes.fromhex(s)
+    assert new_secret() != s
+    path = tmp_path / "secret"
+    path.write_text(s + "\n")
+    assert load_secret(str(path)) == bytes.fromhex(s)
+    monkeypatch.setenv("DVLA_SECRET", s)
+    assert load_secret(None) == bytes.fromhex(s)
+
+
+def test_load_secret_raw_file_and_whitespace(tmp_path):
+    raw = tmp_path / "raw"
+    raw.write_bytes(b"  a passphrase that is long enough \n")
+    assert load_secret(str(raw)) == b"a passphrase that is long enough"
+    binary = tmp_path / "bin"
+    binary.write_bytes(bytes(range(100, 132)))
+    assert load_secret(str(binary)) == bytes(range(100, 132))
+    # Whitespace at the edges is stripped even from binary content (documented); still >= 16 bytes.
+    binary.write_bytes(b"\n" + bytes(range(100, 132)) + b" ")
+    assert load_secret(str(binary)) == bytes(range(100, 132))
+
+
+def test_file_takes_precedence_over_env(tmp_path, monkeypatch):
+    monkeypatch.setenv("DVLA_SECRET", "e" * 32)
+    path = tmp_path / "s"
+    path.write_text("f" * 32)
+    assert load_secret(str(path)) == bytes.fromhex("f" * 32)
+    assert load_secret(None) == bytes.fromhex("e" * 32)
+
+
+def test_load_secret_errors_name_their_source(tmp_path, monkeypatch):
+    missing = tmp_path / "nope"
+    with pytest.raises(SecretError, match="nope"):
+        load_secret(str(missing))
+    short = tmp_path / "short"
+    short.write_text("abcd")  # hex: 2 bytes
+    with pytest.raises(SecretError, match="short"):
+        load_secret(str(short))
+    monkeypatch.delenv("MY_SECRET_VAR", raising=False)
+    with pytest.raises(SecretError, match="MY_SECRET_VAR"):
+        load_secret(None, env_var="MY_SECRET_VAR")
+    monkeypatch.setenv("MY_SECRET_VAR", "")
+    with pytest.raises(SecretError, match="MY_SECRET_VAR"):
+        load_secret(None, env_var="MY_SECRET_VAR")
+    monkeypatch.setenv("MY_SECRET_VAR", "x" * (MIN_SECRET_BYTES - 1))
+    with pytest.raises(SecretError, match="MY_SECRET_VAR"):
+        load_secret(None, env_var="MY_SECRET_VAR")
+    monkeypatch.setenv("MY_SECRET_VAR", "x" * MIN_SECRET_BYTES)
+    assert load_secret(None, env_var="MY_SECRET_VAR") == b"x" * MIN_SECRET_BYTES
+    assert issubclass(SecretError, ValueError)
+
+
+def test_signer_and_verifier_share_a_loaded_secret(tmp_path):
+    path = tmp_path / "s"
+    path.write_text(new_secret())
+    secret = load_secret(str(path))
+    env = Signer(secret, "a").seal(KEY, b"x")
+    assert Verifier(load_secret(str(path))).open(KEY, env) == ("a", b"x")
+
+
+def test_documented_envelope_vector(monkeypatch):
+    # The signed example of docs/wire-format.md, reproduced with a fixed nonce and clock.
+    import dvla.fabric.signing as signing
+    from dvla.fabric.codec import encode
+    from dvla.fabric.messages import Command
+
+    monkeypatch.setattr(signing.os, "urandom", lambda n: bytes(range(n)))
+    secret = bytes.fromhex("00112233445566778899aabbccddeeff")
+    payload = encode(Command(target="all", verb="stop", args={}, issued_ns=1_700_000_000_000_000_000))
+    env = Signer(secret, "orch", clock=lambda: 1_700_000_000_000_000_000).seal(KEY, payload)
+    assert len(env) == 128
+    assert env[-32:].hex() == "7801861f500661e773a8fa1564006e06813cd6db70d2e04ea4002caaafcf9322"
+    verifier = Verifier(secret, clock=lambda: 1_700_000_000_000_000_000)
+    assert verifier.open(KEY, env) == ("orch", payload)
