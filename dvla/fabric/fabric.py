@@ -18,7 +18,7 @@ import os
 import queue
 import threading
 import time
-from typing import Any, Callable, Iterable
+from typing import Any, Callable
 
 import zenoh
 
@@ -133,7 +133,6 @@ class Fabric:
         self.accounting = Accounting()
         self._signer = Signer(secret, name)
         self._verifier = Verifier(secret, max_age_s=max_age_s)
-        self._verify_lock = threading.Lock()
         self._declared: list[Any] = []
         self._publishers: dict[str, Any] = {}
         self._pub_lock = threading.Lock()
@@ -186,8 +185,7 @@ class Fabric:
         """Verify and decode a control message; None (and counted) when it fails."""
         peer = KeySpace.last(key)
         try:
-            with self._verify_lock:
-                sender, payload = self._verifier.open(key, raw)
+            sender, payload = self._verifier.open(key, raw)
         except SignatureError as err:
             self.accounting.rejected(CTRL, err.reason, peer)
             log.warning("rejected control message on %s: %s", key, err.reason)
@@ -242,7 +240,8 @@ class Fabric:
         self._declared.append(self.ctrl.declare_subscriber(key, _cb))
 
     def serve(self, key: str, handler: Callable[[Any | None], Any | None], expect: type | None = None) -> None:
-        """Queryable on `key`: `handler(request_msg_or_None)` returns a message to reply with."""
+        """Queryable on `key`: `handler(request_msg_or_None)` returns a message (or its encoded
+        bytes) to reply with, or None for no reply."""
 
         def _cb(query: zenoh.Query) -> None:
             try:
@@ -255,7 +254,10 @@ class Fabric:
                 reply = handler(req)
                 if reply is None:
                     return
-                payload = reply if isinstance(reply, (bytes, bytearray)) else self.seal(key, reply)
+                # Every reply is signed afresh (a re-sent envelope would be refused as a replay);
+                # handlers may return an already encoded message to skip re-encoding.
+                body = reply if isinstance(reply, (bytes, bytearray)) else encode(reply)
+                payload = self._signer.seal(key, body)
                 query.reply(key, payload)
                 self.accounting.sent(CTRL, len(payload), "reply")
             except Exception:  # never let a bad request or a handler bug kill Zenoh's thread
@@ -283,10 +285,6 @@ class Fabric:
             if got is not None:
                 out.append(got)
         return out
-
-    def sealed_reply(self, key: str, msg: Any) -> bytes:
-        """Pre-sign a reply (e.g. a snapshot served many times) for `serve` handlers."""
-        return self.seal(key, msg)
 
     # ------------------------------------------------------------------ membership
     def declare_alive(self) -> None:
@@ -375,7 +373,3 @@ def init_zenoh_logging() -> None:
             zenoh.init_log_from_env_or("error")
         except Exception:
             pass
-
-
-def members(names: Iterable[str]) -> list[str]:
-    return sorted(set(names))

@@ -147,15 +147,31 @@ BATCH_KEYS = ("obs", "actions", "logprobs", "advantages", "returns")
 class PPOLearner:
     """Clipped-surrogate PPO on batches of (possibly stale) transitions.
 
-    The ratio is against the behaviour log-probs in the batch. The ``target_kl`` early stop
-    measures how far *this update* moved the policy (KL to the policy at its start), not the
-    staleness the batch arrived with: otherwise data a few versions old could stop every update
-    before its first step.
+    By default the ratio is against the behaviour log-probs in the batch. With
+    ``decoupled=True`` the clip is instead applied to the ratio against the policy at the start
+    of the update (the "proximal" policy), and the staleness is corrected by an importance weight
+    proximal/behaviour truncated at ``is_clip`` (decoupled PPO, Hilton et al. 2021): with lag 0
+    both are the same objective; with stale data the trust region no longer starts out clipped.
+
+    The ``target_kl`` early stop measures how far *this update* moved the policy (KL to the
+    policy at its start), not the staleness the batch arrived with: otherwise data a few versions
+    old could stop every update before its first step.
     """
 
-    def __init__(self, policy: nn.Module, cfg: PPOConfig, device: Any = "cpu", seed: int | None = None):
+    def __init__(
+        self,
+        policy: nn.Module,
+        cfg: PPOConfig,
+        device: Any = "cpu",
+        seed: int | None = None,
+        *,
+        decoupled: bool = False,
+        is_clip: float = 2.0,
+    ):
         self.policy = policy
         self.cfg = cfg
+        self.decoupled = decoupled
+        self.is_clip = is_clip
         self.device = torch.device(device)
         self.optimizer = torch.optim.Adam(policy.parameters(), lr=cfg.lr, eps=1e-5)
         self._gen = torch.Generator()
@@ -196,7 +212,7 @@ class PPOLearner:
                 if cfg.target_kl is not None and kl > cfg.target_kl:
                     stopped = True
                     break
-                loss, parts = self._loss(mb, logprob, entropy, value)
+                loss, parts = self._loss(mb, start_logprobs[idx], logprob, entropy, value)
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 nn.utils.clip_grad_norm_(self.policy.parameters(), cfg.max_grad_norm)
@@ -217,13 +233,21 @@ class PPOLearner:
         )
         return out
 
-    def _loss(self, mb: dict[str, Tensor], logprob: Tensor, entropy: Tensor, value: Tensor) -> tuple[Tensor, dict]:
+    def _loss(
+        self, mb: dict[str, Tensor], start_logprob: Tensor, logprob: Tensor, entropy: Tensor, value: Tensor
+    ) -> tuple[Tensor, dict]:
         cfg = self.cfg
         adv = mb["advantages"]
         # Per-minibatch normalisation keeps the step size independent of the reward scale.
         adv = (adv - adv.mean()) / (adv.std(unbiased=False) + 1e-8)
-        ratio = (logprob - mb["logprobs"]).exp()
-        pg_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - cfg.clip, 1 + cfg.clip)).mean()
+        if self.decoupled:
+            ratio = (logprob - start_logprob).exp()
+            weight = (start_logprob - mb["logprobs"]).exp().clamp(max=self.is_clip)
+        else:
+            ratio = (logprob - mb["logprobs"]).exp()
+            weight = torch.ones_like(ratio)
+        surrogate = torch.max(-adv * ratio, -adv * ratio.clamp(1 - cfg.clip, 1 + cfg.clip))
+        pg_loss = (weight * surrogate).mean()
         v_loss = 0.5 * (value - mb["returns"]).pow(2).mean()
         ent = entropy.mean()
         loss = pg_loss + cfg.vf_coef * v_loss - cfg.ent_coef * ent

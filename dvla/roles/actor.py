@@ -22,6 +22,7 @@ import torch
 
 from ..config import RoleConfig, resolve_device
 from ..fabric import Fabric
+from ..fabric.codec import encode
 from ..fabric.fabric import DATA
 from ..fabric.messages import TrajectoryChunk, WeightChunk, WeightManifest, WeightSnapshot
 from ..learn import PPOLearner, compute_gae, make_policy
@@ -206,7 +207,7 @@ class Actor:
         while ctx.running:
             flat = self.versions.get(ctx.stop, stats=ctx.stats)
             if flat is None:
-                return
+                break
             with ctx.busy():
                 enc = self.encoder.encode(flat)
                 with self._snapshot_lock:
@@ -233,7 +234,7 @@ class Actor:
                     sender=self.cfg.name, version=version, layout_hash=self.layout.hash,
                     checksum=checksum, data=bytes(payload), created_ns=time.time_ns(),
                 )
-                self._snapshot = self.fabric.sealed_reply(self.fabric.keys.snapshot(self.cfg.name), snap)
+                self._snapshot = encode(snap)
             return self._snapshot
 
     def _checkpoint(self) -> None:

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..config import RoleConfig
 from ..fabric import Fabric
+from ..fabric.codec import encode
 from ..fabric.messages import WeightChunk, WeightManifest, WeightSnapshot
 from ..learn import make_policy
 from ..learn.dims import probe_dims
@@ -94,7 +95,7 @@ class Replicator:
                     sender=self.cfg.name, version=self._snap_version, layout_hash=self.layout.hash,
                     checksum=checksum(self._flat), data=self._flat.tobytes(), created_ns=time.time_ns(),
                 )
-                self._snapshot = self.fabric.sealed_reply(self.fabric.keys.snapshot(self.cfg.name), snap)
+                self._snapshot = encode(snap)
             return self._snapshot
 
     def status_extra(self) -> dict[str, Any]:

@@ -1,0 +1,115 @@
+"""End to end: `dvla up` on the tiny topology, real processes, real Zenoh, real ManiSkill.
+
+While the run trains, `dvla status --format json` (a separate process, as from another
+terminal) must list every role with its policy version. After it stops by itself: trajectories
+flowed, every rollout's policy version advanced, the chunk accounting identity holds exactly,
+the run directory holds what it should, and no process of the run is left.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+ROLES = {"actor-node0-0", "replicator-node0-0", "rollout-node0-0", "rollout-node0-1", "evaluator-node0-0"}
+
+
+def free_port_block(n: int = 8) -> int:
+    """A base port whose next `n` ports are free right now."""
+    for _ in range(50):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            base = s.getsockname()[1]
+        if base + n >= 65000:
+            continue
+        try:
+            socks = []
+            for p in range(base, base + n):
+                t = socket.socket()
+                socks.append(t)
+                t.bind(("127.0.0.1", p))
+            return base
+        except OSError:
+            continue
+        finally:
+            for t in socks:
+                t.close()
+    raise RuntimeError("no free port block")
+
+
+def dvla(*args: str, **kw) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "dvla", *args], capture_output=True, text=True, cwd=ROOT, **kw)
+
+
+def pids_of_run(run_dir: Path) -> list[str]:
+    out = subprocess.run(["pgrep", "-f", str(run_dir)], capture_output=True, text=True).stdout.split()
+    return [p for p in out if p != str(os.getpid())]
+
+
+@pytest.mark.timeout(420)
+def test_up_tiny_end_to_end(tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    port = free_port_block()
+    up = subprocess.Popen(
+        [sys.executable, "-m", "dvla", "up", "topologies/tiny.yaml", "--runs", str(runs), "--base-port", str(port),
+         "--max-env-steps", "2400", "--quiet"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    run_dir = runs / "tiny"
+    seen: dict[str, dict] = {}
+    try:
+        deadline = time.monotonic() + 240
+        # `dvla status` from another process, until every role has answered with a version >= 1.
+        while time.monotonic() < deadline and up.poll() is None:
+            if (run_dir / "state.json").exists():
+                st = dvla("status", "tiny", "--runs", str(runs), "--format", "json", timeout=60)
+                if st.returncode == 0:
+                    doc = json.loads(st.stdout)
+                    for role in doc["roles"]:
+                        if role["policy_version"] >= 1:
+                            seen[role["name"]] = role
+                    if ROLES <= set(seen):
+                        break
+            time.sleep(2)
+        out, _ = up.communicate(timeout=300)
+    finally:
+        if up.poll() is None:
+            up.kill()
+            up.wait()
+    assert up.returncode == 0, out
+    assert ROLES <= set(seen), f"status never showed every role with a version: {sorted(seen)}\n{out}"
+    for role in seen.values():
+        assert {"kind", "node", "rack", "state", "steps_per_s", "lanes"} <= set(role)
+
+    result = json.loads((run_dir / "result.json").read_text())
+    assert result["reason"] == "max_env_steps"
+    assert result["final_env_steps"] >= 2400
+
+    acct = result["accounting"]
+    assert acct["produced"] > 0 and acct["consumed"] > 0
+    assert acct["unaccounted"] == 0, acct  # produced = consumed + dropped + rejected, exactly
+
+    summaries = {p.stem: json.loads(p.read_text()) for p in (run_dir / "summaries").glob("*.json")}
+    assert set(summaries) == ROLES
+    actor_version = summaries["actor-node0-0"]["extra"]["published_version"]
+    assert actor_version >= 3
+    for name in ("rollout-node0-0", "rollout-node0-1"):
+        s = summaries[name]
+        assert s["extra"]["chunks_produced"] > 0
+        assert s["policy_version"] >= 2, f"{name} never advanced past its first version"
+        assert s["error"] is None
+
+    for rel in ("topology.yaml", "metrics.csv", "evals.csv", "checkpoints/policy.safetensors",
+                "checkpoints/meta.json", "plots/training.png"):
+        assert (run_dir / rel).exists(), rel
+    assert all((run_dir / "logs" / f"{r}.log").stat().st_size > 0 for r in ROLES)
+    assert not (run_dir / "state.json").exists()
+    assert pids_of_run(run_dir) == []
