@@ -1,0 +1,83 @@
+"""The plan: names, weight tree, link graph and ports derived from a topology."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from dvla.config import RoleConfig
+from dvla.orchestrator.plan import make_plan
+from dvla.orchestrator.topology import load_topology, parse_topology
+
+ROOT = Path(__file__).resolve().parents[2]
+
+TWO_RACKS = """
+run: t2
+replication: {fanout: 3}
+racks:
+  - name: ra
+    nodes:
+      - {name: a0, roles: [{role: actor}, {role: replicator}, {role: rollout}]}
+      - {name: a1, roles: [{role: rollout, count: 2}]}
+  - name: rb
+    nodes:
+      - {name: b0, roles: [{role: replicator}, {role: rollout}]}
+      - {name: b1, roles: [{role: rollout}, {role: evaluator}]}
+  - name: rc
+    nodes:
+      - {name: c0, roles: [{role: rollout}]}
+"""
+
+
+def test_local_plan_wires_tree_and_links() -> None:
+    plan = make_plan(load_topology(ROOT / "topologies/local.yaml"), "/tmp/run", base_port=20000)
+    names = [p.config.name for p in plan.processes]
+    assert names[0] == "actor-node0-0"  # actors start first: they are the routers others reach
+    actor = plan.by_name("actor-node0-0").config
+    rep = plan.by_name("replicator-node0-0").config
+    ro = plan.by_name("rollout-node0-1").config
+    assert actor.ctrl.mode == "router" and actor.ctrl.listen == ("tcp/127.0.0.1:20000",)
+    assert actor.data.listen == ("tcp/127.0.0.1:20001",)
+    assert rep.parent == "actor-node0-0" and rep.ctrl.connect == actor.ctrl.listen
+    assert ro.parent == "replicator-node0-0" and ro.ancestors == ("replicator-node0-0", "actor-node0-0")
+    # client of its parent first, ancestors as fallbacks (re-attach on failure)
+    assert ro.ctrl.mode == "client" and ro.ctrl.connect == rep.ctrl.listen + actor.ctrl.listen
+    assert ro.data.connect == actor.data.listen and ro.actors == ("actor-node0-0",)
+    assert set(actor.rollouts) == {"rollout-node0-0", "rollout-node0-1"}
+    assert plan.ctrl_entry[0] == actor.ctrl.listen[0]
+
+
+def test_tree_follows_racks_and_fanout() -> None:
+    plan = make_plan(parse_topology(TWO_RACKS, "two.yaml"), "/tmp/run")
+    cfg = {p.config.name: p.config for p in plan.processes}
+    assert cfg["replicator-a0-0"].parent == "actor-a0-0"
+    assert cfg["replicator-b0-0"].parent == "actor-a0-0"
+    for leaf in ("rollout-a0-0", "rollout-a1-0", "rollout-a1-1"):
+        assert cfg[leaf].parent == "replicator-a0-0"
+    for leaf in ("rollout-b0-0", "rollout-b1-0", "evaluator-b1-0"):
+        assert cfg[leaf].parent == "replicator-b0-0"
+    # a rack without a replicator hangs off the actor directly
+    assert cfg["rollout-c0-0"].parent == "actor-a0-0"
+    # every listed child names its parent back
+    for c in cfg.values():
+        for child in c.children:
+            assert cfg[child].parent == c.name
+    # the actor has 3 children (2 replicators + rack c's rollout): at the fanout cap, no warning
+    assert plan.warnings == ()
+
+
+def test_fanout_overflow_is_warned() -> None:
+    text = TWO_RACKS.replace("fanout: 3", "fanout: 2")
+    plan = make_plan(parse_topology(text, "two.yaml"), "/tmp/run")
+    assert any("above fanout 2" in w for w in plan.warnings)
+
+
+def test_role_config_json_round_trip() -> None:
+    plan = make_plan(parse_topology(TWO_RACKS, "two.yaml"), "/tmp/run")
+    for p in plan.processes:
+        assert RoleConfig.from_json(p.config.to_json()) == p.config
+
+
+def test_ports_are_unique() -> None:
+    plan = make_plan(parse_topology(TWO_RACKS, "two.yaml"), "/tmp/run", base_port=30000)
+    eps = [e for p in plan.processes for e in p.config.ctrl.listen + p.config.data.listen]
+    assert len(eps) == len(set(eps)) == 2 + 2  # actor ctrl+data, two replicator ctrl
