@@ -27,7 +27,8 @@ from ..fabric.fabric import DATA
 from ..fabric.messages import TrajectoryChunk, WeightChunk, WeightManifest, WeightSnapshot
 from ..learn import PPOLearner, compute_gae, make_policy
 from ..learn.dims import probe_dims
-from ..replication import ParamLayout, ReplicationError, WeightEncoder, flatten
+from ..replication import ParamLayout, ReplicationError, WeightEncoder, flatten, unflatten_into
+from .checkpoint import load_checkpoint, save_checkpoint
 from .runtime import main
 from .slots import SlotPool
 from .swimlane import LaneContext, Swimlane
@@ -46,10 +47,17 @@ class Actor:
         self.policy = make_policy(task.policy, self.obs_dim, self.act_dim, **task.policy_kwargs).to(self.device)
         self.learner = PPOLearner(self.policy, task.ppo, self.device)
         self.layout = ParamLayout.from_state_dict(self.policy.state_dict())
+        self.ckpt_dir = Path(cfg.run_dir) / "checkpoints"
+        # A restarted actor resumes from its last checkpoint: versions stay monotonic and the
+        # first version it publishes is a full one.
+        resumed = load_checkpoint(self.ckpt_dir, self.policy, self.learner)
+        start = int(resumed["version"]) if resumed else 0
+        if resumed:
+            log.info("resumed from checkpoint: version %d, %d env steps", start, resumed["env_steps"])
         rep = cfg.replication
         self.encoder = WeightEncoder(
             self.layout, rep.encoding, topk_fraction=rep.topk_fraction,
-            snapshot_every=rep.snapshot_every, chunk_bytes=rep.chunk_bytes,
+            snapshot_every=rep.snapshot_every, chunk_bytes=rep.chunk_bytes, start_version=start,
         )
         n_group = max(1, task.envs_per_rollout - task.envs_per_rollout // 2)
         chunks_per_batch = -(-task.ppo.batch_steps // (task.chunk_steps * max(1, task.envs_per_rollout // 2)))
@@ -57,16 +65,14 @@ class Actor:
             n_slots=3 * chunks_per_batch + 8, T=task.chunk_steps, n_max=n_group,
             obs_dim=self.obs_dim, act_dim=self.act_dim, pin=self.device.type == "cuda",
         )
-        self.policy_version = 0
-        self.published_version = 0
-        self.env_steps = 0  # consumed by the learner
+        self.policy_version = start
+        self.published_version = start
+        self.env_steps = int(resumed["env_steps"]) if resumed else 0  # consumed by the learner
         self.learn_stats: dict[str, float] = {}
         self.lags: list[int] = []
         self.bytes_published = 0
         self._snapshot: bytes | None = None
         self._snapshot_lock = threading.Lock()
-        self._flat = np.zeros(self.layout.numel, np.float32)  # reused for every version
-        self.ckpt_dir = Path(cfg.run_dir) / "checkpoints"
 
     # -- wiring -------------------------------------------------------------------------------
     def build(self, sl: Swimlane) -> None:
@@ -204,6 +210,7 @@ class Actor:
     def _publish(self, ctx: LaneContext) -> None:
         f, key = self.fabric, self.fabric.keys.weights(self.cfg.name)
         every = 25
+        last: np.ndarray | None = None
         while ctx.running:
             flat = self.versions.get(ctx.stop, stats=ctx.stats)
             if flat is None:
@@ -219,9 +226,11 @@ class Actor:
                     msg = WeightChunk(sender=self.cfg.name, version=enc.version, index=i, n_chunks=enc.n_chunks, data=bytes(data))
                     self.bytes_published += f.publish_ctrl(key, msg, weights=True)
                 if enc.version % every == 0:
-                    self._checkpoint()
+                    self._checkpoint(flat)
+                last = flat
             ctx.count()
-        self._checkpoint()
+        if last is not None:
+            self._checkpoint(last)
 
     def _serve_snapshot(self, _req: Any) -> bytes | WeightSnapshot:
         with self._snapshot_lock:
@@ -237,11 +246,12 @@ class Actor:
                 self._snapshot = encode(snap)
             return self._snapshot
 
-    def _checkpoint(self) -> None:
-        from .checkpoint import save_checkpoint
-
+    def _checkpoint(self, flat: np.ndarray) -> None:
+        """Checkpoint the published version's weights (not the live, possibly mid-update ones)."""
+        sd = {k: v.detach().clone() for k, v in self.policy.state_dict().items()}
+        unflatten_into(flat, sd, self.layout)
         try:
-            save_checkpoint(self.ckpt_dir, self.policy, self.learner, self.published_version, self.env_steps)
+            save_checkpoint(self.ckpt_dir, sd, self.learner, self.published_version, self.env_steps)
         except OSError as err:
             log.warning("checkpoint failed: %s", err)
 

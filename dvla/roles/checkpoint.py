@@ -15,11 +15,13 @@ import torch
 from safetensors.torch import load_file, save_file
 
 
-def save_checkpoint(directory: Path, policy: torch.nn.Module, learner: Any, version: int, env_steps: int) -> Path:
+def save_checkpoint(
+    directory: Path, state_dict: dict[str, torch.Tensor], learner: Any, version: int, env_steps: int
+) -> Path:
     directory.mkdir(parents=True, exist_ok=True)
     weights = directory / "policy.safetensors"
     tmp = weights.with_suffix(".tmp")
-    save_file({k: v.detach().cpu().contiguous() for k, v in policy.state_dict().items()}, str(tmp))
+    save_file({k: v.detach().cpu().contiguous() for k, v in state_dict.items()}, str(tmp))
     os.replace(tmp, weights)
     opt = directory / "optimizer.pt"
     tmp = opt.with_suffix(".tmp")

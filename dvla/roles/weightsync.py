@@ -47,7 +47,6 @@ class WeightSync:
         on_version: Callable[[int, np.ndarray], None],
         *,
         on_message: Callable[[Any], None] | None = None,
-        max_bytes: int = 1 << 31,
         inbox_size: int = 64,
     ) -> None:
         if not parents:
@@ -60,7 +59,8 @@ class WeightSync:
         self.decoder = WeightDecoder(layout)
         self.assembler: ChunkAssembler | None = None
         self.manifest: WeightManifest | None = None
-        self.max_bytes = max_bytes
+        # No encoding produces more than a full version: the assembler buffer is that big, once.
+        self.max_bytes = layout.nbytes
         self.version = -1
         self.counters = {"versions": 0, "snapshots": 0, "rejected": 0, "repairs": 0, "reattach": 0}
         self._alive: set[str] = set(parents)

@@ -9,6 +9,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from ..netns import NetnsError
 from ..run import ExitCode, Up, UpOptions, install_sigint
 from ..view import render_table
 from .common import RUNS_ROOT, fail, topology_or_exit
@@ -69,7 +70,10 @@ def up(
         raise fail(str(err))
     install_sigint(u)
     typer.echo(f"dvla: run {u.topo.run} -> {u.run_dir}  ({len(u.plan.processes)} processes)")
-    code = u.run()
+    try:
+        code = u.run()
+    except NetnsError as err:  # the emulated cluster could not be built (it removed itself)
+        raise fail(str(err), code=ExitCode.ROLE_FAILED)
     for e in u.events[shown_events[0]:]:
         typer.echo(f"[dvla] {e}", err=True)
     res = u.monitor.result() if u.monitor else {}

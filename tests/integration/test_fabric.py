@@ -1,0 +1,469 @@
+"""Integration tests of dvla.fabric over real Zenoh sessions on loopback (no mocks).
+
+Every test wires two fabrics the way `dvla up` wires an actor and a rollout: the "actor" side
+holds the ctrl router and listens on the data plane, the "rollout" side is a ctrl client and a
+data peer connecting to it. Endpoints are explicit tcp/127.0.0.1 ports and multicast scouting
+is off (`plane_config`), so nothing else on the machine can join.
+
+What is checked: trajectory chunks arrive bit-identical and the accounting identity holds;
+a slow consumer slows the sender down (or counts what it drops) without killing the session;
+forged, unsigned, replayed, stale and garbage control messages are rejected and counted per
+reason and never delivered; garbage and oversized data payloads are rejected and counted;
+a SIGKILLed member disappears from `watch_alive` in well under a second; status request/reply
+works and a wrong secret gets no accepted reply.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import msgpack
+import numpy as np
+import pytest
+
+from dvla.fabric import (
+    CTRL,
+    DATA,
+    Command,
+    Fabric,
+    RoleStatus,
+    Signer,
+    TrajectoryChunk,
+    encode,
+    plane_config,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+RUN = "fabtest"
+SECRET = bytes.fromhex("5eed" * 16)
+WRONG_SECRET = bytes.fromhex("bad0" * 16)
+
+
+# --------------------------------------------------------------------------------------------
+# helpers
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(pred: Callable[[], bool], timeout: float, step: float = 0.005) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(step)
+    return pred()
+
+
+def wait_matched(session: Any, key: str, timeout: float = 5.0) -> None:
+    """Block until `session` knows a subscriber of `key` (puts before that go nowhere)."""
+    pub = session.declare_publisher(key)
+    try:
+        assert wait_for(lambda: pub.matching_status, timeout), f"no subscriber of {key} became visible"
+    finally:
+        pub.undeclare()
+
+
+def make_chunk(rollout: str, seq: int, *, T: int = 8, N: int = 2, D: int = 5, A: int = 3, rgb: bool = False) -> TrajectoryChunk:
+    rng = np.random.default_rng(seq)
+    obs = {"state": rng.standard_normal((T, N, D), dtype=np.float32)}
+    next_obs = {"state": rng.standard_normal((N, D), dtype=np.float32)}
+    final_obs = {"state": np.zeros((T, N, D), np.float32)}
+    if rgb:
+        obs["rgb"] = rng.integers(0, 256, (T, N, 32, 32, 3), dtype=np.uint8)
+        next_obs["rgb"] = rng.integers(0, 256, (N, 32, 32, 3), dtype=np.uint8)
+        final_obs["rgb"] = np.zeros((T, N, 32, 32, 3), np.uint8)
+    terminated = rng.random((T, N)) < 0.1
+    return TrajectoryChunk(
+        rollout=rollout, seq=seq, policy_version=seq // 4, env_steps=T * N,
+        obs=obs, actions=rng.standard_normal((T, N, A), dtype=np.float32),
+        logprobs=rng.standard_normal((T, N), dtype=np.float32),
+        rewards=rng.standard_normal((T, N), dtype=np.float32),
+        terminated=terminated, truncated=np.zeros((T, N), bool), success=terminated.copy(),
+        next_obs=next_obs, final_obs=final_obs,
+    )
+
+
+def big_chunk(rollout: str, seq: int, nbytes: int) -> TrajectoryChunk:
+    """A chunk whose encoding is about `nbytes` (the bulk is a uint8 image observation)."""
+    T, N = 4, 2
+    side = max(1, int((nbytes / (T * N * 3)) ** 0.5))
+    c = make_chunk(rollout, seq, T=T, N=N)
+    img = np.full((T, N, side, side, 3), seq % 251, np.uint8)
+    return TrajectoryChunk(
+        rollout=c.rollout, seq=c.seq, policy_version=c.policy_version, env_steps=c.env_steps,
+        obs={**c.obs, "rgb": img}, actions=c.actions, logprobs=c.logprobs, rewards=c.rewards,
+        terminated=c.terminated, truncated=c.truncated, success=c.success,
+        next_obs={**c.next_obs, "rgb": img[0]}, final_obs={**c.final_obs, "rgb": img},
+    )
+
+
+def assert_same_chunk(got: TrajectoryChunk, want: TrajectoryChunk) -> None:
+    for name in ("rollout", "seq", "policy_version", "env_steps", "created_ns"):
+        assert getattr(got, name) == getattr(want, name), name
+    for name in ("actions", "logprobs", "rewards", "terminated", "truncated", "success"):
+        a, b = getattr(got, name), getattr(want, name)
+        assert a.dtype == b.dtype and a.shape == b.shape, name
+        np.testing.assert_array_equal(a, b, err_msg=name)
+    for group in ("obs", "next_obs", "final_obs"):
+        a, b = getattr(got, group), getattr(want, group)
+        assert a.keys() == b.keys(), group
+        for k in a:
+            assert a[k].dtype == b[k].dtype
+            np.testing.assert_array_equal(a[k], b[k], err_msg=f"{group}[{k}]")
+
+
+def status_of(name: str, env_steps: int = 0) -> RoleStatus:
+    return RoleStatus(
+        name=name, kind="actor", node="node0", rack="rack0", pid=os.getpid(), state="running",
+        policy_version=3, env_steps=env_steps, steps_per_s=1.5, extra={"k": "v"},
+    )
+
+
+def open_actor_side(ctrl_port: int, data_port: int, name: str = "actor") -> Fabric:
+    return Fabric(
+        run=RUN, name=name, secret=SECRET,
+        ctrl_conf=plane_config(mode="router", listen=[f"tcp/127.0.0.1:{ctrl_port}"]),
+        data_conf=plane_config(mode="peer", listen=[f"tcp/127.0.0.1:{data_port}"]),
+    )
+
+
+def open_client(ctrl_port: int, data_port: int | None, name: str, secret: bytes = SECRET) -> Fabric:
+    data = None if data_port is None else plane_config(mode="peer", connect=[f"tcp/127.0.0.1:{data_port}"])
+    return Fabric(
+        run=RUN, name=name, secret=secret, open_timeout_s=10.0,
+        ctrl_conf=plane_config(mode="client", connect=[f"tcp/127.0.0.1:{ctrl_port}"]),
+        data_conf=data,
+    )
+
+
+class Pair:
+    """An actor-side fabric and a rollout-side fabric connected to it."""
+
+    def __init__(self) -> None:
+        self.ctrl_port, self.data_port = free_port(), free_port()
+        self.actor = open_actor_side(self.ctrl_port, self.data_port)
+        self._extra: list[Fabric] = [self.actor]
+        self.rollout = self.client("rollout-0", data=True)
+
+    def client(self, name: str, *, data: bool = False, secret: bytes = SECRET) -> Fabric:
+        f = open_client(self.ctrl_port, self.data_port if data else None, name, secret)
+        self._extra.append(f)
+        return f
+
+    def close(self) -> None:
+        for f in reversed(self._extra):
+            f.close()
+
+
+@pytest.fixture
+def pair() -> Iterator[Pair]:
+    p = Pair()
+    try:
+        yield p
+    finally:
+        p.close()
+
+
+def data_identity(sender: Fabric, receiver: Fabric, consumed: int, queued: int) -> dict[str, int]:
+    s, r = sender.accounting, receiver.accounting
+    counts = {
+        "sent": s.get(DATA, "sent"),
+        "received": r.get(DATA, "received"),
+        "consumed": consumed,
+        "dropped": r.get(DATA, "dropped"),
+        "rejected": r.get(DATA, "rejected"),
+        "queued": queued,
+    }
+    return counts
+
+
+# --------------------------------------------------------------------------------------------
+# data plane
+
+
+@pytest.mark.timeout(30)
+def test_traj_chunks_round_trip_and_accounting_identity(pair: Pair) -> None:
+    actor, rollout = pair.actor, pair.rollout
+    inbox = actor.subscribe_traj(maxsize=16, expect=TrajectoryChunk)
+    wait_matched(rollout.data, rollout.keys.traj(rollout.name))
+    # Small chunks and ~200 KB ones (fragmented by Zenoh), interleaved.
+    sent = [make_chunk(rollout.name, i, rgb=(i % 3 == 0)) if i % 5 else big_chunk(rollout.name, i, 200_000) for i in range(60)]
+    publisher = threading.Thread(target=lambda: [rollout.publish_traj(c) for c in sent], daemon=True)
+    publisher.start()
+    got: list[TrajectoryChunk] = []
+    deadline = time.monotonic() + 15
+    while len(got) < len(sent) and time.monotonic() < deadline:
+        c = inbox.get(timeout=0.5)
+        if c is not None:
+            got.append(c)
+    publisher.join(timeout=10)
+    assert not publisher.is_alive()
+
+    assert [c.seq for c in got] == list(range(len(sent)))  # one publisher: in order, none missing
+    for g in got:
+        assert_same_chunk(g, sent[g.seq])
+    assert wait_for(lambda: actor.accounting.get(DATA, "received") >= rollout.accounting.get(DATA, "sent"), 5)
+    counts = data_identity(rollout, actor, consumed=len(got), queued=inbox.depth())
+    assert counts["sent"] == counts["received"] == len(sent), counts
+    assert counts["received"] == counts["consumed"] + counts["dropped"] + counts["rejected"] + counts["queued"], counts
+    assert counts["dropped"] == counts["rejected"] == counts["queued"] == 0, counts
+    per_peer = actor.accounting.snapshot()[DATA]["peers"][rollout.name]
+    assert per_peer["received"] == len(sent)
+    assert rollout.accounting.get(DATA, "sent_bytes") == actor.accounting.get(DATA, "received_bytes")
+
+
+@pytest.mark.timeout(40)
+@pytest.mark.parametrize("block_s", [1.0, 0.01], ids=["blocks", "drops"])
+def test_slow_consumer_backpressure_loses_nothing_silently(pair: Pair, block_s: float) -> None:
+    actor, rollout = pair.actor, pair.rollout
+    actor.serve(actor.keys.status(actor.name), lambda _req: status_of(actor.name))
+    inbox = actor.subscribe_traj(maxsize=2, expect=TrajectoryChunk, block_s=block_s)
+    wait_matched(rollout.data, rollout.keys.traj(rollout.name))
+    n, size, pause = 40, 512 * 1024, 0.04
+    done = threading.Event()
+    t_pub: list[float] = []
+
+    def publish() -> None:
+        t0 = time.monotonic()
+        for i in range(n):
+            rollout.publish_traj(big_chunk(rollout.name, i, size))
+        t_pub.append(time.monotonic() - t0)
+        done.set()
+
+    threading.Thread(target=publish, daemon=True).start()
+    consumed: list[int] = []
+    deadline = time.monotonic() + 25
+    while time.monotonic() < deadline:
+        c = inbox.get(timeout=0.3)
+        if c is not None:
+            consumed.append(c.seq)
+            time.sleep(pause)  # the slow consumer
+        elif done.is_set() and actor.accounting.get(DATA, "received") >= rollout.accounting.get(DATA, "sent"):
+            break
+    assert done.is_set(), "the publisher never finished: backpressure turned into a stall"
+
+    counts = data_identity(rollout, actor, consumed=len(consumed), queued=inbox.depth())
+    assert counts["sent"] == counts["received"] == n, counts
+    assert counts["received"] == counts["consumed"] + counts["dropped"] + counts["rejected"] + counts["queued"], counts
+    assert counts["rejected"] == 0
+    assert actor.accounting.get(DATA, "dropped.backpressure") == counts["dropped"]
+    assert consumed == sorted(consumed) and len(set(consumed)) == len(consumed)
+    if block_s >= 1.0:
+        # The callback waited for space instead of dropping: the sender was slowed down to
+        # roughly the consumer's pace (Zenoh's and the kernel's buffers absorb only part).
+        assert counts["dropped"] == 0, counts
+        assert t_pub[0] > 0.3 * n * pause, f"publisher finished in {t_pub[0]:.2f}s: no backpressure"
+    else:
+        assert counts["dropped"] > 0, counts  # the consumer cannot keep up and drops are counted
+
+    # The sessions survived: a ctrl round trip works and a later chunk still arrives.
+    replies = rollout.query(actor.keys.status(actor.name), timeout=5.0)
+    assert [s for s, _ in replies] == [actor.name]
+    late = make_chunk(rollout.name, 1000)
+    rollout.publish_traj(late)
+    got = inbox.get(timeout=5.0)
+    while got is not None and got.seq != 1000:
+        got = inbox.get(timeout=5.0)
+    assert got is not None, "a chunk sent after the slow phase never arrived"
+    assert_same_chunk(got, late)
+
+
+@pytest.mark.timeout(30)
+def test_garbage_and_oversized_data_payloads_are_rejected_and_counted(pair: Pair) -> None:
+    actor, rollout = pair.actor, pair.rollout
+    inbox = actor.subscribe_traj(maxsize=32, expect=TrajectoryChunk)
+    key = rollout.keys.traj(rollout.name)
+    wait_matched(rollout.data, key)
+    good = encode(make_chunk(rollout.name, 0))
+    bad = {
+        "garbage": bytes(range(256)) * 12,
+        "not-a-map": b"\x00",
+        "truncated": good[: len(good) // 2],
+        "trailing": good + b"\x00",
+        # msgpack whose one string is 2 MiB (> Limits.max_str_len): refused before any copy
+        "oversized-string": msgpack.packb({"v": 1, "t": "traj", "b": {"rollout": "x" * (2 << 20)}}),
+        # a bin header that claims 300 MiB (> Limits.max_message_bytes/max_array_bytes)
+        "oversized-claim": b"\x83\xa1v\x01\xa1t\xa4traj\xa1b\x81\xa4data\xc6" + (300 << 20).to_bytes(4, "big"),
+        "wrong-type": encode(Command(target="all", verb="stop")),
+        "other-sender": encode(make_chunk("rollout-9", 1)),  # claims another rollout's name
+    }
+    for payload in bad.values():
+        rollout.data.put(key, payload)
+    rollout.publish_traj(make_chunk(rollout.name, 7))  # the subscriber keeps working
+
+    got = inbox.get(timeout=5.0)
+    assert got is not None and got.seq == 7 and got.rollout == rollout.name
+    assert inbox.get(timeout=0.3) is None
+    acct = actor.accounting
+    assert acct.get(DATA, "received") == len(bad) + 1
+    assert acct.get(DATA, "rejected") == len(bad)
+    assert acct.get(DATA, "rejected.oversize") == 2
+    assert acct.get(DATA, "rejected.type") == 1
+    assert acct.get(DATA, "rejected.sender_mismatch") == 1
+    assert acct.get(DATA, "rejected.malformed") == 3
+    assert acct.get(DATA, "rejected.schema") == 1
+    assert acct.get(DATA, "received") == 1 + acct.get(DATA, "rejected") + acct.get(DATA, "dropped") + inbox.depth()
+
+
+# --------------------------------------------------------------------------------------------
+# control plane
+
+
+@pytest.mark.timeout(30)
+def test_forged_unsigned_replayed_and_garbage_ctrl_messages_are_rejected(pair: Pair) -> None:
+    actor, rollout = pair.actor, pair.rollout
+    key = actor.keys.cmd(actor.name)
+    inbox = actor.subscribe_ctrl(key, maxsize=64, expect=Command)
+    handled: list[tuple[str, Command]] = []
+    actor.on_ctrl(actor.keys.cmd("all"), Command, lambda sender, cmd: handled.append((sender, cmd)))
+    wait_matched(rollout.ctrl, key)
+    wait_matched(rollout.ctrl, actor.keys.cmd("all"))
+
+    cmd = Command(target=actor.name, verb="pause", args={"why": "test"})
+    body = encode(cmd)
+    forged = Signer(WRONG_SECRET, rollout.name).seal(key, body)
+    valid = rollout.seal(key, cmd)
+    tampered = bytearray(rollout.seal(key, cmd))
+    tampered[-40] ^= 0x01  # a payload byte: the tag no longer matches
+    other_key = rollout.seal(actor.keys.cmd("someone-else"), cmd)  # signed for another key
+    stale = Signer(SECRET, rollout.name, clock=lambda: time.time_ns() - 120 * 10**9).seal(key, body)
+    signed_garbage = Signer(SECRET, rollout.name).seal(key, b"\xc1not msgpack")
+    cases = [
+        (forged, "bad_signature"),
+        (bytes(tampered), "bad_signature"),
+        (other_key, "bad_signature"),
+        (body, "unsigned"),  # raw encoded bytes, no envelope
+        (os.urandom(200).replace(b"DVS1", b"XXXX"), "unsigned"),  # garbage
+        (b"DVS1" + os.urandom(60), "malformed"),  # garbage behind the magic
+        (stale, "stale"),
+        (signed_garbage, "malformed"),  # the envelope verifies, the payload does not decode
+        (valid, None),
+        (valid, "replay"),  # the same envelope again
+    ]
+    for payload, _ in cases:
+        rollout.ctrl.put(key, payload)
+    rollout.publish_ctrl(key, Command(target=actor.name, verb="resume"))
+
+    delivered = []
+    while (got := inbox.get(timeout=2.0)) is not None:
+        delivered.append(got)
+    assert [(s, c.verb) for s, c in delivered] == [(rollout.name, "pause"), (rollout.name, "resume")]
+    assert delivered[0][1].args == {"why": "test"}
+
+    acct = actor.accounting
+    assert acct.get(CTRL, "received") == len(cases) + 1
+    expected: dict[str, int] = {}
+    for _, reason in cases:
+        if reason:
+            expected[reason] = expected.get(reason, 0) + 1
+    for reason, n in expected.items():
+        assert acct.get(CTRL, f"rejected.{reason}") == n, (reason, acct.snapshot()[CTRL])
+    assert acct.get(CTRL, "rejected") == sum(expected.values())
+
+    # The callback path (on_ctrl) applies the same checks.
+    all_key = actor.keys.cmd("all")
+    rollout.ctrl.put(all_key, Signer(WRONG_SECRET, rollout.name).seal(all_key, body))
+    rollout.ctrl.put(all_key, encode(cmd))
+    rollout.publish_ctrl(all_key, Command(target="all", verb="checkpoint"))
+    assert wait_for(lambda: len(handled) >= 1, 5)
+    time.sleep(0.3)
+    assert [(s, c.verb) for s, c in handled] == [(rollout.name, "checkpoint")]
+    assert acct.get(CTRL, "rejected.bad_signature") == expected["bad_signature"] + 1
+    assert acct.get(CTRL, "rejected.unsigned") == expected["unsigned"] + 1
+
+
+@pytest.mark.timeout(30)
+def test_status_request_reply_and_wrong_secret(pair: Pair) -> None:
+    actor, rollout = pair.actor, pair.rollout
+    requests: list[Any] = []
+
+    def handler(req: Any) -> RoleStatus:
+        requests.append(req)
+        return status_of(actor.name, env_steps=1234)
+
+    actor.serve(actor.keys.status(actor.name), handler)
+    replies = rollout.query(actor.keys.status(actor.name), expect=RoleStatus, timeout=5.0)
+    assert len(replies) == 1
+    sender, st = replies[0]
+    assert sender == actor.name and st.env_steps == 1234 and st.extra == {"k": "v"}
+    # A wildcard selector reaches it too, with and without a (signed) request.
+    assert [s for s, _ in rollout.query(actor.keys.status_all(), timeout=5.0)] == [actor.name]
+    req = Command(target=actor.name, verb="checkpoint")
+    assert [s for s, _ in rollout.query(actor.keys.status_all(), req, timeout=5.0)] == [actor.name]
+    assert [s for s, _ in rollout.query(actor.keys.status(actor.name), req, timeout=5.0)] == [actor.name]
+    assert requests[0] is None and [r.verb for r in requests[2:]] == ["checkpoint", "checkpoint"]
+
+    # Wrong secret, no request: the actor replies, the intruder cannot verify the reply.
+    intruder = pair.client("intruder", secret=WRONG_SECRET)
+    assert intruder.query(actor.keys.status(actor.name), timeout=3.0) == []
+    assert intruder.accounting.get(CTRL, "rejected.bad_signature") == 1
+    # Wrong secret with a request: the actor refuses the request and does not answer at all.
+    before = len(requests)
+    assert intruder.query(actor.keys.status(actor.name), req, timeout=3.0) == []
+    assert len(requests) == before
+    assert actor.accounting.get(CTRL, "rejected.bad_signature") == 1
+    assert intruder.accounting.get(CTRL, "received") == 1  # only the first (rejected) reply came back
+
+
+# --------------------------------------------------------------------------------------------
+# membership
+
+MEMBER_SCRIPT = """
+import sys, time
+from dvla.fabric import Fabric, plane_config
+f = Fabric(run={run!r}, name={name!r}, secret=bytes.fromhex({secret!r}), data_conf=None,
+           ctrl_conf=plane_config(mode="client", connect=[{endpoint!r}]))
+f.declare_alive()
+print("alive", flush=True)
+time.sleep(120)
+"""
+
+
+@pytest.mark.timeout(40)
+def test_killed_member_is_seen_gone_within_a_second(pair: Pair) -> None:
+    actor = pair.actor
+    events: list[tuple[float, str, bool]] = []
+    lock = threading.Lock()
+
+    def on_alive(role: str, alive: bool) -> None:
+        with lock:
+            events.append((time.monotonic(), role, alive))
+
+    actor.declare_alive()
+    actor.watch_alive(on_alive)
+    name = "member-0"
+    script = MEMBER_SCRIPT.format(run=RUN, name=name, secret=SECRET.hex(), endpoint=f"tcp/127.0.0.1:{pair.ctrl_port}")
+    proc = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline().strip() == "alive"
+        assert wait_for(lambda: (name, True) in [(r, a) for _, r, a in events], 5), events
+        assert name in actor.alive_members()
+        killed_at = time.monotonic()
+        proc.send_signal(signal.SIGKILL)
+        assert wait_for(lambda: (name, False) in [(r, a) for _, r, a in events], 5, step=0.001), events
+        gone_at = next(t for t, r, a in events if r == name and not a)
+        elapsed = gone_at - killed_at
+        # TCP close of the killed process ends its session at once; the lease (10 s) is only
+        # the fallback for links that vanish without a close, so no lease tuning is needed.
+        assert elapsed < 1.0, f"member seen gone after {elapsed:.3f}s"
+        assert name not in actor.alive_members()
+        assert (actor.name, True) in [(r, a) for _, r, a in events]  # history: current members first
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait(timeout=10)
+        if proc.stdout is not None:
+            proc.stdout.close()
