@@ -126,7 +126,7 @@ class Fabric:
         data_conf: zenoh.Config | None,
         secret: bytes,
         open_timeout_s: float = 30.0,
-        max_age_s: float = 30.0,
+        max_age_s: float = 120.0,
     ) -> None:
         self.keys = KeySpace(run)
         self.name = name

@@ -19,7 +19,6 @@ control traffic crosses it. See docs/cluster.md.
 from __future__ import annotations
 
 import ctypes
-import errno
 import hashlib
 import ipaddress
 import logging
@@ -116,7 +115,8 @@ def _run(cmd: list[str]) -> str:
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, check=True, timeout=CMD_TIMEOUT_S)
     except subprocess.CalledProcessError as err:
-        raise NetnsError(f"`{' '.join(cmd)}` failed (exit {err.returncode}): {err.stderr.strip() or '(no stderr)'}") from None
+        stderr = err.stderr.strip() or "(no stderr)"
+        raise NetnsError(f"`{' '.join(cmd)}` failed (exit {err.returncode}): {stderr}") from None
     except subprocess.TimeoutExpired:
         raise NetnsError(f"`{' '.join(cmd)}` did not finish in {CMD_TIMEOUT_S:.0f} s") from None
     except FileNotFoundError:
@@ -300,7 +300,7 @@ def _connect(ip: str, port: int) -> str | None:
     except socket.timeout:
         return "timed out"
     except OSError as err:
-        return errno.errorcode.get(err.errno or 0, str(err)) if err.errno else str(err)
+        return os.strerror(err.errno) if err.errno else str(err)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -460,13 +460,15 @@ class NetnsCluster:
         hops.append(f"{d.name} NIC {node_port(d.rack_index, d.node_index)}")
         return hops
 
-    def _describe_failures(self, results: dict, failed: dict) -> str:
+    def _describe_failures(self, results: dict[tuple[str, str], str | None], failed: dict[tuple[str, str], str]) -> str:
+        """Every failed check with its path, and the links on all failed paths but no good one."""
         ips = {n.name: n.ip for n in self.nodes} | {"host": HOST_IP}
         good = {hop for p, e in results.items() if e is None for hop in self._path(*p)}
         suspects = set.intersection(*(set(self._path(*p)) for p in failed)) - good
         lines = [f"emulated cluster {self.run}: {len(failed)} of {len(results)} reachability checks failed"]
         if suspects:
-            lines.append("failing link: " + ", ".join(sorted(suspects)) + f" (in namespace {self.fabric})")
+            lines.append(f"failing link: {', '.join(sorted(suspects))} (bridge ports live in namespace {self.fabric})")
         for (src, dst), err in failed.items():
-            lines.append(f"  {src} ({ips[src]}) -> {dst} ({ips[dst]}): {err}; path: {' -> '.join(self._path(src, dst))}")
+            path = " -> ".join(self._path(src, dst))
+            lines.append(f"  {src} ({ips[src]}) -> {dst} ({ips[dst]}): {err}; path: {path}")
         return "\n".join(lines)

@@ -1,7 +1,7 @@
 """`dvla up`: prepare the run directory, start every role, watch, stop in order, report.
 
 Stop order matters for the accounting identity: rollouts and evaluators first (they flush their
-last chunks), then the actor (which counts what it never learned from), then replicators.
+last chunks), then the actor (which counts what it never learned from) with the replicators.
 """
 
 from __future__ import annotations
@@ -216,8 +216,10 @@ class Up:
             self._interrupted.wait(self.opts.poll_s)
 
     def _shutdown(self, fabric: Fabric) -> None:
-        """Stop leaves first, then the actor, then relays; escalate to signals on timeout."""
-        groups = [("rollout", "evaluator"), ("actor",), ("replicator",)]
+        """Stop leaves first (they flush their last chunks), then the actor and the relays
+        together (the tools' ctrl link runs through the actor's router, so relays are told
+        while it is still up); escalate to signals on timeout."""
+        groups = [("rollout", "evaluator"), ("actor", "replicator")]
         for kinds in groups:
             names = [n for n, s in self.launcher.children.items() if s.proc.config.kind in kinds and s.alive()]
             for n in names:

@@ -51,8 +51,10 @@ class PolicyPool:
     """Dual-pool weights: `active` serves inference, `staging` receives the next version.
 
     The sync lane writes a verified version into `staging` and marks it pending; the infer lane
-    swaps the two references between batches. The sync lane waits for that swap before writing
-    again, so neither pool is ever written while it serves.
+    swaps the two references between batches. Both take one short lock, so a swap never meets a
+    half-written staging module. The sync lane never waits for inference: a version that
+    arrives before the previous one was swapped in simply overwrites it (only the newest
+    matters), which keeps backpressure from forming a cycle through the weight tree.
     """
 
     def __init__(self, make: Any) -> None:
@@ -61,30 +63,26 @@ class PolicyPool:
         self.active_version = -1
         self.layout = ParamLayout.from_state_dict(self.active.state_dict())
         self._pending: int | None = None
-        self._cv = threading.Condition()
+        self._lock = threading.Lock()
         self.swaps = 0
+        self.overwritten = 0
 
-    def stage(self, version: int, flat: np.ndarray, stop: threading.Event) -> bool:
-        with self._cv:
-            while self._pending is not None and not stop.is_set():
-                self._cv.wait(0.05)
-            if stop.is_set():
-                return False
-        unflatten_into(flat, self.staging, self.layout)
-        with self._cv:
+    def stage(self, version: int, flat: np.ndarray) -> None:
+        with self._lock:
+            if self._pending is not None:
+                self.overwritten += 1
+            unflatten_into(flat, self.staging, self.layout)
             self._pending = version
-        return True
 
     def maybe_swap(self) -> bool:
         """Called by the infer lane between batches."""
         if self._pending is None:
             return False
-        with self._cv:
+        with self._lock:
             self.active, self.staging = self.staging, self.active
             self.active_version = self._pending
             self._pending = None
             self.swaps += 1
-            self._cv.notify_all()
         return True
 
 
@@ -152,17 +150,15 @@ class Rollout:
         sl.lane("sync", self._sync)
 
     def _on_version(self, version: int, flat: np.ndarray) -> None:
-        self.pool.stage(version, flat, self._stop)
+        self.pool.stage(version, flat)
         self._ready.set()
 
     # -- lanes --------------------------------------------------------------------------------
     def _sync(self, ctx: LaneContext) -> None:
-        self._stop = ctx.stop
         while ctx.running:
             self.weights.step(ctx)
 
     def _infer(self, ctx: LaneContext) -> None:
-        self._stop = ctx.stop
         # No acting before the first verified weights: random initial weights on every rollout
         # would make their log-probs meaningless to the learner.
         while ctx.running and not self._ready.is_set():
@@ -285,6 +281,7 @@ class Rollout:
             "infer_ms_p50": ms[len(ms) // 2] if ms else 0.0,
             "infer_ms_p99": ms[min(len(ms) - 1, int(len(ms) * 0.99))] if ms else 0.0,
             "swaps": self.pool.swaps,
+            "versions_overwritten": self.pool.overwritten,
             "weights": self.weights.status(),
         }
 

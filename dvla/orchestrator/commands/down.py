@@ -39,7 +39,9 @@ def down(
     if leftovers:
         from ..netns import destroy_names
 
-        destroy_names(run_id, leftovers)
+        removed = destroy_names(run_id, leftovers)
+        if removed:
+            typer.echo(f"dvla: removed {', '.join(removed)}")
     state_file = runs / run_id / "state.json"
     if state_file.exists():
         state_file.unlink()
