@@ -89,15 +89,32 @@ def _values(policy: nn.Module, obs: np.ndarray, device: torch.device) -> Tensor:
     return policy.value(flat).reshape(obs.shape[:-1])
 
 
+def _bootstrap_terminated(cfg: PPOConfig, override: bool | None) -> bool:
+    if override is not None:
+        return override
+    return bool(getattr(cfg, "bootstrap_at_termination", True))
+
+
 @torch.no_grad()
 def chunk_advantages(
-    policy: nn.Module, chunk: Mapping[str, np.ndarray], cfg: PPOConfig, device: Any = "cpu"
+    policy: nn.Module,
+    chunk: Mapping[str, np.ndarray],
+    cfg: PPOConfig,
+    device: Any = "cpu",
+    bootstrap_terminated: bool | None = None,
 ) -> dict[str, Tensor]:
     """Training tensors ``[T*N, ...]`` of one chunk, with GAE from ``policy``'s critic.
 
     Values are recomputed with the learner's critic rather than taken from the rollout: the
     rollout's critic is stale, and the bootstrap values must come from the same function as the
     baseline. Rewards are multiplied by ``cfg.reward_scale``.
+
+    ``bootstrap_terminated`` (default: ``cfg.bootstrap_at_termination`` if the config has it,
+    else True) bootstraps terminated episodes from ``V(final_obs)`` like truncated ones; the
+    episode still ends there. ManiSkill tasks terminate on *success* while their dense reward
+    keeps paying near the goal, so without the bootstrap reaching the goal is worth less than
+    hovering next to it (PushCube learns markedly slower). Pass False for tasks whose
+    terminations really are terminal.
     """
     device = torch.device(device)
     missing = [k for k in CHUNK_KEYS if k not in chunk]
@@ -115,6 +132,8 @@ def chunk_advantages(
         next_values[torch.as_tensor(ended, device=device)] = _values(policy, final, device)
     rewards = torch.as_tensor(np.asarray(chunk["rewards"], np.float32), device=device) * cfg.reward_scale
     terminated = torch.as_tensor(np.asarray(chunk["terminated"], bool), device=device)
+    if _bootstrap_terminated(cfg, bootstrap_terminated):
+        terminated = torch.zeros_like(terminated)
     adv, ret = compute_gae(
         rewards, values, next_values, terminated, torch.as_tensor(ended, device=device), cfg.gamma, cfg.gae_lambda
     )
@@ -130,12 +149,19 @@ def chunk_advantages(
 
 
 def batch_from_chunks(
-    policy: nn.Module, chunks: Sequence[Mapping[str, np.ndarray]], cfg: PPOConfig, device: Any = "cpu"
+    policy: nn.Module,
+    chunks: Sequence[Mapping[str, np.ndarray]],
+    cfg: PPOConfig,
+    device: Any = "cpu",
+    bootstrap_terminated: bool | None = None,
 ) -> dict[str, Tensor]:
-    """One PPO batch (the dict :meth:`PPOLearner.update` takes) from several chunks."""
+    """One PPO batch (the dict :meth:`PPOLearner.update` takes) from several chunks.
+
+    See :func:`chunk_advantages` for how advantages are computed.
+    """
     if not chunks:
         raise ValueError("no chunks to learn from")
-    parts = [chunk_advantages(policy, c, cfg, device) for c in chunks]
+    parts = [chunk_advantages(policy, c, cfg, device, bootstrap_terminated) for c in chunks]
     return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
 
 
