@@ -60,7 +60,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--reward-scale", type=float, default=d.reward_scale)
     p.add_argument("--decoupled", action="store_true", help="clip against the update's start policy")
     p.add_argument("--is-clip", type=float, default=2.0, help="truncation of the decoupled IS weight")
-    p.add_argument("--terminations", choices=("reset", "bootstrap", "ignore"), default="reset",
+    p.add_argument("--terminations", choices=("reset", "bootstrap", "ignore"), default="bootstrap",
                    help="success ends the episode without bootstrap (reset), ends it but bootstraps "
                         "like a time limit (bootstrap), or does not end it (ignore)")
     p.add_argument("--eval-every", type=int, default=2, help="versions between evals")
@@ -137,11 +137,6 @@ class ChunkSampler:
         return float(np.mean(self.finished)) if self.finished else float("nan")
 
 
-def as_truncations(chunk: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Treat terminations as time limits: the episode still ends, but its value is bootstrapped."""
-    return {**chunk, "truncated": chunk["truncated"] | chunk["terminated"], "terminated": np.zeros_like(chunk["terminated"])}
-
-
 def train(a: argparse.Namespace) -> dict:
     torch.set_num_threads(1)
     torch.manual_seed(a.seed)
@@ -166,10 +161,8 @@ def train(a: argparse.Namespace) -> dict:
         while env_steps < a.max_steps and time.perf_counter() - started < a.max_wall:
             behaviour.load_state_dict(history[0])  # the oldest kept version acts
             chunks = [sampler.chunk(behaviour) for _ in range(a.batch_steps // per_chunk)]
-            if a.terminations == "bootstrap":
-                chunks = [as_truncations(c) for c in chunks]
             env_steps += a.batch_steps
-            stats = learner.update(batch_from_chunks(policy, chunks, cfg))
+            stats = learner.update(batch_from_chunks(policy, chunks, cfg, bootstrap_terminated=a.terminations == "bootstrap"))
             version += 1
             history.append(copy.deepcopy(policy.state_dict()))
             if version % a.eval_every:

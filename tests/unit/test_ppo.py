@@ -161,7 +161,8 @@ def test_ppo_rejects_bad_batches():
         learner.update({k: v for k, v in batch.items() if k != "returns"})
 
 
-def test_batch_from_chunks_matches_manual_gae():
+@pytest.mark.parametrize("bootstrap_terminated", [False, True])
+def test_batch_from_chunks_matches_manual_gae(bootstrap_terminated):
     torch.manual_seed(0)
     cfg = PPOConfig(gamma=0.8, gae_lambda=0.9, reward_scale=2.0)
     policy = MLPPolicy(3, 1, hidden=(8,))
@@ -181,7 +182,7 @@ def test_batch_from_chunks_matches_manual_gae():
     chunk["truncated"][3, 1] = True
     chunk["final_obs"][1, 0] = rng.normal(size=3)
     chunk["final_obs"][3, 1] = rng.normal(size=3)
-    batch = batch_from_chunks(policy, [chunk, chunk], cfg)
+    batch = batch_from_chunks(policy, [chunk, chunk], cfg, bootstrap_terminated=bootstrap_terminated)
     assert batch["obs"].shape == (2 * T * N, 3) and batch["advantages"].shape == (2 * T * N,)
 
     with torch.no_grad():
@@ -191,6 +192,8 @@ def test_batch_from_chunks_matches_manual_gae():
         nv[1, 0] = V(chunk["final_obs"][1, 0][None])[0]
         nv[3, 1] = V(chunk["final_obs"][3, 1][None])[0]
     end = chunk["terminated"] | chunk["truncated"]
-    adv, ret = compute_gae(chunk["rewards"] * 2.0, v, nv, chunk["terminated"], end, 0.8, 0.9)
+    # Bootstrapping a termination treats it like a time limit: the episode still ends there.
+    term = chunk["terminated"] & (not bootstrap_terminated)
+    adv, ret = compute_gae(chunk["rewards"] * 2.0, v, nv, term, end, 0.8, 0.9)
     np.testing.assert_allclose(batch["advantages"][: T * N].numpy(), adv.reshape(-1), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(batch["returns"][T * N :].numpy(), ret.reshape(-1), rtol=1e-5, atol=1e-6)

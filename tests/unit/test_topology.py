@@ -331,7 +331,7 @@ def test_8node_topology() -> None:
     assert [n for n, r in roles.items() if "replicator" in r] == ["r0n1", "r1n0"]
     assert all(r.count("rollout") == 1 for r in roles.values())
     assert (topo.links.node_gbit, topo.links.rack_uplink_gbit) == (1.0, 0.2)
-    assert (topo.replication.encoding, topo.replication.fanout) == ("full", 4)
+    assert (topo.replication.encoding, topo.replication.fanout) == ("full", 6)
 
 
 def test_tiny_topology() -> None:
