@@ -32,13 +32,13 @@ class PPOConfig:
     #: GAE lambda
     gae_lambda: float = 0.9
     #: Adam learning rate
-    lr: float = 3e-4
+    lr: float = 1e-3
     #: PPO ratio clip
     clip: float = 0.2
     #: passes over each batch
-    update_epochs: int = 4
+    update_epochs: int = 8
     #: minibatches per epoch
-    minibatches: int = 8
+    minibatches: int = 4
     #: env steps (transitions) per learner batch; one policy version per batch
     batch_steps: int = 1600
     #: entropy bonus coefficient
@@ -53,6 +53,9 @@ class PPOConfig:
     max_policy_lag: int = 4
     #: rewards are multiplied by this before learning
     reward_scale: float = 1.0
+    #: bootstrap from the final observation's value when an episode *terminates* (success), as
+    #: for a time limit: ManiSkill resets on success for throughput, the task itself goes on
+    terminal_bootstrap: bool = True
     #: advantage estimator: "gae" (PPO) or "grpo" (group-relative, episodes sharing a seed)
     advantage: Literal["gae", "grpo"] = "gae"
 
@@ -70,7 +73,7 @@ class EvalConfig:
     #: episodes per evaluation
     episodes: int = 16
     #: evaluate whenever this many new policy versions have appeared (at least)
-    every_versions: int = 2
+    every_versions: int = 4
     #: seed offset of eval envs (so they never share initial states with training envs)
     seed_offset: int = 1_000_000
 

@@ -60,6 +60,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--reward-scale", type=float, default=d.reward_scale)
     p.add_argument("--decoupled", action="store_true", help="clip against the update's start policy")
     p.add_argument("--is-clip", type=float, default=2.0, help="truncation of the decoupled IS weight")
+    p.add_argument("--obs-norm", action="store_true", help="running observation normalisation")
+    p.add_argument("--init-log-std", type=float, default=-0.5)
     p.add_argument("--terminations", choices=("reset", "bootstrap", "ignore"), default="bootstrap",
                    help="success ends the episode without bootstrap (reset), ends it but bootstraps "
                         "like a time limit (bootstrap), or does not end it (ignore)")
@@ -149,7 +151,7 @@ def train(a: argparse.Namespace) -> dict:
     started = time.perf_counter()
     group = EnvGroup(task, a.envs, a.seed * 10_000, ignore_terminations=a.terminations == "ignore")
     eval_group = EnvGroup(task, a.eval_envs, a.seed * 10_000 + 1_000_000, ignore_terminations=True)
-    policy = make_policy("mlp", group.obs_dim, group.act_dim)
+    policy = make_policy("mlp", group.obs_dim, group.act_dim, obs_norm=a.obs_norm, init_log_std=a.init_log_std)
     behaviour = copy.deepcopy(policy)
     learner = PPOLearner(policy, cfg, "cpu", seed=a.seed, decoupled=a.decoupled, is_clip=a.is_clip)
     history = collections.deque([copy.deepcopy(policy.state_dict())], maxlen=a.lag + 1)

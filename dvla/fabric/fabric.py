@@ -174,7 +174,7 @@ class Fabric:
 
         key = self.keys.traj(rollout) if rollout != "*" else self.keys.traj_all()
         inbox = Inbox(maxsize, _decode, self.accounting, DATA, block_s)
-        self._declared.append(self.data.declare_subscriber(key, inbox._on_sample))
+        self._declared.append(self.data.declare_subscriber(key, _on_receive_thread(inbox._on_sample)))
         return inbox
 
     # ------------------------------------------------------------------ ctrl plane
@@ -216,6 +216,8 @@ class Fabric:
             return self.open_signed(k, raw, expect)
 
         inbox = Inbox(maxsize, _decode, self.accounting, CTRL, block_s)
+        # Zenoh's default hand-off thread here (unlike the data plane): a full weights inbox
+        # must not hold the receive task that also brings commands and status queries.
         self._declared.append(self.ctrl.declare_subscriber(key, inbox._on_sample))
         return inbox
 
@@ -247,7 +249,9 @@ class Fabric:
             try:
                 req = None
                 if query.payload is not None:
-                    got = self.open_signed(key, query.payload.to_bytes(), expect)
+                    # The requester signed the key expression it queried, which may be a
+                    # wildcard matching this queryable (e.g. every status key).
+                    got = self.open_signed(str(query.key_expr), query.payload.to_bytes(), expect)
                     if got is None:
                         return
                     req = got[1]
@@ -350,6 +354,22 @@ class Fabric:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _on_receive_thread(callback: Callable[[zenoh.Sample], None]) -> Any:
+    """`callback` as a handler that runs on Zenoh's receive thread itself.
+
+    By default zenoh-python hands each sample to a per-subscriber Python thread through a
+    queue, so an `Inbox` waiting for space stalls only that thread while Zenoh keeps reading
+    the link and buffering samples (hundreds of MB for a stalled consumer). Run directly, the
+    wait holds the link's receive task instead, and Zenoh's BLOCK congestion control slows
+    the sender down. `indirect` is an unstable zenoh-python option: fall back to the default
+    when it is missing.
+    """
+    try:
+        return zenoh.handlers.Callback(callback, indirect=False)
+    except TypeError:
+        return callback
 
 
 def _open_retrying(conf: zenoh.Config, timeout_s: float, plane: str) -> zenoh.Session:

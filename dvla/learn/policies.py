@@ -15,6 +15,8 @@ weights must live in parameters or buffers) with these methods; ``obs`` is float
   returned action; the env clips actions itself, so return the unclipped sample.
 * ``evaluate(obs, action) -> (logprob, entropy, value)``: with gradients, for the PPO loss.
 * ``value(obs) -> value``: the critic, for bootstrapping.
+* optional ``observe(obs)``: called by the learner with every training batch's observations
+  before it updates (e.g. to keep running normalisation statistics in buffers).
 
 Register a class with ``@register_policy("name")`` to make it addressable by name.
 """
@@ -115,6 +117,10 @@ class MLPPolicy(nn.Module):
 
     The action std is a state-independent parameter (log-std initialised to ``init_log_std``).
     The actor's last layer starts tiny so the initial mean action is near zero.
+
+    ``obs_norm=True`` standardises observations with running mean/variance buffers updated by
+    :meth:`observe` (the learner calls it); the buffers travel with the state dict, so rollouts
+    normalise exactly like the learner.
     """
 
     def __init__(
@@ -123,6 +129,7 @@ class MLPPolicy(nn.Module):
         act_dim: int,
         hidden: Sequence[int] = (256, 256, 256),
         init_log_std: float = -0.5,
+        obs_norm: bool = False,
     ):
         super().__init__()
         self.obs_dim = int(obs_dim)
@@ -131,13 +138,41 @@ class MLPPolicy(nn.Module):
         self.actor = _mlp(self.obs_dim, hidden, self.act_dim, 0.01 * math.sqrt(2))
         self.critic = _mlp(self.obs_dim, hidden, 1, 1.0)
         self.log_std = nn.Parameter(torch.full((self.act_dim,), float(init_log_std)))
+        self.obs_norm = bool(obs_norm)
+        if self.obs_norm:
+            self.register_buffer("obs_mean", torch.zeros(self.obs_dim))
+            self.register_buffer("obs_var", torch.ones(self.obs_dim))
+            self.register_buffer("obs_count", torch.zeros(()))
+
+    @torch.no_grad()
+    def observe(self, obs: Tensor) -> None:
+        """Fold a batch of observations into the running statistics (no-op without obs_norm)."""
+        if not self.obs_norm:
+            return
+        obs = obs.reshape(-1, self.obs_dim).to(self.obs_mean.dtype)
+        n = obs.shape[0]
+        if n == 0:
+            return
+        # Chan et al.'s parallel variance update: exact for any batch split.
+        mean, var = obs.mean(0), obs.var(0, unbiased=False)
+        total = self.obs_count + n
+        delta = mean - self.obs_mean
+        m2 = self.obs_var * self.obs_count + var * n + delta.pow(2) * self.obs_count * n / total
+        self.obs_mean += delta * n / total
+        self.obs_var.copy_(m2 / total)
+        self.obs_count.copy_(total)
+
+    def _normalise(self, obs: Tensor) -> Tensor:
+        if not self.obs_norm:
+            return obs
+        return ((obs - self.obs_mean) / (self.obs_var + 1e-8).sqrt()).clamp(-10.0, 10.0)
 
     def _dist(self, obs: Tensor) -> Normal:
-        mean = self.actor(obs)
+        mean = self.actor(self._normalise(obs))
         return Normal(mean, self.log_std.exp().expand_as(mean))
 
     def value(self, obs: Tensor) -> Tensor:
-        return self.critic(obs).squeeze(-1)
+        return self.critic(self._normalise(obs)).squeeze(-1)
 
     @torch.no_grad()
     def act(self, obs: Tensor, deterministic: bool = False) -> tuple[Tensor, Tensor, Tensor]:

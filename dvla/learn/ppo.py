@@ -45,8 +45,9 @@ def compute_gae(rewards, values, next_values, terminated, episode_end, gamma: fl
     not_term = 1 - _float_mask(terminated, values)
     not_end = 1 - _float_mask(episode_end, values)
     deltas = rewards + gamma * not_term * next_values - values
-    advantages = deltas * 0  # same type, dtype and device as the inputs
-    running = deltas[0] * 0
+    zeros_like = torch.zeros_like if isinstance(deltas, Tensor) else np.zeros_like
+    advantages = zeros_like(deltas)
+    running = zeros_like(deltas[0])
     for t in range(deltas.shape[0] - 1, -1, -1):
         running = deltas[t] + gamma * lam * not_end[t] * running
         advantages[t] = running
@@ -222,6 +223,9 @@ class PPOLearner:
         cfg = self.cfg
         b = self._tensors(batch)
         size = b["obs"].shape[0]
+        observe = getattr(self.policy, "observe", None)
+        if callable(observe):
+            observe(b["obs"])
         with torch.no_grad():
             start_logprobs, _, _ = self.policy.evaluate(b["obs"], b["actions"])
         behaviour_kl = _approx_kl(start_logprobs - b["logprobs"])

@@ -48,6 +48,8 @@ class UpOptions:
     max_wall_s: float | None = None
     #: "async" or "sync" (overrides the topology's mode)
     mode: str | None = None
+    #: override the topology's master seed
+    seed: int | None = None
     #: first port to hand out (None: the topology's base_port)
     base_port: int | None = None
     #: runs/ directory
@@ -67,7 +69,8 @@ def apply_overrides(topo: Topology, opts: UpOptions) -> Topology:
         max_wall_s=opts.max_wall_s if opts.max_wall_s is not None else b.max_wall_s,
     )
     task = dataclasses.replace(topo.task, budget=budget)
-    return dataclasses.replace(topo, task=task, mode=opts.mode or topo.mode)  # type: ignore[arg-type]
+    seed = opts.seed if opts.seed is not None else topo.seed
+    return dataclasses.replace(topo, task=task, mode=opts.mode or topo.mode, seed=seed)  # type: ignore[arg-type]
 
 
 def prepare_run_dir(root: Path, run: str) -> Path:

@@ -195,8 +195,9 @@ class Actor:
         next_values[:-1] = values[1:]
         next_values[-1] = last_v
         next_values = torch.where(ended, final_v, next_values)
+        no_bootstrap = torch.zeros_like(b["terminated"]) if ppo.terminal_bootstrap else b["terminated"]
         adv, ret = compute_gae(
-            b["rewards"] * ppo.reward_scale, values, next_values, b["terminated"], ended, ppo.gamma, ppo.gae_lambda
+            b["rewards"] * ppo.reward_scale, values, next_values, no_bootstrap, ended, ppo.gamma, ppo.gae_lambda
         )
         return {
             "obs": b["obs"].reshape(T * N, -1),

@@ -202,7 +202,7 @@ class Rollout:
         b, t = g.buf, g.t
         b["obs"][t] = g.obs
         step = g.envs.step(actions)
-        b["actions"][t] = np.clip(actions, g.envs.action_low, g.envs.action_high)
+        b["actions"][t] = actions  # as sampled: the log-probs are of these, the env clips
         b["logprobs"][t] = logprobs
         b["rewards"][t] = step.reward
         b["terminated"][t] = step.terminated

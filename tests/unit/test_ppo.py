@@ -197,3 +197,21 @@ def test_batch_from_chunks_matches_manual_gae(bootstrap_terminated):
     adv, ret = compute_gae(chunk["rewards"] * 2.0, v, nv, term, end, 0.8, 0.9)
     np.testing.assert_allclose(batch["advantages"][: T * N].numpy(), adv.reshape(-1), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(batch["returns"][T * N :].numpy(), ret.reshape(-1), rtol=1e-5, atol=1e-6)
+
+
+def test_obs_norm_statistics_travel_with_the_state_dict():
+    torch.manual_seed(0)
+    policy = MLPPolicy(3, 1, hidden=(8,), obs_norm=True)
+    x = torch.randn(100, 3) * torch.tensor([1.0, 5.0, 0.1]) + 2.0
+    policy.observe(x[:30])
+    policy.observe(x[30:])  # two batches give the same statistics as one
+    torch.testing.assert_close(policy.obs_mean, x.mean(0))
+    torch.testing.assert_close(policy.obs_var, x.var(0, unbiased=False), rtol=1e-4, atol=1e-6)
+    copy = MLPPolicy(3, 1, hidden=(8,), obs_norm=True)
+    copy.load_state_dict(policy.state_dict())
+    torch.testing.assert_close(copy.value(x), policy.value(x))
+    # The learner feeds every batch to observe().
+    _, batch = _fixed_batch(n=64)
+    normed = MLPPolicy(4, 2, hidden=(8,), obs_norm=True)
+    PPOLearner(normed, PPOConfig(minibatches=2, batch_steps=64), "cpu").update(batch)
+    assert float(normed.obs_count) == 64

@@ -23,6 +23,7 @@ def up(
     ] = None,
     max_wall_s: Annotated[Optional[float], typer.Option(help="stop after this many seconds")] = None,
     mode: Annotated[Optional[str], typer.Option(help="async (swimlanes) or sync (lock-step baseline)")] = None,
+    seed: Annotated[Optional[int], typer.Option(help="master seed (overrides the topology's)")] = None,
     base_port: Annotated[Optional[int], typer.Option(help="first TCP port of the run")] = None,
     runs: Annotated[Path, typer.Option(help="directory of run directories")] = RUNS_ROOT,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no live view; one line per 10 s")] = False,
@@ -37,7 +38,7 @@ def up(
     topo = topology_or_exit(topology)
     opts = UpOptions(
         max_env_steps=max_env_steps, until_success=until_success, max_wall_s=max_wall_s,
-        mode=mode, base_port=base_port, runs_root=runs,
+        mode=mode, seed=seed, base_port=base_port, runs_root=runs,
     )
     live = sys.stdout.isatty() and not quiet
     last_line = [0.0]
