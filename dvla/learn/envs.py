@@ -121,8 +121,10 @@ class EnvGroup:
 
     Seeding: env ``i`` plays its ``k``-th episode (counted from the last seeded reset) with seed
     ``base + k * n + i``, so episode ``j = k * n + i`` of the group always uses ``base + j``
-    whatever ``n`` is, and no two episodes repeat an initial state. ``base`` is the constructor
-    seed until :meth:`reset` is given another.
+    whatever ``n`` is, and no two episodes of the group repeat an initial state. ``base`` is the
+    constructor seed until :meth:`reset` is given another. Groups in different processes must
+    therefore get seeds further apart than the episodes they will play (e.g. ``seed * 10**6``),
+    or they replay each other's initial states.
 
     ``ignore_terminations=True`` plays every episode to its time limit (success does not end
     it); ``terminated`` is then always False. Evaluation uses this so "success at end" means
