@@ -58,7 +58,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--vf-coef", type=float, default=d.vf_coef)
     p.add_argument("--max-grad-norm", type=float, default=d.max_grad_norm)
     p.add_argument("--reward-scale", type=float, default=d.reward_scale)
-    p.add_argument("--decoupled", action="store_true", help="clip against the update's start policy")
+    p.add_argument("--plain", action="store_true",
+                   help="clip the ratio against the behaviour policy (default: decoupled PPO)")
+    p.add_argument("--decoupled", action="store_true", help=argparse.SUPPRESS)  # old default, kept for old command lines
     p.add_argument("--is-clip", type=float, default=2.0, help="truncation of the decoupled IS weight")
     p.add_argument("--obs-norm", action="store_true", help="running observation normalisation")
     p.add_argument("--init-log-std", type=float, default=-0.5)
@@ -153,7 +155,7 @@ def train(a: argparse.Namespace) -> dict:
     eval_group = EnvGroup(task, a.eval_envs, a.seed * 10_000 + 1_000_000, ignore_terminations=True)
     policy = make_policy("mlp", group.obs_dim, group.act_dim, obs_norm=a.obs_norm, init_log_std=a.init_log_std)
     behaviour = copy.deepcopy(policy)
-    learner = PPOLearner(policy, cfg, "cpu", seed=a.seed, decoupled=a.decoupled, is_clip=a.is_clip)
+    learner = PPOLearner(policy, cfg, "cpu", seed=a.seed, decoupled=not a.plain, is_clip=a.is_clip)
     history = collections.deque([copy.deepcopy(policy.state_dict())], maxlen=a.lag + 1)
     sampler = ChunkSampler(group, a.chunk_steps)
     env_steps, version, streak, eval_s = 0, 0, 0, 0.0

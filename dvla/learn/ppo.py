@@ -3,8 +3,14 @@
 Data reaches the actor as trajectory *chunks*: ``T`` consecutive steps of ``N`` envs acted on by
 one (possibly slightly stale) policy version. :func:`batch_from_chunks` turns chunks into a flat
 training batch with advantages computed by the learner's current critic, and
-:class:`PPOLearner` runs the clipped-surrogate update on it. The PPO ratio is taken against the
-log-probabilities of the *behaviour* policy that acted, so stale chunks are corrected for.
+:class:`PPOLearner` runs the clipped-surrogate update on it.
+
+Stale data: every transition carries the log-probability of the *behaviour* policy that acted.
+By default the learner uses decoupled PPO: the trust region is clipped around the policy at the
+start of the update, and the staleness is corrected by a truncated importance weight
+(proximal / behaviour). Clipping the ratio against the behaviour policy directly (plain PPO)
+stops learning on PushCube with a lag of just one version: each version moves the policy by
+about ``target_kl``, so most samples start an update already outside the clip range.
 """
 
 from __future__ import annotations
@@ -174,11 +180,12 @@ BATCH_KEYS = ("obs", "actions", "logprobs", "advantages", "returns")
 class PPOLearner:
     """Clipped-surrogate PPO on batches of (possibly stale) transitions.
 
-    By default the ratio is against the behaviour log-probs in the batch. With
-    ``decoupled=True`` the clip is instead applied to the ratio against the policy at the start
-    of the update (the "proximal" policy), and the staleness is corrected by an importance weight
-    proximal/behaviour truncated at ``is_clip`` (decoupled PPO, Hilton et al. 2021): with lag 0
-    both are the same objective; with stale data the trust region no longer starts out clipped.
+    With ``decoupled=False`` the ratio is against the behaviour log-probs in the batch. With
+    ``decoupled=True`` (the default) the clip is instead applied to the ratio against the policy
+    at the start of the update (the "proximal" policy), and the staleness is corrected by an
+    importance weight proximal/behaviour truncated at ``is_clip`` (decoupled PPO, Hilton et al.
+    2021): with lag 0 both are the same objective; with stale data the trust region no longer
+    starts out clipped.
 
     The ``target_kl`` early stop measures how far *this update* moved the policy (KL to the
     policy at its start), not the staleness the batch arrived with: otherwise data a few versions
@@ -192,13 +199,14 @@ class PPOLearner:
         device: Any = "cpu",
         seed: int | None = None,
         *,
-        decoupled: bool = False,
-        is_clip: float = 2.0,
+        decoupled: bool | None = None,
+        is_clip: float | None = None,
     ):
         self.policy = policy
         self.cfg = cfg
-        self.decoupled = decoupled
-        self.is_clip = is_clip
+        # Config fields win when present; the keywords override them (used by the tuning tool).
+        self.decoupled = bool(getattr(cfg, "decoupled", True)) if decoupled is None else decoupled
+        self.is_clip = float(getattr(cfg, "is_clip", 2.0)) if is_clip is None else is_clip
         self.device = torch.device(device)
         self.optimizer = torch.optim.Adam(policy.parameters(), lr=cfg.lr, eps=1e-5)
         self._gen = torch.Generator()

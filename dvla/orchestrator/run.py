@@ -149,6 +149,7 @@ class Up:
             "ctrl_entry": list(self.plan.ctrl_entry),
             "secret_file": self.secret_source if self.secret_source != "DVLA_SECRET" else None,
             "children": self.launcher.pids(),
+            "restarts": {n: c.restarts for n, c in self.launcher.children.items()},
             "netns": self.netns.names() if self.netns else [],
             "started": time.time(),
         }

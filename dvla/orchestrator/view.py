@@ -44,20 +44,23 @@ def _lanes(s: RoleStatus) -> str:
     return " ".join(parts)
 
 
-def render_table(statuses: dict[str, RoleStatus], expected: list[str] | None = None) -> str:
+def render_table(
+    statuses: dict[str, RoleStatus], expected: list[str] | None = None, restarts: dict[str, int] | None = None
+) -> str:
     latest = latest_version(statuses)
-    header = ["ROLE", "NODE", "RACK", "STATE", "VERSION", "LAG", "STEPS", "STEPS/S", "LANES (busy)"]
+    restarts = restarts or {}
+    header = ["ROLE", "NODE", "RACK", "STATE", "VERSION", "LAG", "STEPS", "STEPS/S", "RESTARTS", "LANES (busy)"]
     rows = []
     names = sorted(set(statuses) | set(expected or []))
     for name in names:
         s = statuses.get(name)
         if s is None:
-            rows.append([name, "-", "-", "silent", "-", "-", "-", "-", ""])
+            rows.append([name, "-", "-", "silent", "-", "-", "-", "-", str(restarts.get(name, 0)), ""])
             continue
         lag = policy_lag(s, latest)
         version = s.extra.get("published_version", s.policy_version) if s.kind == "actor" else s.policy_version
         rows.append([name, s.node, s.rack, s.state, str(version), "-" if lag is None else str(lag),
-                     str(s.env_steps), f"{s.steps_per_s:.0f}", _lanes(s)])
+                     str(s.env_steps), f"{s.steps_per_s:.0f}", str(restarts.get(name, 0)), _lanes(s)])
     widths = [max(len(r[i]) for r in [header] + rows) for i in range(len(header))]
     lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in [header] + rows]
     return "\n".join(lines)

@@ -24,7 +24,7 @@ from ..config import RoleConfig, resolve_device
 from ..fabric import Fabric
 from ..fabric.codec import encode
 from ..fabric.fabric import DATA
-from ..fabric.messages import TrajectoryChunk, WeightChunk, WeightManifest, WeightSnapshot
+from ..fabric.messages import RoleStatus, TrajectoryChunk, WeightChunk, WeightManifest, WeightSnapshot
 from ..learn import PPOLearner, compute_gae, make_policy
 from ..learn.dims import probe_dims
 from ..replication import ParamLayout, ReplicationError, WeightEncoder, flatten, unflatten_into
@@ -54,11 +54,8 @@ class Actor:
         start = int(resumed["version"]) if resumed else 0
         if resumed:
             log.info("resumed from checkpoint: version %d, %d env steps", start, resumed["env_steps"])
-        rep = cfg.replication
-        self.encoder = WeightEncoder(
-            self.layout, rep.encoding, topk_fraction=rep.topk_fraction,
-            snapshot_every=rep.snapshot_every, chunk_bytes=rep.chunk_bytes, start_version=start,
-        )
+        self.resumed = resumed is not None
+        self.encoder = self._make_encoder(start)
         n_group = max(1, task.envs_per_rollout - task.envs_per_rollout // 2)
         chunks_per_batch = -(-task.ppo.batch_steps // (task.chunk_steps * max(1, task.envs_per_rollout // 2)))
         self.slots = SlotPool(
@@ -87,8 +84,39 @@ class Actor:
         sl.lane("batch", self._batch)
         sl.lane("learn", self._learn)
         sl.lane("publish", self._publish)
-        # Version 1: the initial weights, so rollouts can act before the first update.
+        if self.resumed:
+            self._skip_past_replicas()
+        # The first version: the initial (or resumed) weights, so rollouts can act at once.
         self._snapshot_version(self.policy)
+
+    def _skip_past_replicas(self, wait_s: float = 5.0) -> None:
+        """After a restart, continue numbering above every version a replica already holds.
+
+        Versions published after the last checkpoint died with the old process; reusing their
+        numbers would make replicas ignore the new weights as stale. Children report what they
+        hold in their status (they reconnect to this router within about a second).
+        """
+        deadline = time.monotonic() + wait_s
+        highest = self.published_version
+        pending = set(self.cfg.children)
+        while pending and time.monotonic() < deadline:
+            for name in list(pending):
+                for _sender, st in self.fabric.query(self.fabric.keys.status(name), expect=RoleStatus, timeout=0.5):
+                    highest = max(highest, int(st.policy_version))
+                    pending.discard(name)
+            if pending:
+                time.sleep(0.2)
+        if highest > self.published_version:
+            log.info("replicas hold v%d > checkpoint v%d: numbering continues from there", highest, self.published_version)
+            self.encoder = self._make_encoder(highest)
+            self.policy_version = self.published_version = highest
+
+    def _make_encoder(self, start_version: int) -> WeightEncoder:
+        rep = self.cfg.replication
+        return WeightEncoder(
+            self.layout, rep.encoding, topk_fraction=rep.topk_fraction,
+            snapshot_every=rep.snapshot_every, chunk_bytes=rep.chunk_bytes, start_version=start_version,
+        )
 
     def _snapshot_version(self, module: torch.nn.Module) -> np.ndarray:
         flat = np.empty(self.layout.numel, np.float32)
@@ -210,7 +238,7 @@ class Actor:
 
     def _publish(self, ctx: LaneContext) -> None:
         f, key = self.fabric, self.fabric.keys.weights(self.cfg.name)
-        every = 25
+        every = 10  # checkpoint cadence (versions); the first version is checkpointed too
         last: np.ndarray | None = None
         while ctx.running:
             flat = self.versions.get(ctx.stop, stats=ctx.stats)
@@ -226,7 +254,7 @@ class Actor:
                 for i, data in enumerate(enc.chunks):
                     msg = WeightChunk(sender=self.cfg.name, version=enc.version, index=i, n_chunks=enc.n_chunks, data=bytes(data))
                     self.bytes_published += f.publish_ctrl(key, msg, weights=True)
-                if enc.version % every == 0:
+                if enc.version % every == 0 or last is None:
                     self._checkpoint(flat)
                 last = flat
             ctx.count()

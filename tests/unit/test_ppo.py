@@ -215,3 +215,30 @@ def test_obs_norm_statistics_travel_with_the_state_dict():
     normed = MLPPolicy(4, 2, hidden=(8,), obs_norm=True)
     PPOLearner(normed, PPOConfig(minibatches=2, batch_steps=64), "cpu").update(batch)
     assert float(normed.obs_count) == 64
+
+
+def test_decoupled_equals_plain_ppo_on_fresh_data():
+    """With lag 0 (behaviour == policy at the start of the update) both objectives coincide."""
+    results = []
+    for decoupled in (False, True):
+        policy, batch = _fixed_batch(seed=3)
+        cfg = PPOConfig(update_epochs=2, minibatches=4, batch_steps=512, lr=1e-3, target_kl=None)
+        PPOLearner(policy, cfg, "cpu", seed=0, decoupled=decoupled).update(batch)
+        results.append([p.detach().clone() for p in policy.parameters()])
+    for a, b in zip(*results):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+
+
+def test_decoupled_learns_from_stale_data():
+    """Data acted on by an older policy: the update still improves the surrogate."""
+    policy, batch = _fixed_batch(seed=4)
+    with torch.no_grad():
+        for p in policy.actor.parameters():
+            p.add_(0.05 * torch.randn_like(p))  # the learner has moved on since the data was sampled
+    cfg = PPOConfig(update_epochs=4, minibatches=4, batch_steps=512, lr=1e-3, target_kl=None)
+    learner = PPOLearner(policy, cfg, "cpu", seed=0)
+    assert learner.decoupled
+    pg0, _ = _surrogate(policy, batch)
+    stats = learner.update(batch)
+    pg1, _ = _surrogate(policy, batch)
+    assert stats["behaviour_kl"] > 0 and pg1 < pg0

@@ -42,8 +42,9 @@ def status(
         fabric.close()
     statuses = {msg.name: msg for _s, msg in replies}
     expected = sorted(p.stem for p in (runs / run_id / "roles").glob("*.json"))
+    restarts = {k: int(v) for k, v in state.get("restarts", {}).items()}
     if format == Format.json:
         silent = sorted(set(expected) - set(statuses))
-        typer.echo(render_json(statuses, {"run": run_id, "silent": silent}))
+        typer.echo(render_json(statuses, {"run": run_id, "silent": silent, "restarts": restarts}))
     else:
-        typer.echo(render_table(statuses, expected))
+        typer.echo(render_table(statuses, expected, restarts))

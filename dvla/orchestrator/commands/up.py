@@ -59,7 +59,7 @@ def up(
         )
         if live:
             expected = [p.config.name for p in u.plan.processes]
-            sys.stdout.write("\x1b[H\x1b[2J" + head + "\n\n" + render_table(snap.statuses, expected) + "\n")
+            sys.stdout.write("\x1b[H\x1b[2J" + head + "\n\n" + render_table(snap.statuses, expected, {n: c.restarts for n, c in u.launcher.children.items()}) + "\n")
             sys.stdout.flush()
         elif time.monotonic() - last_line[0] >= 10:
             last_line[0] = time.monotonic()
