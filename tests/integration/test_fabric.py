@@ -22,6 +22,7 @@ import subprocess
 import sys
 import threading
 import time
+import uuid
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -66,13 +67,25 @@ def wait_for(pred: Callable[[], bool], timeout: float, step: float = 0.005) -> b
     return pred()
 
 
-def wait_matched(session: Any, key: str, timeout: float = 5.0) -> None:
-    """Block until `session` knows a subscriber of `key` (puts before that go nowhere)."""
-    pub = session.declare_publisher(key)
+def wait_route(receiver: Any, sender: Any, timeout: float = 5.0) -> None:
+    """Block until puts from `sender` reach subscribers declared so far on `receiver`.
+
+    `Publisher.matching_status` is not enough between two peers: it can read True before the
+    remote subscriber's declaration has arrived, and puts sent meanwhile are lost. So a probe
+    subscriber is declared after the ones under test and probed end to end; declarations
+    travel in order on the link, so once a probe gets through, the earlier ones are known.
+    """
+    key = f"probe/{uuid.uuid4().hex}"
+    seen = threading.Event()
+    sub = receiver.declare_subscriber(key, lambda _sample: seen.set())
     try:
-        assert wait_for(lambda: pub.matching_status, timeout), f"no subscriber of {key} became visible"
+        deadline = time.monotonic() + timeout
+        while not seen.is_set():
+            assert time.monotonic() < deadline, "no route between the two sessions"
+            sender.put(key, b"probe")
+            seen.wait(0.02)
     finally:
-        pub.undeclare()
+        sub.undeclare()
 
 
 def make_chunk(rollout: str, seq: int, *, T: int = 8, N: int = 2, D: int = 5, A: int = 3, rgb: bool = False) -> TrajectoryChunk:
@@ -98,7 +111,8 @@ def make_chunk(rollout: str, seq: int, *, T: int = 8, N: int = 2, D: int = 5, A:
 def big_chunk(rollout: str, seq: int, nbytes: int) -> TrajectoryChunk:
     """A chunk whose encoding is about `nbytes` (the bulk is a uint8 image observation)."""
     T, N = 4, 2
-    side = max(1, int((nbytes / (T * N * 3)) ** 0.5))
+    # obs and final_obs hold T images per env, next_obs one: (2T + 1) * N images in all
+    side = max(1, int((nbytes / ((2 * T + 1) * N * 3)) ** 0.5))
     c = make_chunk(rollout, seq, T=T, N=N)
     img = np.full((T, N, side, side, 3), seq % 251, np.uint8)
     return TrajectoryChunk(
@@ -197,7 +211,7 @@ def data_identity(sender: Fabric, receiver: Fabric, consumed: int, queued: int) 
 def test_traj_chunks_round_trip_and_accounting_identity(pair: Pair) -> None:
     actor, rollout = pair.actor, pair.rollout
     inbox = actor.subscribe_traj(maxsize=16, expect=TrajectoryChunk)
-    wait_matched(rollout.data, rollout.keys.traj(rollout.name))
+    wait_route(actor.data, rollout.data)
     # Small chunks and ~200 KB ones (fragmented by Zenoh), interleaved.
     sent = [make_chunk(rollout.name, i, rgb=(i % 3 == 0)) if i % 5 else big_chunk(rollout.name, i, 200_000) for i in range(60)]
     publisher = threading.Thread(target=lambda: [rollout.publish_traj(c) for c in sent], daemon=True)
@@ -230,20 +244,19 @@ def test_slow_consumer_backpressure_loses_nothing_silently(pair: Pair, block_s: 
     actor, rollout = pair.actor, pair.rollout
     actor.serve(actor.keys.status(actor.name), lambda _req: status_of(actor.name))
     inbox = actor.subscribe_traj(maxsize=2, expect=TrajectoryChunk, block_s=block_s)
-    wait_matched(rollout.data, rollout.keys.traj(rollout.name))
-    n, size, pause = 40, 512 * 1024, 0.04
+    wait_route(actor.data, rollout.data)
+    n, size, pause = 60, 1 << 20, 0.03
     done = threading.Event()
-    t_pub: list[float] = []
+    consumed: list[int] = []
+    consumed_when_done: list[int] = []
 
     def publish() -> None:
-        t0 = time.monotonic()
         for i in range(n):
             rollout.publish_traj(big_chunk(rollout.name, i, size))
-        t_pub.append(time.monotonic() - t0)
+        consumed_when_done.append(len(consumed))
         done.set()
 
     threading.Thread(target=publish, daemon=True).start()
-    consumed: list[int] = []
     deadline = time.monotonic() + 25
     while time.monotonic() < deadline:
         c = inbox.get(timeout=0.3)
@@ -261,10 +274,10 @@ def test_slow_consumer_backpressure_loses_nothing_silently(pair: Pair, block_s: 
     assert actor.accounting.get(DATA, "dropped.backpressure") == counts["dropped"]
     assert consumed == sorted(consumed) and len(set(consumed)) == len(consumed)
     if block_s >= 1.0:
-        # The callback waited for space instead of dropping: the sender was slowed down to
-        # roughly the consumer's pace (Zenoh's and the kernel's buffers absorb only part).
+        # The callback waited for space instead of dropping, so the sender could only run
+        # ahead of the consumer by what Zenoh's and the kernel's buffers hold (some MB).
         assert counts["dropped"] == 0, counts
-        assert t_pub[0] > 0.3 * n * pause, f"publisher finished in {t_pub[0]:.2f}s: no backpressure"
+        assert consumed_when_done[0] >= n // 3, f"publisher done after {consumed_when_done[0]} of {n} consumed"
     else:
         assert counts["dropped"] > 0, counts  # the consumer cannot keep up and drops are counted
 
@@ -285,7 +298,7 @@ def test_garbage_and_oversized_data_payloads_are_rejected_and_counted(pair: Pair
     actor, rollout = pair.actor, pair.rollout
     inbox = actor.subscribe_traj(maxsize=32, expect=TrajectoryChunk)
     key = rollout.keys.traj(rollout.name)
-    wait_matched(rollout.data, key)
+    wait_route(actor.data, rollout.data)
     good = encode(make_chunk(rollout.name, 0))
     bad = {
         "garbage": bytes(range(256)) * 12,
@@ -328,8 +341,7 @@ def test_forged_unsigned_replayed_and_garbage_ctrl_messages_are_rejected(pair: P
     inbox = actor.subscribe_ctrl(key, maxsize=64, expect=Command)
     handled: list[tuple[str, Command]] = []
     actor.on_ctrl(actor.keys.cmd("all"), Command, lambda sender, cmd: handled.append((sender, cmd)))
-    wait_matched(rollout.ctrl, key)
-    wait_matched(rollout.ctrl, actor.keys.cmd("all"))
+    wait_route(actor.ctrl, rollout.ctrl)
 
     cmd = Command(target=actor.name, verb="pause", args={"why": "test"})
     body = encode(cmd)

@@ -1,0 +1,1 @@
+"""Benchmarks behind `dvla bench ...`; each saves JSON and reports figures measured in one run."""
