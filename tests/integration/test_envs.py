@@ -1,7 +1,9 @@
-"""Integration tests of dvla.learn.envs against the real ManiSkill PushCube-v1 (CPU physics)."""
+"""Integration tests of dvla.learn.envs: a scripted "module:factory" env, then the real ManiSkill
+PushCube-v1 (CPU physics)."""
 
 from __future__ import annotations
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch
@@ -10,13 +12,12 @@ from dvla.config import TaskConfig
 from dvla.learn.envs import EnvGroup, run_eval_episodes
 from dvla.learn.policies import MLPPolicy
 
-pytest.importorskip("mani_skill")
-
 TASK = TaskConfig(env="PushCube-v1", sim_backend="physx_cpu", max_episode_steps=50)
 
 
 @pytest.fixture(scope="module")
 def group():
+    pytest.importorskip("mani_skill")
     g = EnvGroup(TASK, 2, seed=123)
     yield g
     g.close()
@@ -66,12 +67,76 @@ def test_seeded_resets_replay_initial_states(group):
 
 
 @pytest.mark.timeout(120)
-def test_run_eval_episodes_counts_every_episode():
+def test_run_eval_episodes_counts_every_episode(group):
     torch.manual_seed(0)
     policy = MLPPolicy(35, 8, hidden=(32,))
-    with EnvGroup(TASK, 2, seed=0, ignore_terminations=True) as g:
-        out = run_eval_episodes(policy, TASK, 3, seed=1000, device="cpu", group=g)
+    # The untrained policy's mean action barely moves the arm, so no episode ends early.
+    out = run_eval_episodes(policy, TASK, 3, seed=1000, device="cpu", group=group)
     assert out["episodes"] == 3
     assert out["env_steps"] == 150  # three full 50-step episodes, the fourth slot is not counted
     assert 0.0 <= out["success_at_end"] <= out["success_once"] <= 1.0
     assert np.isfinite(out["return_mean"])
+
+
+class _ScriptedEnv(gym.Env):
+    """Succeeds (and terminates) at step 3; obs = [steps, reset seed, last action]."""
+
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (3,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def __init__(self, limit: int):
+        self.limit, self.steps, self.seed_ = limit, 0, -1
+
+    def _obs(self, action: float = 0.0) -> np.ndarray:
+        return np.array([self.steps, self.seed_, action], np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        self.steps, self.seed_ = 0, seed
+        return self._obs(), {}
+
+    def step(self, action):
+        self.steps += 1
+        success = self.steps == 3
+        return self._obs(float(action[0])), 1.0, success, self.steps >= self.limit, {"success": success}
+
+
+def make_scripted_env(task: TaskConfig, seed: int) -> gym.Env:
+    return _ScriptedEnv(task.max_episode_steps)
+
+
+SCRIPTED = TaskConfig(env=f"{__name__}:make_scripted_env", max_episode_steps=5)
+
+
+def test_factory_env_terminations_and_auto_reset():
+    with EnvGroup(SCRIPTED, 2, seed=10) as g:
+        assert (g.obs_dim, g.act_dim) == (3, 1)
+        np.testing.assert_array_equal(g.reset()[:, 1], [10, 11])
+        for _ in range(2):
+            res = g.step([[5.0], [-5.0]])
+            assert not res.episode_done.any()
+        np.testing.assert_array_equal(res.next_obs[:, 2], [1.0, -1.0])  # clipped
+        res = g.step(np.zeros((2, 1)))
+        assert res.terminated.all() and res.success.all() and not res.truncated.any()
+        np.testing.assert_array_equal(res.final_obs[:, 0], [3, 3])
+        np.testing.assert_array_equal(res.next_obs[:, :2], [[0, 12], [0, 13]])  # seed + k*n + i
+
+
+def test_factory_env_ignore_terminations_runs_to_the_limit():
+    with EnvGroup(SCRIPTED, 1, seed=0, ignore_terminations=True) as g:
+        g.reset()
+        dones = [g.step([[0.0]]) for _ in range(5)]
+        assert not any(r.terminated.any() for r in dones)
+        assert dones[2].success[0] and not dones[2].episode_done[0]
+        assert dones[4].truncated[0] and dones[4].final_obs[0, 0] == 5
+
+
+def test_eval_on_factory_env():
+    class Zero(torch.nn.Module):
+        def act(self, obs, deterministic=False):
+            z = torch.zeros(obs.shape[0])
+            return torch.zeros(obs.shape[0], 1), z, z
+
+    out = run_eval_episodes(Zero(), SCRIPTED, 3, seed=0, n_envs=2)
+    assert out["episodes"] == 3 and out["env_steps"] == 15
+    assert out["success_once"] == 1.0 and out["success_at_end"] == 0.0
+    assert out["return_mean"] == 5.0

@@ -39,3 +39,23 @@ def e2e(
 
 def _f(x: float | None) -> str:
     return "-" if x is None else f"{x:.1f}"
+
+
+@app.command("fabric")
+def fabric(
+    json_path: Annotated[Path, typer.Option("--json", help="write the results (JSON) here")],
+    quick: Annotated[bool, typer.Option("--quick", help="tiny counts: checks the machinery, not the speed")] = False,
+) -> None:
+    """Fabric chunk throughput against raw Zenoh (64 KiB, 1 MiB) and ctrl request/reply p99 RTT: idle,
+    with the data plane flooded, and flooded with data and ctrl on one shared session."""
+    from ...bench.fabric import format_table, run_bench
+
+    try:
+        doc = run_bench(quick=quick, progress=lambda m: typer.echo(f"[bench] {m}", err=True))
+    except (RuntimeError, TimeoutError, OSError) as err:
+        raise fail(f"bench fabric: {err}", code=1)
+    doc["command"] = "dvla bench fabric --json " + str(json_path) + (" --quick" if quick else "")
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps(doc, indent=1))
+    typer.echo(format_table(doc))
+    typer.echo(f"wrote {json_path}  ({doc['elapsed_s']:.0f} s)")

@@ -1,0 +1,507 @@
+"""`dvla bench fabric`: what the message fabric costs, and what its separate ctrl session buys.
+
+Everything runs in one invocation on this machine, over TCP on loopback with Zenoh shared
+memory off, every role in its own process (multiprocessing, spawn) so that the cores are used
+as in a real run:
+
+* **Throughput.** Trajectory chunks through the fabric (encode, publish with BLOCK congestion
+  control, receive into the bounded inbox, zero-copy decode) against raw Zenoh (a BLOCK put of
+  a payload of the same size, received by a subscriber callback that takes the payload bytes).
+  Same message count, same kind of endpoints, same callback mode; bytes/s from the publisher's
+  first put to the subscriber's last message. Raw and fabric rounds alternate, and the ratio
+  fabric ÷ raw is the median of the per-round ratios, for chunks of about 64 KiB and 1 MiB.
+* **Ctrl latency.** RTT of a signed status request/reply (`Fabric.query` -> `Fabric.serve`)
+  from a tool process, through the sink's ctrl router, to a source process: idle; while the
+  source floods its data session with 1 MiB chunks to the sink (the real layout of a rollout
+  feeding an actor, with the reply crossing the flooded direction); and, as the baseline, the
+  same flood with data and ctrl forced onto one shared session and link.
+
+Every loop is bounded both in count and in time; a worker that does not report in time fails
+the bench instead of hanging it.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+import os
+import queue
+import socket
+import statistics
+import threading
+import time
+from dataclasses import asdict, dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+RUN = "bench"
+SOURCE, SINK, TOOL = "bench-source", "bench-sink", "bench-tool"
+PROBE_KEY = "bench/probe"
+KIB, MIB = 1 << 10, 1 << 20
+#: seconds a worker may take to start (imports, session open) before the bench fails
+START_TIMEOUT_S = 30.0
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """Counts of one bench run (`quick` shrinks them to check the machinery, not the speed)."""
+
+    #: messages per throughput round, 64 KiB chunks
+    n_64k: int = 3000
+    #: messages per throughput round, 1 MiB chunks
+    n_1m: int = 300
+    #: throughput rounds per configuration (the median is reported)
+    rounds: int = 5
+    #: RTT samples per phase
+    rtt_samples: int = 1000
+    #: wall-clock cap of one throughput round or one RTT phase, seconds
+    phase_timeout_s: float = 20.0
+    #: flood the data plane this long before sampling loaded RTTs, seconds
+    warmup_s: float = 1.0
+
+    @staticmethod
+    def quick() -> "BenchConfig":
+        return BenchConfig(n_64k=40, n_1m=8, rounds=1, rtt_samples=20, phase_timeout_s=15.0, warmup_s=0.3)
+
+
+# --------------------------------------------------------------------------------------------
+# shared helpers (imported by the spawned workers too)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def endpoint(port: int) -> str:
+    return f"tcp/127.0.0.1:{port}"
+
+
+def make_chunk(name: str, target_bytes: int) -> Any:
+    """A TrajectoryChunk whose encoding is about `target_bytes` (a float32 state observation)."""
+    from ..fabric import TrajectoryChunk
+
+    T, N, A = 16, 4, 8
+    rng = np.random.default_rng(0)
+    # obs and final_obs are [T, N, D], next_obs [N, D]; the small arrays and keys take ~2 KB.
+    D = max(1, (target_bytes - 2 * KIB) // (4 * (2 * T + 1) * N))
+    obs = rng.standard_normal((T, N, D), dtype=np.float32)
+    return TrajectoryChunk(
+        rollout=name, seq=0, policy_version=1, env_steps=T * N,
+        obs={"state": obs}, actions=rng.standard_normal((T, N, A), dtype=np.float32),
+        logprobs=np.zeros((T, N), np.float32), rewards=np.ones((T, N), np.float32),
+        terminated=np.zeros((T, N), bool), truncated=np.zeros((T, N), bool), success=np.zeros((T, N), bool),
+        next_obs={"state": obs[-1].copy()}, final_obs={"state": np.zeros_like(obs)},
+    )
+
+
+def _direct(callback: Callable[[Any], None]) -> Any:
+    """A subscriber callback run on Zenoh's receive thread, as the fabric's data inbox is."""
+    import zenoh
+
+    try:
+        return zenoh.handlers.Callback(callback, indirect=False)
+    except TypeError:
+        return callback
+
+
+def _probe_subscriber(session: Any, routed: Any) -> Any:
+    """Declared after the subscriber under test: once a probe arrives, that one is known too."""
+    return session.declare_subscriber(PROBE_KEY, _direct(lambda _s: routed.set()))
+
+
+def _probe_until_routed(session: Any, routed: Any, timeout_s: float) -> None:
+    # Publisher.matching_status can read True between peers before the remote subscriber is
+    # known (puts are then lost): probe end to end instead.
+    deadline = time.monotonic() + timeout_s
+    while not routed.is_set():
+        if time.monotonic() > deadline:
+            raise TimeoutError("no route from the publisher to the subscriber")
+        session.put(PROBE_KEY, b"probe")
+        routed.wait(0.02)
+
+
+def _open_fabric(name: str, secret: bytes, *, ctrl: Any, data: Any = None, shared: bool = False) -> Any:
+    from ..fabric import Fabric
+
+    fabric = Fabric(run=RUN, name=name, ctrl_conf=ctrl, data_conf=None if shared else data, secret=secret)
+    if shared:
+        # Baseline only: both planes on one session, hence one link per peer.
+        fabric.data = fabric.ctrl
+    return fabric
+
+
+# --------------------------------------------------------------------------------------------
+# throughput workers
+
+
+def _throughput_sub(kind: str, port: int, n: int, rounds: int, secret: bytes, ready: Any, routed: Any,
+                    out: Any, timeout_s: float) -> None:
+    """Receives `rounds` x `n` messages; reports the arrival time of each round's last one."""
+    import zenoh
+
+    from ..fabric import TrajectoryChunk, plane_config
+
+    conf = plane_config(mode="peer", listen=[endpoint(port)])
+    if kind == "raw":
+        session = zenoh.open(conf)
+        count = [0]
+        ends: queue.Queue[float] = queue.Queue()
+
+        def on_sample(sample: Any) -> None:
+            sample.payload.to_bytes()  # what any consumer must do to use the payload
+            count[0] += 1
+            if count[0] % n == 0:
+                ends.put(time.monotonic())
+
+        sub = session.declare_subscriber(f"dvla/{RUN}/data/traj/{SOURCE}", _direct(on_sample))
+        probe = _probe_subscriber(session, routed)
+        ready.set()
+        try:
+            for r in range(rounds):
+                out.put(("sub", r, ends.get(timeout=timeout_s)))
+        except queue.Empty:
+            out.put(("error", f"raw subscriber got {count[0]} of {rounds * n} messages"))
+        finally:
+            probe.undeclare()
+            sub.undeclare()
+            session.close()
+        return
+    fabric = _open_fabric(SINK, secret, ctrl=plane_config(), data=conf)
+    try:
+        inbox = fabric.subscribe_traj(maxsize=64, expect=TrajectoryChunk)
+        probe = _probe_subscriber(fabric.data, routed)
+        ready.set()
+        got = 0
+        for r in range(rounds):
+            deadline = time.monotonic() + timeout_s
+            while got < (r + 1) * n and time.monotonic() < deadline:
+                if inbox.get(timeout=0.5) is not None:
+                    got += 1
+            if got < (r + 1) * n:
+                out.put(("error", f"fabric subscriber got {got} of {rounds * n} messages: {fabric.accounting.snapshot()}"))
+                return
+            out.put(("sub", r, time.monotonic()))
+        probe.undeclare()
+    finally:
+        fabric.close()
+
+
+def _throughput_pub(kind: str, port: int, n: int, rounds: int, size: int, secret: bytes, routed: Any,
+                    go: Any, out: Any, timeout_s: float) -> None:
+    """Sends `n` messages per round, each round when told; reports when each round started."""
+    import zenoh
+
+    from ..fabric import plane_config
+
+    conf = plane_config(mode="peer", connect=[endpoint(port)])
+    if kind == "raw":
+        session = zenoh.open(conf)
+        pub = session.declare_publisher(
+            f"dvla/{RUN}/data/traj/{SOURCE}", congestion_control=zenoh.CongestionControl.BLOCK,
+            priority=zenoh.Priority.DATA,
+        )
+        payload = bytes(size)
+        send: Callable[[], Any] = lambda: pub.put(payload)  # noqa: E731
+        probe_session, close = session, session.close
+    else:
+        fabric = _open_fabric(SOURCE, secret, ctrl=plane_config(), data=conf)
+        chunk = make_chunk(SOURCE, size)
+        send = lambda: fabric.publish_traj(chunk)  # noqa: E731
+        probe_session, close = fabric.data, fabric.close
+    try:
+        _probe_until_routed(probe_session, routed, timeout_s)
+        for r in range(rounds):
+            if go.get(timeout=timeout_s) is None:
+                return
+            t0 = time.monotonic()
+            for _ in range(n):
+                send()
+            out.put(("pub", r, t0))
+    finally:
+        close()
+
+
+class _Pair:
+    """A subscriber and a publisher process of one kind ("raw" or "fabric"), driven round by round."""
+
+    def __init__(self, ctx: Any, kind: str, n: int, size: int, cfg: BenchConfig, secret: bytes) -> None:
+        self.kind, self.n, self.size, self.cfg = kind, n, size, cfg
+        port = free_port()
+        self.ready, self.routed, self.out, self.go = ctx.Event(), ctx.Event(), ctx.Queue(), ctx.Queue()
+        t = cfg.phase_timeout_s
+        self.sub = ctx.Process(target=_throughput_sub, args=(kind, port, n, cfg.rounds, secret, self.ready, self.routed, self.out, t))
+        self.pub = ctx.Process(target=_throughput_pub, args=(kind, port, n, cfg.rounds, size, secret, self.routed, self.go, self.out, t))
+
+    def start(self, pids: list[int]) -> None:
+        self.sub.start()
+        pids.append(self.sub.pid)
+        _wait_event(self.ready, self.sub, f"{self.kind} subscriber")
+        self.pub.start()
+        pids.append(self.pub.pid)
+        _wait_event(self.routed, self.pub, f"{self.kind} publisher route")
+
+    def round(self, r: int) -> float:
+        """Bytes/s of round `r`: from the publisher's first put to the subscriber's last message."""
+        self.go.put(r)
+        got = _collect(self.out, {"sub", "pub"}, self.cfg.phase_timeout_s + 5)
+        return self.n * self.size / max(got["sub"][2] - got["pub"][2], 1e-9)
+
+    def stop(self) -> None:
+        self.go.put(None)
+        _stop([self.sub, self.pub])
+
+
+def _measure_throughput(ctx: Any, n: int, size: int, cfg: BenchConfig, secret: bytes, pids: list[int]) -> dict[str, Any]:
+    """Raw and fabric rounds alternate (raw first, then fabric first, ...) so that a change of
+    background load hits both alike; the ratio is the median of the per-round ratios."""
+    pairs = {kind: _Pair(ctx, kind, n, size, cfg, secret) for kind in ("raw", "fabric")}
+    try:
+        for pair in pairs.values():
+            pair.start(pids)
+        rates: dict[str, list[float]] = {"raw": [], "fabric": []}
+        for r in range(cfg.rounds):
+            for kind in (("raw", "fabric") if r % 2 == 0 else ("fabric", "raw")):
+                rates[kind].append(pairs[kind].round(r))
+    finally:
+        for pair in pairs.values():
+            pair.stop()
+    out: dict[str, Any] = {"payload_bytes": size, "messages": n}
+    for kind, values in rates.items():
+        bps = statistics.median(values)
+        out[kind] = {"bytes_per_s": bps, "msgs_per_s": bps / size, "rounds_bytes_per_s": values}
+    out["ratio"] = statistics.median(f / r for f, r in zip(rates["fabric"], rates["raw"]))
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# ctrl latency workers
+
+
+def _status_reply() -> Any:
+    from ..fabric import RoleStatus
+
+    return RoleStatus(name=SOURCE, kind="rollout", node="bench", rack="bench", pid=os.getpid(), state="running",
+                      policy_version=1, env_steps=0, steps_per_s=0.0)
+
+
+def _rtt_sink(shared: bool, ctrl_port: int, data_port: int, secret: bytes, ready: Any, stop: Any,
+              received: Any, received_bytes: Any, max_s: float) -> None:
+    """The actor's side: ctrl router (the tool and the source attach to it) and the traj inbox."""
+    from ..fabric import DATA, TrajectoryChunk, plane_config
+
+    fabric = _open_fabric(
+        SINK, secret, shared=shared,
+        ctrl=plane_config(mode="router", listen=[endpoint(ctrl_port)]),
+        data=plane_config(mode="peer", listen=[endpoint(data_port)]),
+    )
+    try:
+        inbox = fabric.subscribe_traj(maxsize=64, expect=TrajectoryChunk)
+        ready.set()
+        deadline = time.monotonic() + max_s
+        while not stop.is_set() and time.monotonic() < deadline:
+            if inbox.get(timeout=0.1) is not None:
+                received.value += 1  # this process is the only writer
+                received_bytes.value = fabric.accounting.get(DATA, "received_bytes")
+    finally:
+        fabric.close()
+
+
+def _rtt_source(shared: bool, ctrl_port: int, data_port: int, secret: bytes, ready: Any, flood: Any,
+                stop: Any, max_s: float, max_msgs: int) -> None:
+    """The rollout's side: answers status queries; floods 1 MiB chunks while `flood` is set."""
+    from ..fabric import plane_config
+
+    fabric = _open_fabric(
+        SOURCE, secret, shared=shared,
+        ctrl=plane_config(mode="client", connect=[endpoint(ctrl_port)]),
+        data=plane_config(mode="peer", connect=[endpoint(data_port)]),
+    )
+    try:
+        fabric.serve(fabric.keys.status(SOURCE), lambda _req: _status_reply())
+        chunk = make_chunk(SOURCE, MIB)
+        ready.set()
+        deadline = time.monotonic() + max_s
+        sent = 0
+        while not stop.is_set() and time.monotonic() < deadline and sent < max_msgs:
+            if not flood.wait(0.1):
+                continue
+            fabric.publish_traj(chunk)
+            sent += 1
+    finally:
+        fabric.close()
+
+
+def _sample_rtts(tool: Any, key: str, n: int, timeout_s: float) -> dict[str, Any]:
+    rtts: list[float] = []
+    misses = 0
+    deadline = time.monotonic() + timeout_s
+    while len(rtts) + misses < n and time.monotonic() < deadline:
+        t0 = time.perf_counter()
+        replies = tool.query(key, timeout=2.0)
+        dt = (time.perf_counter() - t0) * 1e3
+        if replies:
+            rtts.append(dt)
+        else:
+            misses += 1
+    if not rtts:
+        raise RuntimeError(f"no reply to any status query on {key}")
+    rtts.sort()
+    return {"samples": len(rtts), "timeouts": misses, "p50_ms": _pct(rtts, 0.50), "p99_ms": _pct(rtts, 0.99),
+            "max_ms": rtts[-1]}
+
+
+def _measure_ctrl(ctx: Any, shared: bool, cfg: BenchConfig, secret: bytes, pids: list[int], *, idle: bool) -> dict[str, Any]:
+    """Idle (optional) and loaded RTT phases against one sink/source pair."""
+    from ..fabric import Fabric, plane_config
+
+    ctrl_port, data_port = free_port(), free_port()
+    ready_sink, ready_src, flood, stop = ctx.Event(), ctx.Event(), ctx.Event(), ctx.Event()
+    received, received_bytes = ctx.Value("q", 0), ctx.Value("q", 0)
+    max_s = 4 * cfg.phase_timeout_s + 30
+    sink = ctx.Process(target=_rtt_sink, args=(shared, ctrl_port, data_port, secret, ready_sink, stop, received, received_bytes, max_s))
+    src = ctx.Process(target=_rtt_source, args=(shared, ctrl_port, data_port, secret, ready_src, flood, stop, max_s, 1_000_000))
+    procs = [sink, src]
+    tool = None
+    try:
+        sink.start()
+        pids.append(sink.pid)
+        _wait_event(ready_sink, sink, "sink")
+        src.start()
+        pids.append(src.pid)
+        _wait_event(ready_src, src, "source")
+        tool = Fabric(run=RUN, name=TOOL, secret=secret, data_conf=None, open_timeout_s=START_TIMEOUT_S,
+                      ctrl_conf=plane_config(mode="client", connect=[endpoint(ctrl_port)]))
+        key = tool.keys.status(SOURCE)
+        _wait_reachable(tool, key)
+        out: dict[str, Any] = {}
+        if idle:
+            out["idle"] = _sample_rtts(tool, key, cfg.rtt_samples, cfg.phase_timeout_s)
+        flood.set()
+        time.sleep(cfg.warmup_s)
+        c0, b0, t0 = received.value, received_bytes.value, time.monotonic()
+        loaded = _sample_rtts(tool, key, cfg.rtt_samples, cfg.phase_timeout_s)
+        dt = time.monotonic() - t0
+        loaded["flood_msgs_per_s"] = (received.value - c0) / dt
+        loaded["flood_bytes_per_s"] = (received_bytes.value - b0) / dt
+        out["loaded"] = loaded
+        return out
+    finally:
+        flood.clear()
+        stop.set()
+        if tool is not None:
+            tool.close()
+        _stop(procs)
+
+
+def _wait_reachable(tool: Any, key: str) -> None:
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while not tool.query(key, timeout=1.0):
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the status queryable {key} never answered")
+
+
+# --------------------------------------------------------------------------------------------
+# orchestration
+
+
+def _pct(sorted_values: list[float], q: float) -> float:
+    """Nearest-rank percentile of an ascending list."""
+    return sorted_values[min(len(sorted_values) - 1, max(0, math.ceil(q * len(sorted_values)) - 1))]
+
+
+def _wait_event(event: Any, proc: Any, what: str) -> None:
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while not event.wait(0.1):
+        if not proc.is_alive():
+            raise RuntimeError(f"{what} process exited with code {proc.exitcode} before it was ready")
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"{what} process not ready after {START_TIMEOUT_S:.0f}s")
+
+
+def _collect(out: Any, wanted: set[str], timeout_s: float) -> dict[str, tuple]:
+    got: dict[str, tuple] = {}
+    deadline = time.monotonic() + timeout_s
+    while wanted - set(got):
+        try:
+            item = out.get(timeout=max(0.1, deadline - time.monotonic()))
+        except queue.Empty:
+            raise RuntimeError(f"no report from {sorted(wanted - set(got))} within {timeout_s:.0f}s") from None
+        if item[0] == "error":
+            raise RuntimeError(item[1])
+        got[item[0]] = item
+    return got
+
+
+def _stop(procs: list[Any]) -> None:
+    for p in procs:
+        if p.pid is not None:
+            p.join(timeout=5)
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+            p.join(timeout=5)
+        if p.is_alive():
+            p.kill()
+            p.join(timeout=5)
+
+
+def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False,
+              progress: Callable[[str], None] = lambda _m: None) -> dict[str, Any]:
+    """Run every measurement; returns the JSON document (see the module docstring)."""
+    from ..fabric import encode, new_secret
+
+    cfg = cfg or (BenchConfig.quick() if quick else BenchConfig())
+    ctx = mp.get_context("spawn")
+    secret = bytes.fromhex(new_secret())
+    started = time.monotonic()
+    pids: list[int] = []  # every worker, all stopped before returning (recorded for checks)
+    doc: dict[str, Any] = {"config": asdict(cfg), "quick": quick, "shared_memory": False, "cpus": os.cpu_count()}
+    throughput: dict[str, Any] = {}
+    for label, target, n in (("64k", 64 * KIB, cfg.n_64k), ("1m", MIB, cfg.n_1m)):
+        size = len(encode(make_chunk(SOURCE, target)))  # the raw baseline sends exactly as many bytes
+        progress(f"throughput {label}: {cfg.rounds} rounds x {n} messages of {size} bytes, raw and fabric")
+        entry = _measure_throughput(ctx, n, size, cfg, secret, pids)
+        throughput[label] = entry
+        doc[f"throughput_ratio_{label}"] = entry["ratio"]
+    progress("ctrl RTT: separate sessions, idle then data plane flooded")
+    separate = _measure_ctrl(ctx, False, cfg, secret, pids, idle=True)
+    progress("ctrl RTT: one shared session, data plane flooded")
+    shared = _measure_ctrl(ctx, True, cfg, secret, pids, idle=False)
+    doc["ctrl_rtt_p99_idle_ms"] = separate["idle"]["p99_ms"]
+    doc["ctrl_rtt_p99_loaded_ms"] = separate["loaded"]["p99_ms"]
+    doc["ctrl_rtt_p99_loaded_shared_ms"] = shared["loaded"]["p99_ms"]
+    doc["loaded_over_idle"] = doc["ctrl_rtt_p99_loaded_ms"] / doc["ctrl_rtt_p99_idle_ms"]
+    doc["shared_over_separate"] = doc["ctrl_rtt_p99_loaded_shared_ms"] / doc["ctrl_rtt_p99_loaded_ms"]
+    doc["throughput"] = throughput
+    doc["ctrl_rtt"] = {"idle": separate["idle"], "loaded": separate["loaded"], "loaded_shared": shared["loaded"]}
+    doc["worker_pids"] = pids
+    doc["elapsed_s"] = time.monotonic() - started
+    return doc
+
+
+HEADLINE_KEYS = (
+    "throughput_ratio_64k", "throughput_ratio_1m", "ctrl_rtt_p99_idle_ms", "ctrl_rtt_p99_loaded_ms",
+    "ctrl_rtt_p99_loaded_shared_ms", "loaded_over_idle", "shared_over_separate",
+)
+
+
+def format_table(doc: dict[str, Any]) -> str:
+    """A short human summary of `run_bench`'s document."""
+    lines = [f"{'throughput':<12}{'payload':>10}{'raw MB/s':>11}{'fabric MB/s':>13}{'msgs/s':>9}{'ratio':>8}"]
+    for label, e in doc["throughput"].items():
+        lines.append(
+            f"{label:<12}{e['payload_bytes']:>10}{e['raw']['bytes_per_s'] / 1e6:>11.0f}"
+            f"{e['fabric']['bytes_per_s'] / 1e6:>13.0f}{e['fabric']['msgs_per_s']:>9.0f}{e['ratio']:>8.2f}"
+        )
+    lines.append("")
+    lines.append(f"{'ctrl RTT':<26}{'p50 ms':>8}{'p99 ms':>8}{'flood MB/s':>12}")
+    names = {"idle": "idle", "loaded": "flooded, own ctrl session", "loaded_shared": "flooded, shared session"}
+    for key, title in names.items():
+        r = doc["ctrl_rtt"][key]
+        flood = f"{r['flood_bytes_per_s'] / 1e6:.0f}" if "flood_bytes_per_s" in r else "-"
+        lines.append(f"{title:<26}{r['p50_ms']:>8.2f}{r['p99_ms']:>8.2f}{flood:>12}")
+    lines.append(f"loaded/idle p99 = {doc['loaded_over_idle']:.2f}   shared/separate p99 = {doc['shared_over_separate']:.2f}")
+    return "\n".join(lines)

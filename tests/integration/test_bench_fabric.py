@@ -1,0 +1,60 @@
+"""`dvla bench fabric --quick`: the benchmark's machinery (processes, sessions, JSON), not its speed.
+
+Runs the real command with tiny counts and checks that the JSON holds every headline figure as
+a finite positive number, plus the raw figures behind them, and that no worker is left behind.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from dvla.bench.fabric import HEADLINE_KEYS
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def positive(x: object) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x > 0
+
+
+@pytest.mark.timeout(170)
+def test_bench_fabric_quick_writes_every_figure(tmp_path: Path) -> None:
+    out = tmp_path / "bench" / "fabric.json"
+    proc = subprocess.run(
+        [sys.executable, "-m", "dvla", "bench", "fabric", "--json", str(out), "--quick"],
+        cwd=ROOT, capture_output=True, text=True, timeout=150,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    doc = json.loads(out.read_text())
+    for key in HEADLINE_KEYS:
+        assert positive(doc.get(key)), (key, doc.get(key))
+    assert doc["quick"] is True and doc["shared_memory"] is False
+    for label in ("64k", "1m"):
+        e = doc["throughput"][label]
+        assert positive(e["payload_bytes"]) and positive(e["messages"])
+        for kind in ("raw", "fabric"):
+            assert positive(e[kind]["bytes_per_s"]) and positive(e[kind]["msgs_per_s"])
+    assert 60_000 < doc["throughput"]["64k"]["payload_bytes"] < 70_000
+    assert 1_000_000 < doc["throughput"]["1m"]["payload_bytes"] < 1_100_000
+    for phase in ("idle", "loaded", "loaded_shared"):
+        r = doc["ctrl_rtt"][phase]
+        assert positive(r["p50_ms"]) and positive(r["p99_ms"]) and r["p50_ms"] <= r["p99_ms"]
+        assert positive(r["samples"])
+    for phase in ("loaded", "loaded_shared"):
+        assert positive(doc["ctrl_rtt"][phase]["flood_bytes_per_s"]), "the data plane was not flooded"
+    assert "ctrl RTT" in proc.stdout and "ratio" in proc.stdout
+    alive = [pid for pid in doc["worker_pids"] if Path(f"/proc/{pid}").exists() and not _zombie(pid)]
+    assert len(doc["worker_pids"]) == 12 and alive == [], alive  # 2 sizes x 2 kinds x 2 + 2 x 2
+
+
+def _zombie(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z"
+    except (OSError, IndexError):
+        return True
