@@ -141,45 +141,76 @@ class ChunkSampler:
         return float(np.mean(self.finished)) if self.finished else float("nan")
 
 
+class Run:
+    """One tuning run: training group, eval group, policy, learner and the version history."""
+
+    def __init__(self, a: argparse.Namespace):
+        self.a = a
+        self.cfg = ppo_config(a)
+        self.per_chunk = a.envs * a.chunk_steps
+        if a.batch_steps % self.per_chunk:
+            raise SystemExit(f"--batch-steps must be a multiple of envs*chunk_steps = {self.per_chunk}")
+        self.task = TaskConfig(env=a.env, ppo=self.cfg, sim_backend="physx_cpu", device="cpu")
+        self.group = EnvGroup(self.task, a.envs, a.seed * 10_000, ignore_terminations=a.terminations == "ignore")
+        # Eval episodes play to the time limit so success_at_end is meaningful.
+        self.eval_group = EnvGroup(self.task, a.eval_envs, a.seed * 10_000 + 1_000_000, ignore_terminations=True)
+        g = self.group
+        self.policy = make_policy("mlp", g.obs_dim, g.act_dim, obs_norm=a.obs_norm, init_log_std=a.init_log_std)
+        self.behaviour = copy.deepcopy(self.policy)
+        self.learner = PPOLearner(self.policy, self.cfg, "cpu", seed=a.seed, decoupled=not a.plain, is_clip=a.is_clip)
+        # The behaviour policy is the oldest of the last lag+1 versions.
+        self.history = collections.deque([copy.deepcopy(self.policy.state_dict())], maxlen=a.lag + 1)
+        self.sampler = ChunkSampler(g, a.chunk_steps)
+
+    def learn_one_version(self) -> dict[str, float]:
+        a = self.a
+        self.behaviour.load_state_dict(self.history[0])
+        chunks = [self.sampler.chunk(self.behaviour) for _ in range(a.batch_steps // self.per_chunk)]
+        batch = batch_from_chunks(self.policy, chunks, self.cfg, bootstrap_terminated=a.terminations == "bootstrap")
+        stats = self.learner.update(batch)
+        self.history.append(copy.deepcopy(self.policy.state_dict()))
+        return stats
+
+    def evaluate(self) -> dict[str, float]:
+        seed = self.a.seed * 7 + 1_000_000  # the same eval episodes every time within a run
+        return run_eval_episodes(self.policy, self.task, self.a.eval_episodes, seed, "cpu", group=self.eval_group)
+
+    def close(self) -> None:
+        self.group.close()
+        self.eval_group.close()
+
+
+def report_row(version, env_steps, wall, eval_s, ev, stats, train_success) -> dict:
+    return dict(
+        version=version, env_steps=env_steps, wall_s=round(wall, 1), train_s=round(wall - eval_s, 1),
+        success_once=ev["success_once"], success_at_end=ev["success_at_end"],
+        eval_return=round(ev["return_mean"], 2), train_success=round(train_success, 2),
+        kl=round(stats["approx_kl"], 4), bkl=round(stats["behaviour_kl"], 4),
+        epochs=stats["epochs_run"], ent=round(stats["entropy"], 2), v_loss=round(stats["v_loss"], 4),
+    )
+
+
 def train(a: argparse.Namespace) -> dict:
-    torch.set_num_threads(1)
+    torch.set_num_threads(1)  # the other core belongs to other processes
     torch.manual_seed(a.seed)
     np.random.seed(a.seed)
-    cfg = ppo_config(a)
-    per_chunk = a.envs * a.chunk_steps
-    if a.batch_steps % per_chunk:
-        raise SystemExit(f"--batch-steps must be a multiple of envs*chunk_steps = {per_chunk}")
-    task = TaskConfig(env=a.env, ppo=cfg, sim_backend="physx_cpu", device="cpu")
     started = time.perf_counter()
-    group = EnvGroup(task, a.envs, a.seed * 10_000, ignore_terminations=a.terminations == "ignore")
-    eval_group = EnvGroup(task, a.eval_envs, a.seed * 10_000 + 1_000_000, ignore_terminations=True)
-    policy = make_policy("mlp", group.obs_dim, group.act_dim, obs_norm=a.obs_norm, init_log_std=a.init_log_std)
-    behaviour = copy.deepcopy(policy)
-    learner = PPOLearner(policy, cfg, "cpu", seed=a.seed, decoupled=not a.plain, is_clip=a.is_clip)
-    history = collections.deque([copy.deepcopy(policy.state_dict())], maxlen=a.lag + 1)
-    sampler = ChunkSampler(group, a.chunk_steps)
+    run = Run(a)
     env_steps, version, streak, eval_s = 0, 0, 0, 0.0
     evals: list[dict] = []
-    result = {"reached": False}
+    result: dict = {"reached": False}
     try:
         while env_steps < a.max_steps and time.perf_counter() - started < a.max_wall:
-            behaviour.load_state_dict(history[0])  # the oldest kept version acts
-            chunks = [sampler.chunk(behaviour) for _ in range(a.batch_steps // per_chunk)]
+            stats = run.learn_one_version()
             env_steps += a.batch_steps
-            stats = learner.update(batch_from_chunks(policy, chunks, cfg, bootstrap_terminated=a.terminations == "bootstrap"))
             version += 1
-            history.append(copy.deepcopy(policy.state_dict()))
             if version % a.eval_every:
                 continue
             t0 = time.perf_counter()
-            ev = run_eval_episodes(policy, task, a.eval_episodes, a.seed * 7 + 1_000_000, "cpu", group=eval_group)
+            ev = run.evaluate()
             eval_s += time.perf_counter() - t0
-            wall = time.perf_counter() - started
-            row = dict(version=version, env_steps=env_steps, wall_s=round(wall, 1), train_s=round(wall - eval_s, 1),
-                       success_once=ev["success_once"], success_at_end=ev["success_at_end"],
-                       eval_return=round(ev["return_mean"], 2), train_success=round(sampler.train_success(), 2),
-                       kl=round(stats["approx_kl"], 4), bkl=round(stats["behaviour_kl"], 4),
-                       epochs=stats["epochs_run"], ent=round(stats["entropy"], 2), v_loss=round(stats["v_loss"], 4))
+            row = report_row(version, env_steps, time.perf_counter() - started, eval_s, ev, stats,
+                             run.sampler.train_success())
             evals.append(row)
             if not a.quiet:
                 print(" ".join(f"{k}={v}" for k, v in row.items()), flush=True)
@@ -188,8 +219,7 @@ def train(a: argparse.Namespace) -> dict:
                 result = {"reached": True, **{k: row[k] for k in ("version", "env_steps", "wall_s", "train_s")}}
                 break
     finally:
-        group.close()
-        eval_group.close()
+        run.close()
     if not result["reached"]:
         wall = time.perf_counter() - started
         result.update(version=version, env_steps=env_steps, wall_s=round(wall, 1), train_s=round(wall - eval_s, 1))

@@ -28,7 +28,6 @@ import os
 import queue
 import socket
 import statistics
-import threading
 import time
 from dataclasses import asdict, dataclass
 from typing import Any, Callable
@@ -137,6 +136,12 @@ def _open_fabric(name: str, secret: bytes, *, ctrl: Any, data: Any = None, share
 # throughput workers
 
 
+def _between_rounds_s(phase_timeout_s: float) -> float:
+    """How long a worker waits for its next round: the other kind's round runs in between, and
+    the first round waits for the other pair to start."""
+    return START_TIMEOUT_S + 2 * phase_timeout_s
+
+
 def _throughput_sub(kind: str, port: int, n: int, rounds: int, secret: bytes, ready: Any, routed: Any,
                     out: Any, timeout_s: float) -> None:
     """Receives `rounds` x `n` messages; reports the arrival time of each round's last one."""
@@ -161,7 +166,7 @@ def _throughput_sub(kind: str, port: int, n: int, rounds: int, secret: bytes, re
         ready.set()
         try:
             for r in range(rounds):
-                out.put(("sub", r, ends.get(timeout=timeout_s)))
+                out.put(("sub", r, ends.get(timeout=_between_rounds_s(timeout_s))))
         except queue.Empty:
             out.put(("error", f"raw subscriber got {count[0]} of {rounds * n} messages"))
         finally:
@@ -176,7 +181,7 @@ def _throughput_sub(kind: str, port: int, n: int, rounds: int, secret: bytes, re
         ready.set()
         got = 0
         for r in range(rounds):
-            deadline = time.monotonic() + timeout_s
+            deadline = time.monotonic() + _between_rounds_s(timeout_s)
             while got < (r + 1) * n and time.monotonic() < deadline:
                 if inbox.get(timeout=0.5) is not None:
                     got += 1
@@ -204,17 +209,23 @@ def _throughput_pub(kind: str, port: int, n: int, rounds: int, size: int, secret
             priority=zenoh.Priority.DATA,
         )
         payload = bytes(size)
-        send: Callable[[], Any] = lambda: pub.put(payload)  # noqa: E731
+
+        def send() -> None:
+            pub.put(payload)
+
         probe_session, close = session, session.close
     else:
         fabric = _open_fabric(SOURCE, secret, ctrl=plane_config(), data=conf)
         chunk = make_chunk(SOURCE, size)
-        send = lambda: fabric.publish_traj(chunk)  # noqa: E731
+
+        def send() -> None:
+            fabric.publish_traj(chunk)
+
         probe_session, close = fabric.data, fabric.close
     try:
         _probe_until_routed(probe_session, routed, timeout_s)
         for r in range(rounds):
-            if go.get(timeout=timeout_s) is None:
+            if go.get(timeout=_between_rounds_s(timeout_s)) is None:
                 return
             t0 = time.monotonic()
             for _ in range(n):
@@ -380,8 +391,9 @@ def _measure_ctrl(ctx: Any, shared: bool, cfg: BenchConfig, secret: bytes, pids:
         if idle:
             out["idle"] = _sample_rtts(tool, key, cfg.rtt_samples, cfg.phase_timeout_s)
         flood.set()
-        time.sleep(cfg.warmup_s)
+        _wait_for(lambda: received.value > 0, START_TIMEOUT_S, "the flood never reached the sink")
         c0, b0, t0 = received.value, received_bytes.value, time.monotonic()
+        time.sleep(cfg.warmup_s)
         loaded = _sample_rtts(tool, key, cfg.rtt_samples, cfg.phase_timeout_s)
         dt = time.monotonic() - t0
         loaded["flood_msgs_per_s"] = (received.value - c0) / dt
@@ -394,6 +406,14 @@ def _measure_ctrl(ctx: Any, shared: bool, cfg: BenchConfig, secret: bytes, pids:
         if tool is not None:
             tool.close()
         _stop(procs)
+
+
+def _wait_for(pred: Callable[[], bool], timeout_s: float, failure: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > deadline:
+            raise RuntimeError(failure)
+        time.sleep(0.01)
 
 
 def _wait_reachable(tool: Any, key: str) -> None:
