@@ -78,13 +78,10 @@ python_packages() {
       $PY -m pip install -q ${DVLA_TORCH_INDEX:+--index-url "$DVLA_TORCH_INDEX"} "torch==2.13.0"
     fi
   fi
-  if ! $PY -c 'import dvla, zenoh, mani_skill, hypothesis' 2>/dev/null \
-     || [ pyproject.toml -nt "$($PY -c 'import dvla,os;print(os.path.dirname(dvla.__file__))' 2>/dev/null || echo /nonexistent)" ]; then
-    log "installing dvla and its dependencies"
-    $PY -m pip install -q -e ".[test]"
-  else
-    log "python packages present"
-  fi
+  # Always (re)install this checkout, editable: cheap when everything is satisfied, and it
+  # keeps the `dvla` script pointing at this clone rather than at an older one.
+  log "installing dvla (editable) and its dependencies"
+  $PY -m pip install -q -e ".[test]"
 }
 
 case "${1:-all}" in
