@@ -12,9 +12,13 @@ versions. It stops once eval success_once >= ``--target`` for ``--consecutive`` 
 Env steps count training transitions only; ``train_s`` excludes evaluation time (in the real
 system an evaluator process does that), ``wall_s`` includes it.
 
-Example::
+Defaults follow ``PPOConfig``; the other defaults mirror the distributed system: decoupled PPO
+(``--plain`` for the clip against the behaviour policy), terminations bootstrapped like time limits
+(``--terminations``), behaviour policy one version behind (``--lag``). Example::
 
-    python scripts/tune_ppo.py --seed 1 --batch-steps 1600 --minibatches 8 --epochs 4
+    python scripts/tune_ppo.py --seed 1 --batch-steps 1600 --minibatches 4 --epochs 8 --lr 5e-4
+
+Each run uses one core (``torch.set_num_threads(1)``); run one at a time on a shared machine.
 """
 
 from __future__ import annotations
@@ -60,7 +64,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--reward-scale", type=float, default=d.reward_scale)
     p.add_argument("--plain", action="store_true",
                    help="clip the ratio against the behaviour policy (default: decoupled PPO)")
-    p.add_argument("--decoupled", action="store_true", help=argparse.SUPPRESS)  # old default, kept for old command lines
+    # Decoupled PPO used to be opt-in; the flag is accepted so older command lines still run.
+    p.add_argument("--decoupled", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--is-clip", type=float, default=2.0, help="truncation of the decoupled IS weight")
     p.add_argument("--obs-norm", action="store_true", help="running observation normalisation")
     p.add_argument("--init-log-std", type=float, default=-0.5)

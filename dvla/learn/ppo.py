@@ -97,9 +97,7 @@ def _values(policy: nn.Module, obs: np.ndarray, device: torch.device) -> Tensor:
 
 
 def _bootstrap_terminated(cfg: PPOConfig, override: bool | None) -> bool:
-    if override is not None:
-        return override
-    return bool(getattr(cfg, "bootstrap_at_termination", True))
+    return cfg.terminal_bootstrap if override is None else override
 
 
 @torch.no_grad()
@@ -116,12 +114,11 @@ def chunk_advantages(
     rollout's critic is stale, and the bootstrap values must come from the same function as the
     baseline. Rewards are multiplied by ``cfg.reward_scale``.
 
-    ``bootstrap_terminated`` (default: ``cfg.bootstrap_at_termination`` if the config has it,
-    else True) bootstraps terminated episodes from ``V(final_obs)`` like truncated ones; the
-    episode still ends there. ManiSkill tasks terminate on *success* while their dense reward
-    keeps paying near the goal, so without the bootstrap reaching the goal is worth less than
-    hovering next to it (PushCube learns markedly slower). Pass False for tasks whose
-    terminations really are terminal.
+    ``bootstrap_terminated`` (default: ``cfg.terminal_bootstrap``) bootstraps terminated
+    episodes from ``V(final_obs)`` like truncated ones; the episode still ends there. ManiSkill
+    tasks terminate on *success* while their dense reward keeps paying near the goal, so without
+    the bootstrap reaching the goal is worth less than hovering next to it (PushCube learns
+    markedly slower). Pass False for tasks whose terminations really are terminal.
     """
     device = torch.device(device)
     missing = [k for k in CHUNK_KEYS if k not in chunk]
@@ -295,7 +292,10 @@ class PPOLearner:
 
     def state_dict(self) -> dict[str, Any]:
         """Policy and optimizer state, for checkpoints."""
-        return {"policy": copy.deepcopy(self.policy.state_dict()), "optimizer": copy.deepcopy(self.optimizer.state_dict())}
+        return {
+            "policy": copy.deepcopy(self.policy.state_dict()),
+            "optimizer": copy.deepcopy(self.optimizer.state_dict()),
+        }
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         self.policy.load_state_dict(state["policy"])
