@@ -24,7 +24,7 @@ from ..config import RoleConfig, resolve_device
 from ..fabric import Fabric
 from ..fabric.codec import encode
 from ..fabric.fabric import DATA
-from ..fabric.messages import RoleStatus, TrajectoryChunk, WeightChunk, WeightManifest, WeightSnapshot
+from ..fabric.messages import RoleStatus, TrajectoryChunk, WeightSnapshot
 from ..learn import PPOLearner, compute_gae, make_policy
 from ..learn.dims import probe_dims
 from ..replication import ParamLayout, ReplicationError, WeightEncoder, flatten, unflatten_into
@@ -32,6 +32,7 @@ from .checkpoint import load_checkpoint, save_checkpoint
 from .runtime import main
 from .slots import SlotPool
 from .swimlane import LaneContext, Swimlane
+from .weightsync import send_version
 
 log = logging.getLogger("dvla.actor")
 
@@ -249,11 +250,7 @@ class Actor:
                 with self._snapshot_lock:
                     self._snapshot = None  # rebuilt lazily on the next snapshot query
                     self.published_version = enc.version
-                manifest = WeightManifest(sender=self.cfg.name, **enc.to_dict())
-                self.bytes_published += f.publish_ctrl(key, manifest, weights=True)
-                for i, data in enumerate(enc.chunks):
-                    msg = WeightChunk(sender=self.cfg.name, version=enc.version, index=i, n_chunks=enc.n_chunks, data=bytes(data))
-                    self.bytes_published += f.publish_ctrl(key, msg, weights=True)
+                self.bytes_published += send_version(f, key, self.cfg.name, enc)
                 if enc.version % every == 0 or last is None:
                     self._checkpoint(flat)
                 last = flat

@@ -33,12 +33,14 @@ log = logging.getLogger("dvla.replicator")
 
 
 class Replicator:
-    def __init__(self, cfg: RoleConfig, fabric: Fabric) -> None:
+    def __init__(self, cfg: RoleConfig, fabric: Fabric, layout: ParamLayout | None = None) -> None:
         self.cfg = cfg
         self.fabric = fabric
-        obs_dim, act_dim = probe_dims(cfg.task)
-        policy = make_policy(cfg.task.policy, obs_dim, act_dim, **cfg.task.policy_kwargs)
-        self.layout = ParamLayout.from_state_dict(policy.state_dict())
+        if layout is None:  # the task's policy defines it (as on the actor and the rollouts)
+            obs_dim, act_dim = probe_dims(cfg.task)
+            policy = make_policy(cfg.task.policy, obs_dim, act_dim, **cfg.task.policy_kwargs)
+            layout = ParamLayout.from_state_dict(policy.state_dict())
+        self.layout = layout
         self.policy_version = -1
         self.env_steps = 0
         self.forwarded = 0

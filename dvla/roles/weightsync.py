@@ -24,6 +24,7 @@ from ..fabric.messages import SnapshotRequest, WeightChunk, WeightManifest, Weig
 from ..replication import (
     ChecksumMismatch,
     ChunkAssembler,
+    EncodedVersion,
     NeedSnapshot,
     ParamLayout,
     ReplicationError,
@@ -207,6 +208,19 @@ class WeightSync:
 
     def status(self) -> dict[str, Any]:
         return {"parent": self.parent, "version": self.version, **self.counters}
+
+
+def send_version(fabric: Fabric, key: str, sender: str, enc: EncodedVersion) -> int:
+    """Sign and publish one encoded version on `key`: its manifest, then each chunk in order.
+
+    Returns the bytes put on the wire. Used by the actor's ``publish`` lane (and by anything else
+    that originates versions, such as the replication benchmark's source).
+    """
+    sent = fabric.publish_ctrl(key, WeightManifest(sender=sender, **enc.to_dict()), weights=True)
+    for i, data in enumerate(enc.chunks):
+        msg = WeightChunk(sender=sender, version=enc.version, index=i, n_chunks=enc.n_chunks, data=bytes(data))
+        sent += fabric.publish_ctrl(key, msg, weights=True)
+    return sent
 
 
 def manifest_dict(m: WeightManifest) -> dict[str, Any]:
