@@ -106,11 +106,12 @@ class TaskConfig:
     max_episode_steps: int = 50
     #: "physx_cpu", "physx_cuda" or "auto" (cuda when present)
     sim_backend: str = "auto"
-    #: policy registry name ("mlp") or "module:Class" of a user policy
+    #: policy registry name ("mlp", "tiny-vla") or "module:Class" of a user policy (docs/policies.md)
     policy: str = "mlp"
     #: keyword arguments for the policy constructor
     policy_kwargs: dict[str, Any] = field(default_factory=dict)
-    #: learning algorithm: "ppo" or "grpo"
+    #: learning algorithm: "ppo" (GAE advantages) or "grpo" (group-relative episode returns; needs
+    #: chunk_steps to cover one whole episode and env groups made of whole groups, see docs/policies.md)
     algorithm: Literal["ppo", "grpo"] = "ppo"
     #: learner hyper-parameters
     ppo: PPOConfig = field(default_factory=PPOConfig)
@@ -124,6 +125,59 @@ class TaskConfig:
     chunk_steps: int = 25
     #: torch device: "auto" (cuda when present), "cpu", "cuda"
     device: str = "auto"
+    # --- vision-language observations (obs_mode "rgb") and GRPO ---
+    #: width and height (pixels) of every camera image when obs_mode is "rgb"
+    image_size: int = 64
+    #: language instruction given with every rgb observation (None: the task's default from
+    #: dvla/learn/vla/instructions.py)
+    instruction: str | None = None
+    #: instruction length in tokens (padded or truncated) when obs_mode is "rgb"
+    instruction_tokens: int = 16
+    #: actions per policy decision: K > 1 makes one transition K simulator steps played open loop
+    #: (the policy outputs K * action_dim values); rewards of the K steps are summed
+    action_chunk: int = 1
+    #: reward the learner sees: "dense" (the env's reward) or "success" (1 at the first step an
+    #: episode succeeds, else 0)
+    reward: Literal["dense", "success"] = "dense"
+    #: GRPO: episodes per group; the G episodes of a group start from the same seeded state
+    group_size: int = 4
+
+
+OBS_MODES = ("state", "rgb")
+"""ManiSkill observation modes the env adapter understands (dvla/learn/envs.py)."""
+
+
+def env_group_sizes(envs_per_rollout: int) -> list[int]:
+    """Sizes of a rollout's two double-buffered env groups (one group below two envs)."""
+    n = envs_per_rollout
+    return [n // 2, n - n // 2] if n >= 2 else [n]
+
+
+def grpo_layout_problems(task: Any) -> list[tuple[str, str]]:
+    """``(task key, message)`` for each setting that breaks GRPO's layout (dvla/learn/grpo.py):
+    one chunk = one whole episode, every env group made of whole groups. Empty unless
+    ``task.algorithm`` is "grpo". ``task`` is a TaskConfig or anything with its attributes."""
+    if task.algorithm != "grpo":
+        return []
+    out = []
+    g = task.group_size
+    if g < 2:
+        out.append(("group_size", f"{g} must be >= 2 with algorithm grpo (a group of one has no relative advantage)"))
+    steps = -(-task.max_episode_steps // max(1, task.action_chunk))
+    if task.chunk_steps != steps:
+        out.append((
+            "chunk_steps",
+            f"{task.chunk_steps} must equal the transitions of one episode with algorithm grpo "
+            f"(max_episode_steps {task.max_episode_steps} / action_chunk {task.action_chunk} = {steps})",
+        ))
+    sizes = env_group_sizes(task.envs_per_rollout)
+    if g >= 1 and any(n % g for n in sizes):
+        out.append((
+            "envs_per_rollout",
+            f"{task.envs_per_rollout} splits into env groups of {sizes}; each must be a multiple of "
+            f"group_size {g} with algorithm grpo (e.g. envs_per_rollout {2 * g})",
+        ))
+    return out
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -163,6 +217,28 @@ class RolePlacement:
 
 
 @dataclass(frozen=True, kw_only=True)
+class SshConfig:
+    """How `dvla up` reaches a remote node: OpenSSH with key authentication, never a password."""
+
+    #: login user on the remote host (None: the local user name, or what ~/.ssh/config says)
+    user: str | None = None
+    #: port sshd listens on
+    port: int = 22
+    #: private key for key authentication (None: ssh's default keys and agent); "~" is expanded
+    identity_file: str | None = None
+    #: known_hosts file checked against the host's key (None: ssh's default files)
+    known_hosts_file: str | None = None
+    #: "yes" (the host key must already be known) or "accept-new" (trust a host seen for the first time)
+    host_key_check: Literal["yes", "accept-new"] = "accept-new"
+    #: Python interpreter on the remote host that has dvla installed
+    python: str = "python3"
+    #: directory on the remote host for the run's files (role configs, checkpoints); "~" is the remote home
+    workdir: str = "~/dvla-runs"
+    #: seconds to wait for the SSH connection before giving up
+    connect_timeout_s: int = 10
+
+
+@dataclass(frozen=True, kw_only=True)
 class NodeConfig:
     """A host of the cluster."""
 
@@ -176,6 +252,8 @@ class NodeConfig:
     roles: tuple[RolePlacement, ...] = ()
     #: CPU cores the node's processes are pinned to (None: no pinning)
     cpus: tuple[int, ...] | None = None
+    #: SSH settings for this node when its host is remote (None: the topology's `ssh`)
+    ssh: SshConfig | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -198,8 +276,10 @@ class Topology:
     source: str = "<memory>"
     #: master seed
     seed: int = 1
-    #: "async" (swimlanes overlap) or "sync" (lock-step baseline)
-    mode: Literal["async", "sync"] = "async"
+    #: "async" (swimlanes overlap), "sync" (lock-step baseline: sample a batch, learn, wait for the
+    #: new weights) or "sim_only" (rollouts step random actions, nothing is learned: the
+    #: simulators' own throughput, a benchmark baseline)
+    mode: Literal["async", "sync", "sim_only"] = "async"
     #: "none" (all processes on loopback) or "netns" (a network namespace per node)
     emulate: Literal["none", "netns"] = "none"
     #: file holding the cluster secret (None: `dvla up` makes one per run)
@@ -214,12 +294,18 @@ class Topology:
     replication: ReplicationConfig = field(default_factory=ReplicationConfig)
     #: link rates
     links: LinkConfig = field(default_factory=LinkConfig)
+    #: SSH settings of every remote node that does not set its own `ssh`
+    ssh: SshConfig = field(default_factory=SshConfig)
     #: racks of nodes
     racks: tuple[RackConfig, ...] = ()
 
     def nodes(self) -> list[tuple[RackConfig, NodeConfig]]:
         """Every (rack, node) pair in file order."""
         return [(rack, node) for rack in self.racks for node in rack.nodes]
+
+    def ssh_for(self, node: NodeConfig) -> SshConfig:
+        """SSH settings that apply to `node`: its own, else the topology's."""
+        return node.ssh if node.ssh is not None else self.ssh
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -249,7 +335,7 @@ class RoleConfig:
     rack: str
     #: seed of this process (master seed + index)
     seed: int
-    #: "async" or "sync"
+    #: "async", "sync" or "sim_only" (see Topology.mode)
     mode: str
     #: run directory on this host (logs, checkpoints, metrics)
     run_dir: str

@@ -92,22 +92,46 @@ class Launcher:
 
     def start(self, sup: Supervised) -> None:
         argv = self.command(sup)
+        plain = [sys.executable, "-m", f"dvla.roles.{sup.proc.config.kind}", "--config", str(sup.config_path)]
+        payload = self.wrap.stdin_payload(sup.proc, plain) if self.wrap is not None else None
+        out_path = self.wrap.output_path(sup) if self.wrap is not None else None
         logf = open(sup.log_path, "ab", buffering=0)
+        outf = None
         try:
             logf.write(f"--- start {time.strftime('%H:%M:%S')} (restart {sup.restarts}): {' '.join(argv)}\n".encode())
+            if out_path is not None:
+                out_path.parent.mkdir(parents=True, exist_ok=True)
+                outf = open(out_path, "wb")
             sup.popen = subprocess.Popen(
                 argv,
-                stdin=subprocess.DEVNULL,
-                stdout=logf,
-                stderr=subprocess.STDOUT,
+                # A payload (config, secret) goes on stdin, which then stays open: closing it asks
+                # the process to stop, and it closes by itself when this process dies.
+                stdin=subprocess.PIPE if payload is not None else subprocess.DEVNULL,
+                stdout=outf if outf is not None else logf,
+                stderr=logf if outf is not None else subprocess.STDOUT,
                 env=self.env,
                 start_new_session=True,
                 preexec_fn=_child_setup,
             )
         finally:
             logf.close()
+            if outf is not None:
+                outf.close()
+        if payload is not None:
+            assert sup.popen.stdin is not None
+            try:
+                sup.popen.stdin.write(payload)
+                sup.popen.stdin.flush()
+            except (BrokenPipeError, OSError):
+                pass  # exited at once; poll() reports it
         sup.started_at = time.monotonic()
         log.info("started %s (pid %d)", sup.name, sup.popen.pid)
+
+    def _exited(self, sup: Supervised, code: int) -> list[str]:
+        """Bookkeeping after a child exited: release its stdin, let the wrapper collect its output."""
+        _close_stdin(sup)
+        note = self.wrap.finished(sup, code) if self.wrap is not None else None
+        return [note] if note else []
 
     def start_all(self) -> None:
         for sup in self.children.values():
@@ -129,6 +153,7 @@ class Launcher:
             if code is None:
                 continue
             sup.exit_codes.append(code)
+            events.extend(self._exited(sup, code))
             sup.popen = None
             if stopping or code == 0:
                 sup.finished = True
@@ -150,7 +175,10 @@ class Launcher:
         """SIGTERM the named children, then SIGKILL whoever is still up after `timeout`."""
         sups = [self.children[n] for n in names if self.children[n].alive()]
         for sup in sups:
-            _signal(sup, signal.SIGTERM)
+            if sup.popen is not None and sup.popen.stdin is not None:
+                _close_stdin(sup)  # a hang-up: the remote side stops the role and sends its files
+            else:
+                _signal(sup, signal.SIGTERM)
         deadline = time.monotonic() + timeout
         for sup in sups:
             remaining = max(0.0, deadline - time.monotonic())
@@ -173,14 +201,27 @@ class Launcher:
     def kill_all(self) -> None:
         for sup in self.children.values():
             if sup.alive():
+                _close_stdin(sup)
                 _signal(sup, signal.SIGKILL)
                 try:
-                    sup.popen.wait(timeout=5)  # type: ignore[union-attr]
+                    code = sup.popen.wait(timeout=5)  # type: ignore[union-attr]
                 except subprocess.TimeoutExpired:
-                    pass
+                    continue
+                sup.exit_codes.append(code)
+                self._exited(sup, code)
+                sup.popen = None
+                sup.finished = True
 
     def pids(self) -> dict[str, int]:
         return {n: s.popen.pid for n, s in self.children.items() if s.popen is not None and s.alive()}
+
+
+def _close_stdin(sup: Supervised) -> None:
+    if sup.popen is not None and sup.popen.stdin is not None:
+        try:
+            sup.popen.stdin.close()
+        except OSError:
+            pass
 
 
 def _signal(sup: Supervised, sig: int) -> None:
@@ -196,3 +237,16 @@ class CommandWrapper:
 
     def __call__(self, proc: Process, argv: list[str]) -> list[str]:  # pragma: no cover - interface
         raise NotImplementedError
+
+    def stdin_payload(self, proc: Process, argv: list[str]) -> bytes | None:
+        """Bytes written to the process's stdin at start (None: stdin is /dev/null). `argv` is the
+        unwrapped role command. The pipe then stays open; closing it asks the process to stop."""
+        return None
+
+    def output_path(self, sup: Supervised) -> Path | None:
+        """File for the process's stdout (None: stdout and stderr both go to the role's log)."""
+        return None
+
+    def finished(self, sup: Supervised, code: int) -> str | None:
+        """Called once the process has exited; returns an event line for the run's log, or None."""
+        return None

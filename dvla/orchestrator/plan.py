@@ -69,9 +69,12 @@ class _Slot:
 
 
 def node_address(topo: Topology, rack_index: int, node_index: int, node: NodeConfig) -> str:
-    """Where a node's planes bind: explicit address, the netns address, or loopback."""
+    """Where a node's planes bind: explicit address, the netns address, the remote host's name,
+    or loopback."""
     if node.address:
         return node.address
+    if not is_local_host(node.host):  # remote (SSH): its own name, resolved by Zenoh on both ends
+        return node.host
     if topo.emulate == "netns":
         from .netns import node_ip  # local import: only netns runs need it
 

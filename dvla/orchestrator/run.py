@@ -12,6 +12,7 @@ import logging
 import os
 import shutil
 import signal
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -23,7 +24,7 @@ from ..fabric import Fabric, load_secret, new_secret, plane_config
 from ..fabric.messages import Command
 from .launcher import Launcher
 from .monitor import Monitor
-from .plan import Plan, make_plan
+from .plan import Plan, is_local_host, make_plan
 from .topology import dump_topology_yaml
 
 log = logging.getLogger("dvla.up")
@@ -151,6 +152,7 @@ class Up:
             "children": self.launcher.pids(),
             "restarts": {n: c.restarts for n, c in self.launcher.children.items()},
             "netns": self.netns.names() if self.netns else [],
+            "remote": {p.config.name: p.host for p in self.plan.processes if not is_local_host(p.host)},
             "started": time.time(),
         }
         tmp = self.run_dir / "state.json.tmp"
@@ -167,6 +169,12 @@ class Up:
             self.netns = NetnsCluster(self.topo, self.plan)
             self.netns.create()
             self.launcher.wrap = self.netns.wrapper()
+        if any(not is_local_host(p.host) for p in self.plan.processes):
+            from .ssh import SshWrapper
+
+            ssh = SshWrapper(self.topo, self.secret, self.launcher.env, local=self.launcher.wrap)
+            ssh.check_all()  # one clear line naming the host, before anything starts
+            self.launcher.wrap = ssh
         try:
             for p in self.plan.processes:
                 self.launcher.add(p)
@@ -290,3 +298,78 @@ def install_sigint(up: Up) -> None:
 
     signal.signal(signal.SIGINT, _handler)
     signal.signal(signal.SIGTERM, _handler)
+
+
+# ----------------------------------------------------------------------------------------------
+# `dvla up --detach`
+
+#: the detached orchestrator's own output, in the run directory
+ORCHESTRATOR_LOG = "orchestrator.log"
+#: how long `dvla up --detach` waits for the roles to be started before giving up on the run
+DETACH_START_TIMEOUT_S = 180.0
+
+
+def start_detached(up: Up, body: Callable[[], int]) -> int | None:
+    """Run `body` (which runs `up`) in a daemon: double fork, new session, stdin from /dev/null,
+    output to RUN_DIR/orchestrator.log. Returns in the caller once the roles are started (the run's
+    state.json exists) with the daemon's pid, or None if it exited first."""
+    log_path = up.run_dir / ORCHESTRATOR_LOG
+    read_end, write_end = os.pipe()
+    first = os.fork()
+    if first == 0:  # first child: leave the terminal's session, fork the daemon, exit
+        os.close(read_end)
+        code = ExitCode.ROLE_FAILED
+        try:
+            os.setsid()
+            if os.fork() != 0:
+                os._exit(0)
+            os.write(write_end, str(os.getpid()).encode())
+            os.close(write_end)
+            _redirect_std(log_path)
+            install_sigint(up)
+            code = body()
+        except BaseException:  # anything at all: report it in the log, never return into the CLI
+            import traceback
+
+            traceback.print_exc()
+        finally:
+            try:
+                sys.stdout.flush()
+                sys.stderr.flush()
+            finally:
+                os._exit(code)
+    os.close(write_end)
+    with os.fdopen(read_end, "rb") as pipe:
+        text = pipe.read().decode()
+    os.waitpid(first, 0)
+    if not text.strip().isdigit():
+        return None
+    pid = int(text)
+    state = up.run_dir / "state.json"
+    deadline = time.monotonic() + DETACH_START_TIMEOUT_S
+    while time.monotonic() < deadline:
+        if state.exists():
+            return pid
+        if not _pid_alive(pid) or _zombie(pid):
+            return None
+        time.sleep(0.1)
+    return pid  # still starting (e.g. a slow netns build): it is running, the log says more
+
+
+def _redirect_std(log_path: Path) -> None:
+    devnull = os.open(os.devnull, os.O_RDONLY)
+    os.dup2(devnull, 0)
+    os.close(devnull)
+    out = os.open(log_path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    os.dup2(out, 1)
+    os.dup2(out, 2)
+    os.close(out)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+
+
+def _zombie(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[-1].split()[0] == "Z"
+    except OSError:
+        return False

@@ -29,6 +29,7 @@ from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 
 from dvla.config import (
     ENCODINGS,
+    OBS_MODES,
     ROLE_KINDS,
     BudgetConfig,
     EvalConfig,
@@ -38,8 +39,10 @@ from dvla.config import (
     RackConfig,
     ReplicationConfig,
     RolePlacement,
+    SshConfig,
     TaskConfig,
     Topology,
+    grpo_layout_problems,
 )
 
 __all__ = [
@@ -530,7 +533,12 @@ _FRACTION = _Range(low=0, high=1, low_open=True)
 #: numeric ranges, per schema class and field (None values are skipped: None means "off")
 _RANGES: dict[type, dict[str, _Range]] = {
     Topology: {"base_port": _Range(low=1024, high=65000)},
-    TaskConfig: {"envs_per_rollout": _AT_LEAST_1, "chunk_steps": _AT_LEAST_1, "max_episode_steps": _AT_LEAST_1},
+    TaskConfig: {
+        "envs_per_rollout": _AT_LEAST_1, "chunk_steps": _AT_LEAST_1, "max_episode_steps": _AT_LEAST_1,
+        # vision-language observations and GRPO
+        "image_size": _Range(low=8, high=1024), "instruction_tokens": _Range(low=1, high=512),
+        "action_chunk": _AT_LEAST_1, "group_size": _AT_LEAST_1,
+    },
     PPOConfig: {
         "gae_lambda": _Range(low=0, high=1),
         "lr": _POSITIVE,
@@ -559,6 +567,7 @@ _RANGES: dict[type, dict[str, _Range]] = {
     },
     LinkConfig: {"node_gbit": _POSITIVE, "rack_uplink_gbit": _POSITIVE},
     RolePlacement: {"count": _AT_LEAST_1},
+    SshConfig: {"port": _Range(low=1, high=65535), "connect_timeout_s": _AT_LEAST_1},
 }
 
 
@@ -670,6 +679,36 @@ def _check_env(p: _Partial, ctx: _Context) -> None:
         ctx.report(p.where("env"), "empty env (expected an env id like 'PushCube-v1' or 'module:function')")
 
 
+# --- vision-language observations and GRPO ---------------------------------------------------
+
+#: registered policies and the observations they read (user "module:Class" policies: any)
+_POLICY_OBS = {"mlp": "state", "tiny-vla": "rgb"}
+
+
+def _check_obs_and_policy(p: _Partial, ctx: _Context) -> None:
+    env, obs_mode, policy = p.get("env"), p.get("obs_mode"), p.get("policy")
+    if isinstance(obs_mode, str) and isinstance(env, str) and ":" not in env and obs_mode not in OBS_MODES:
+        ctx.report(p.where("obs_mode"), _unknown_value("obs_mode", obs_mode, OBS_MODES))
+    if isinstance(policy, str) and ":" not in policy and policy not in _POLICY_OBS:
+        ctx.report(p.where("policy"), _unknown_value("policy", policy, (*_POLICY_OBS, "module:Class")))
+        return
+    wanted = _POLICY_OBS.get(policy) if isinstance(policy, str) else None
+    if wanted and isinstance(obs_mode, str) and obs_mode in OBS_MODES and obs_mode != wanted:
+        ctx.report(p.where("policy"), f"policy {policy!r} reads {wanted!r} observations, but obs_mode is {obs_mode!r}")
+    instruction = p.get("instruction")
+    if isinstance(instruction, str) and not instruction.strip():
+        ctx.report(p.where("instruction"), "empty instruction (expected words, or null for the task's default)")
+
+
+def _check_grpo(p: _Partial, ctx: _Context) -> None:
+    names = ("algorithm", "group_size", "chunk_steps", "max_episode_steps", "action_chunk", "envs_per_rollout")
+    values = {n: p.get(n) for n in names}
+    if values["algorithm"] != "grpo" or any(type(values[n]) is not int or values[n] < 1 for n in names[1:]):
+        return
+    for key, message in grpo_layout_problems(types.SimpleNamespace(**values)):
+        ctx.report(p.where(key), message)
+
+
 def _check_stop_condition(p: _Partial, ctx: _Context) -> None:
     limits = ("max_env_steps", "until_success", "max_wall_s")
     values = [p.get(name) for name in limits]
@@ -734,9 +773,67 @@ def _check_cpus(p: _Partial, ctx: _Context) -> None:
             first_index[cpu] = i
 
 
+# --- remote nodes (SSH) -----------------------------------------------------------------------
+
+
+def _is_remote(host: Any) -> bool:
+    """A host that is not this machine (its roles start over SSH)."""
+    return isinstance(host, str) and bool(host.strip()) and host not in LOCAL_HOSTS + ("::1", os.uname().nodename)
+
+
+def _check_remote_addresses(p: _Partial, ctx: _Context) -> None:
+    """With remote nodes, local nodes must bind where the remote ones can reach them (not loopback)."""
+    nodes = _placed_nodes(p)[0]
+    remote = next((n for n in nodes if _is_remote(n.get("host"))), None)
+    if remote is None or p.get("emulate") == "netns":  # netns with a remote host is reported elsewhere
+        return
+    for node in nodes:
+        if _is_remote(node.get("host")):
+            continue
+        address = node.get("address")
+        if address is None or (isinstance(address, str) and address.startswith("127.")):
+            ctx.report(
+                node.where("address"),
+                f"{address!r} on a local node while {remote.where('host')} is remote {remote.get('host')!r}"
+                " (expected the address remote nodes reach this machine at; loopback is not reachable from them)",
+            )
+
+
+def _check_ssh(p: _Partial, ctx: _Context) -> None:
+    for name in ("python", "workdir"):
+        value = p.get(name)
+        if isinstance(value, str) and not value.strip():
+            ctx.report(p.where(name), f"empty {name} (expected a non-empty string)")
+    user = p.get("user")
+    if isinstance(user, str) and (not user.strip() or any(c in user for c in "@: \t")):
+        ctx.report(p.where("user"), f"invalid user {user!r} (expected a login name without '@', ':' or spaces)")
+
+
+def _resolve_ssh_paths(topo: _Partial, base_dir: str, ctx: _Context) -> None:
+    """Make SSH key and known_hosts paths absolute (relative to the topology file); the key must exist."""
+    configs = [topo.get("ssh")] + [n.get("ssh") for n in _placed_nodes(topo)[0]]
+    for ssh in configs:
+        if not isinstance(ssh, _Partial):
+            continue
+        for name in ("identity_file", "known_hosts_file"):
+            value = ssh.get(name)
+            if not isinstance(value, str):
+                continue
+            if not value.strip():
+                ctx.report(ssh.where(name), f"empty {name} (expected a path, or null for ssh's default)")
+                continue
+            resolved = os.path.abspath(os.path.join(base_dir, os.path.expanduser(value)))
+            ssh.values[name] = resolved
+            if name == "identity_file" and not os.path.isfile(resolved):
+                ctx.report(ssh.where(name), f"identity file not found: {resolved}")
+
+
 _CHECKS: dict[type, list[Callable[[_Partial, _Context], None]]] = {
-    Topology: [_check_run_id, _check_has_racks, _check_names, _check_required_roles, _check_netns_hosts],
-    TaskConfig: [_check_env],
+    Topology: [
+        _check_run_id, _check_has_racks, _check_names, _check_required_roles, _check_netns_hosts, _check_remote_addresses,
+    ],
+    SshConfig: [_check_ssh],
+    TaskConfig: [_check_env, _check_obs_and_policy, _check_grpo],
     BudgetConfig: [_check_stop_condition],
     ReplicationConfig: [_check_encoding],
     RackConfig: [_check_rack_nodes],
@@ -808,6 +905,7 @@ def parse_topology(text: str, source: str = "<memory>") -> Topology:
         root = _convert(root_node, Topology, "", ctx)
         if isinstance(root, _Partial):
             _resolve_secret_file(root, _base_dir(source), ctx)
+            _resolve_ssh_paths(root, _base_dir(source), ctx)
             _check_tree(root, ctx)
             root.values["source"] = source
             topo = _build(root, ctx)

@@ -68,6 +68,10 @@ class Actor:
         self.env_steps = int(resumed["env_steps"]) if resumed else 0  # consumed by the learner
         self.learn_stats: dict[str, float] = {}
         self.lags: list[int] = []
+        #: chunks received per lag (newest published version - behaviour version, at ingest),
+        #: cumulative:
+        #: a reader diffs two readings to get the lag distribution of a window
+        self.ingest_lag_counts: dict[int, int] = {}
         self.bytes_published = 0
         self._snapshot: bytes | None = None
         self._snapshot_lock = threading.Lock()
@@ -135,6 +139,7 @@ class Actor:
                 continue
             with ctx.busy():
                 lag = self.published_version - chunk.policy_version
+                self.ingest_lag_counts[lag] = self.ingest_lag_counts.get(lag, 0) + 1
                 if lag > self.max_lag:
                     self.fabric.accounting.dropped(DATA, "stale", chunk.rollout)
                     continue
@@ -294,6 +299,7 @@ class Actor:
             "dropped_stale": acct.get(DATA, "dropped.stale"),
             "policy_lag_mean": float(np.mean(lags)) if lags else 0.0,
             "policy_lag_p99": float(lags[min(len(lags) - 1, int(len(lags) * 0.99))]) if lags else 0.0,
+            "policy_lag_counts": {str(k): v for k, v in sorted(dict(self.ingest_lag_counts).items())},
             "bytes_published": self.bytes_published,
             "learn": self.learn_stats,
         }

@@ -9,7 +9,9 @@ Lanes (and what flows between them):
 - ``sync``:  receives weight versions into the staging pool (see weightsync.py).
 
 In ``sync`` mode (the lock-step baseline) the sim lane stops after its share of one learner
-batch and waits for the next policy version before sampling again.
+batch and waits for the next policy version before sampling again. In ``sim_only`` mode (a
+benchmark baseline) the sim lane steps both groups with uniform random actions and nothing is
+inferred or shipped: what the simulators alone deliver in this process and placement.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from ..fabric.messages import TrajectoryChunk
 from ..learn import EnvGroup, make_policy
 from ..replication import ParamLayout, unflatten_into
 from .runtime import main
-from .swimlane import LaneContext, Swimlane
+from .swimlane import LaneContext, LatencyHistogram, Swimlane
 from .weightsync import WeightSync
 
 log = logging.getLogger("dvla.rollout")
@@ -66,19 +68,25 @@ class PolicyPool:
         self._lock = threading.Lock()
         self.swaps = 0
         self.overwritten = 0
+        #: bumped when a staging write starts and when it ends: odd while one is in progress
+        self.stage_seq = 0
 
     def stage(self, version: int, flat: np.ndarray) -> None:
         with self._lock:
+            self.stage_seq += 1
             if self._pending is not None:
                 self.overwritten += 1
             unflatten_into(flat, self.staging, self.layout)
             self._pending = version
+            self.stage_seq += 1
 
     def maybe_swap(self) -> bool:
-        """Called by the infer lane between batches."""
+        """Called between batches (by infer; in sync mode also by sim while it waits)."""
         if self._pending is None:
             return False
         with self._lock:
+            if self._pending is None:  # another lane swapped first; swapping again would undo it
+                return False
             self.active, self.staging = self.staging, self.active
             self.active_version = self._pending
             self._pending = None
@@ -115,7 +123,12 @@ class Rollout:
         self.episodes = 0
         self.successes = 0
         self.infer_ms: list[float] = []
+        # Inference batch latency, split by whether weights were staged or swapped during the
+        # batch or the one before it (the dual pool promises that a swap costs inference nothing).
+        self.infer_latency = LatencyHistogram(("swap", "no_swap"))
         self.sync_mode = cfg.mode == "sync"
+        self.sim_only = cfg.mode == "sim_only"
+        self._lockstep_version = -1  # sync mode: actions of older versions are recomputed
         self._since_version = 0
         self._ready = threading.Event()
 
@@ -144,7 +157,7 @@ class Rollout:
         self.weights = WeightSync(  # verified versions from the parent (ancestors as fallback)
             self.fabric, self.pool.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version
         )
-        sl.lane("sim", self._sim)
+        sl.lane("sim", self._sim_random if self.sim_only else self._sim)
         sl.lane("infer", self._infer)
         sl.lane("ship", self._ship)
         sl.lane("sync", self._sync)
@@ -164,18 +177,25 @@ class Rollout:
         while ctx.running and not self._ready.is_set():
             with ctx.waiting():
                 self._ready.wait(0.1)
+        touched_before = False
         while ctx.running:
             gid = self.to_infer.get(ctx.stop, stats=ctx.stats)
             if gid is None:
                 return
             with ctx.busy():
-                self.pool.maybe_swap()
+                seq0 = self.pool.stage_seq
+                swapped = self.pool.maybe_swap()
                 g = self.groups[gid]
                 t0 = time.perf_counter()
                 with torch.no_grad():
                     obs = torch.from_numpy(g.obs)
                     action, logprob, _ = self.pool.active.act(obs)
-                self.infer_ms.append((time.perf_counter() - t0) * 1e3)
+                ms = (time.perf_counter() - t0) * 1e3
+                seq1 = self.pool.stage_seq
+                touched = swapped or seq1 != seq0 or seq1 % 2 == 1
+                self.infer_latency.record("swap" if touched or touched_before else "no_swap", ms)
+                touched_before = touched
+                self.infer_ms.append(ms)
                 if len(self.infer_ms) > 2048:
                     del self.infer_ms[:1024]
                 item = (gid, action.numpy(), logprob.numpy(), self.pool.active_version)
@@ -191,12 +211,29 @@ class Rollout:
                 return
             gid, actions, logprobs, version = item
             g = self.groups[gid]
+            if version < self._lockstep_version:  # sync mode: acted on before the new weights
+                self.to_infer.put(gid, ctx.stop, stats=ctx.stats)
+                continue
             with ctx.busy():
                 self._record_step(g, actions, logprobs, version)
                 ctx.count(g.envs.n)
             if g.t == self.T:
                 self._finish_chunk(g, ctx)
             self.to_infer.put(gid, ctx.stop, stats=ctx.stats)
+
+    def _sim_random(self, ctx: LaneContext) -> None:
+        """sim_only mode: step every group with uniform random actions; nothing leaves the process."""
+        rng = np.random.default_rng(self.cfg.seed)
+        while ctx.running:
+            for g in self.groups:
+                with ctx.busy():
+                    e = g.envs
+                    actions = rng.uniform(e.action_low, e.action_high, (e.n, e.act_dim)).astype(np.float32)
+                    step = e.step(actions)
+                    g.obs = step.next_obs
+                    self.env_steps += e.n
+                    self.episodes += int(step.episode_done.sum())
+                ctx.count(e.n)
 
     def _record_step(self, g: _Group, actions: np.ndarray, logprobs: np.ndarray, version: int) -> None:
         b, t = g.buf, g.t
@@ -255,6 +292,9 @@ class Rollout:
             while ctx.running and self.pool.active_version <= start_version:
                 self.pool.maybe_swap()
                 ctx.sleep(0.005)
+        # Actions the infer lane computed for the other group meanwhile used the old weights:
+        # _sim sends those back, so every step of the next batch acts with the new version.
+        self._lockstep_version = self.pool.active_version
 
     def _ship(self, ctx: LaneContext) -> None:
         while ctx.running:
@@ -280,6 +320,8 @@ class Rollout:
             "train_success_rate": self.successes / self.episodes if self.episodes else 0.0,
             "infer_ms_p50": ms[len(ms) // 2] if ms else 0.0,
             "infer_ms_p99": ms[min(len(ms) - 1, int(len(ms) * 0.99))] if ms else 0.0,
+            # cumulative bucket counts (dvla.roles.swimlane.LatencyHistogram): diff two readings
+            "infer_latency_counts": self.infer_latency.counts(),
             "swaps": self.pool.swaps,
             "versions_overwritten": self.pool.overwritten,
             "weights": self.weights.status(),

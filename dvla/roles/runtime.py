@@ -77,6 +77,8 @@ class RoleHost:
         self._rate_mark = (time.monotonic(), 0)
         self._rate = 0.0
         self._rate_lock = threading.Lock()
+        #: where the process runs: CPU affinity and torch threads, as set by main()
+        self.placement: dict[str, Any] = {}
 
     def _on_command(self, sender: str, cmd: Command) -> None:
         log.info("command %s from %s", cmd.verb, sender)
@@ -110,7 +112,7 @@ class RoleHost:
             steps_per_s=float(self.steps_per_s()),
             lanes=_lane_floats(self.swimlane.stats()),
             planes=_ints(self.fabric.accounting.snapshot()),
-            extra=self.role.status_extra(),
+            extra={**self.role.status_extra(), "placement": self.placement},
             time_ns=time.time_ns(),
         )
 
@@ -187,13 +189,19 @@ def main(role_factory: Any, argv: list[str] | None = None) -> int:
     setup_logging(cfg.name)
     if cfg.cpus:
         pin_cpus(cfg.cpus)
-    set_torch_threads(1)
+    # One intra-op thread per role: the lanes are the concurrency, and a role's share of the
+    # cores is what `cpus` (or the scheduler) gives it; more threads only contend.
+    threads = set_torch_threads(1)
     fabric = open_fabric(cfg)
     role = None
     host: RoleHost | None = None
     try:
         role = role_factory(cfg, fabric)
         host = RoleHost(cfg, fabric, role)
+        host.placement = {
+            "cpus": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+            "torch_threads": threads,
+        }
 
         def _on_signal(signum: int, _frame: Any) -> None:
             log.info("signal %d: stopping", signum)

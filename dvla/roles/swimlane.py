@@ -12,6 +12,9 @@ is set. This module owns:
 * :class:`Swimlane` and :class:`LaneContext` -- starting, stopping and joining the lanes of one
   role, with fail-fast error handling: an exception in any lane is logged, kept as
   :attr:`Swimlane.error` and stops every lane, so a role never limps on with a dead thread;
+* :class:`LatencyHistogram` -- cumulative log-bucketed latencies of a lane's batches, kept
+  apart by a label (e.g. whether a weight swap touched the batch); a reader diffs two readings
+  to get percentiles over exactly the window between them;
 * :func:`pin_cpus` and :func:`set_torch_threads` -- process placement helpers, because torch
   intra-op threads oversubscribing the cores a role shares with its lanes cost ~30% throughput.
 """
@@ -20,6 +23,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import os
 import queue
 import threading
@@ -31,11 +35,14 @@ from typing import Any, Generic, TypeVar
 
 __all__ = [
     "BoundedQueue",
+    "LatencyHistogram",
     "LaneContext",
     "LaneError",
     "LaneStats",
     "Swimlane",
     "current_lane",
+    "histogram_diff",
+    "histogram_percentile",
     "pin_cpus",
     "set_torch_threads",
 ]
@@ -657,6 +664,105 @@ class Swimlane:
             "lanes": self.stats(),
             "queues": {name: q.status() for name, q in self._queues.items()},
         }
+
+
+# --------------------------------------------------------------------------------------------
+# Labelled latency histograms
+# --------------------------------------------------------------------------------------------
+
+LATENCY_BUCKET_RATIO = 1.02
+"""Upper edge of bucket ``i`` is ``LATENCY_MIN_MS * ratio**i``: percentiles are exact to 2%."""
+
+LATENCY_MIN_MS = 0.001
+"""Everything at or below 1 us lands in bucket 0."""
+
+_LOG_RATIO = math.log(LATENCY_BUCKET_RATIO)
+
+
+def latency_bucket(ms: float) -> int:
+    """Index of the bucket holding ``ms`` (its upper edge is >= ``ms``)."""
+    if ms <= LATENCY_MIN_MS:
+        return 0
+    return int(math.ceil(math.log(ms / LATENCY_MIN_MS) / _LOG_RATIO - 1e-9))
+
+
+def bucket_upper_ms(index: int) -> float:
+    """Upper edge of bucket ``index`` in milliseconds."""
+    return LATENCY_MIN_MS * LATENCY_BUCKET_RATIO**index
+
+
+class LatencyHistogram:
+    """Cumulative latency counts per label, in log buckets (2% wide), since the lane started.
+
+    Counts only ever grow, so a reader that polls :meth:`counts` twice and subtracts
+    (:func:`histogram_diff`) gets the distribution of exactly the batches in between: warm-up
+    never leaks into a steady-state figure, and no sample is lost to a bounded buffer. Written by
+    one lane thread; read (copied) from the status thread.
+    """
+
+    def __init__(self, labels: Iterable[str]) -> None:
+        self._counts: dict[str, dict[int, int]] = {label: {} for label in labels}
+        if not self._counts:
+            raise ValueError("LatencyHistogram needs at least one label")
+        self._lock = threading.Lock()
+
+    @property
+    def labels(self) -> tuple[str, ...]:
+        return tuple(self._counts)
+
+    def record(self, label: str, ms: float) -> None:
+        """Count one batch of ``label`` that took ``ms`` milliseconds."""
+        buckets = self._counts[label]  # KeyError for an undeclared label: a bug, not data
+        b = latency_bucket(ms)
+        with self._lock:
+            buckets[b] = buckets.get(b, 0) + 1
+
+    def counts(self) -> dict[str, dict[str, int]]:
+        """``{label: {bucket index as str: count}}`` (str keys: status travels as msgpack maps)."""
+        with self._lock:
+            return {label: {str(b): n for b, n in sorted(c.items())} for label, c in self._counts.items()}
+
+    def summary(self) -> dict[str, float | int]:
+        """``<label>_n``, ``<label>_p50_ms``, ``<label>_p99_ms`` over everything recorded."""
+        out: dict[str, float | int] = {}
+        for label, c in self.counts().items():
+            out[f"{label}_n"] = sum(c.values())
+            out[f"{label}_p50_ms"] = histogram_percentile(c, 50.0)
+            out[f"{label}_p99_ms"] = histogram_percentile(c, 99.0)
+        return out
+
+
+def histogram_diff(later: dict[str, int], earlier: dict[str, int]) -> dict[str, int]:
+    """Counts recorded between two readings of one label's buckets."""
+    out = {}
+    for b, n in later.items():
+        d = int(n) - int(earlier.get(b, 0))
+        if d < 0:
+            raise ValueError(f"bucket {b} went down ({earlier.get(b)} -> {n}): readings of different lanes?")
+        if d:
+            out[b] = d
+    return out
+
+
+def histogram_percentile(counts: dict[str, int], q: float) -> float:
+    """The ``q``-th percentile (0-100) of bucketed counts, as its bucket's upper edge (ms).
+
+    Nearest-rank: the smallest bucket edge at or above which ``q``% of the samples lie.
+    0.0 for no samples.
+    """
+    if not 0.0 <= q <= 100.0:
+        raise ValueError(f"percentile must be in [0, 100], got {q}")
+    items = sorted((int(b), int(n)) for b, n in counts.items() if int(n) > 0)
+    total = sum(n for _b, n in items)
+    if total == 0:
+        return 0.0
+    rank = max(1, math.ceil(q / 100.0 * total))
+    seen = 0
+    for b, n in items:
+        seen += n
+        if seen >= rank:
+            return bucket_upper_ms(b)
+    return bucket_upper_ms(items[-1][0])  # unreachable: rank <= total
 
 
 # --------------------------------------------------------------------------------------------

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -57,5 +58,44 @@ def fabric(
     doc["command"] = "dvla bench fabric --json " + str(json_path) + (" --quick" if quick else "")
     json_path.parent.mkdir(parents=True, exist_ok=True)
     json_path.write_text(json.dumps(doc, indent=1))
+    typer.echo(format_table(doc))
+    typer.echo(f"wrote {json_path}  ({doc['elapsed_s']:.0f} s)")
+
+
+@app.command("swimlane")
+def swimlane(
+    json_path: Annotated[Path, typer.Option("--json", help="write the results (JSON) here")],
+    topology: Annotated[Path, typer.Option(help="topology of the default workload (and the task of the balanced one)")] = Path("topologies/local.yaml"),
+    quick: Annotated[bool, typer.Option("--quick", help="short windows, small batches: checks the machinery, not the speed")] = False,
+    warmup: Annotated[Optional[float], typer.Option(help="seconds after the first env step before a window opens")] = None,
+    window: Annotated[Optional[float], typer.Option(help="seconds of each throughput window")] = None,
+    rss_window: Annotated[Optional[float], typer.Option(help="steady-state seconds of the default async run (RSS growth)")] = None,
+    balanced_epochs: Annotated[Optional[int], typer.Option(help="PPO epochs of the balanced workload")] = None,
+    repeats: Annotated[int, typer.Option(help="runs of each workload's pair (alternating), for the spread")] = 1,
+    workload: Annotated[Optional[list[str]], typer.Option(help="default and/or balanced (repeatable; default: both)")] = None,
+    base_port: Annotated[int, typer.Option(help="first TCP port")] = 19600,
+    runs: Annotated[Optional[Path], typer.Option(help="keep the runs' directories here (default: a temporary directory)")] = None,
+) -> None:
+    """Lane overlap on real runs: training vs simulation alone (default workload), async vs lock-step
+    sync with learner and rollouts on their own cores (balanced workload), inference latency during
+    weight swaps, policy lag and RSS growth over a steady state."""
+    import dataclasses
+
+    from ...bench.swimlane import QUICK, Profile, format_table, run_bench
+
+    profile = QUICK if quick else Profile()
+    overrides = {"warmup_s": warmup, "window_s": window, "rss_window_s": rss_window, "balanced_epochs": balanced_epochs}
+    profile = dataclasses.replace(profile, repeats=repeats, **{k: v for k, v in overrides.items() if v is not None})
+    wl = tuple(workload or ("default", "balanced"))
+    if repeats < 1 or any(w not in ("default", "balanced") for w in wl):
+        raise fail(f"--repeats must be >= 1 and --workload one of default, balanced (got {repeats}, {list(wl)})")
+    try:
+        doc = run_bench(topology, profile, base_port=base_port, runs_root=runs, workloads=wl,
+                        progress=lambda m: typer.echo(f"[bench] {m}", err=True))
+    except (RuntimeError, OSError, ValueError) as err:
+        raise fail(f"bench swimlane: {err}", code=1)
+    doc["command"] = "dvla " + " ".join(sys.argv[1:])
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps(doc, indent=1, default=str))
     typer.echo(format_table(doc))
     typer.echo(f"wrote {json_path}  ({doc['elapsed_s']:.0f} s)")

@@ -10,7 +10,8 @@ from typing import Annotated, Optional
 import typer
 
 from ..netns import NetnsError
-from ..run import ExitCode, Up, UpOptions, install_sigint
+from ..run import ORCHESTRATOR_LOG, ExitCode, Up, UpOptions, install_sigint, start_detached
+from ..ssh import SshError
 from ..view import render_table
 from .common import RUNS_ROOT, fail, topology_or_exit
 
@@ -27,6 +28,9 @@ def up(
     base_port: Annotated[Optional[int], typer.Option(help="first TCP port of the run")] = None,
     runs: Annotated[Path, typer.Option(help="directory of run directories")] = RUNS_ROOT,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no live view; one line per 10 s")] = False,
+    detach: Annotated[
+        bool, typer.Option("--detach", "-d", help="run in the background (log: RUN_DIR/orchestrator.log); return once the roles are started")
+    ] = False,
 ) -> None:
     """Start every role of TOPOLOGY as its own process and supervise them until the run ends."""
     if mode is not None and mode not in ("async", "sync"):
@@ -40,7 +44,7 @@ def up(
         max_env_steps=max_env_steps, until_success=until_success, max_wall_s=max_wall_s,
         mode=mode, seed=seed, base_port=base_port, runs_root=runs,
     )
-    live = sys.stdout.isatty() and not quiet
+    live = sys.stdout.isatty() and not quiet and not detach
     last_line = [0.0]
     shown_events = [0]
 
@@ -69,12 +73,24 @@ def up(
         u = Up(topo, opts, on_tick=tick)
     except (RuntimeError, OSError, ValueError) as err:
         raise fail(str(err))
+    if detach:
+        pid = start_detached(u, lambda: _run_to_end(u, shown_events))
+        _report_detached(u, pid, runs)
+        return
     install_sigint(u)
+    code = _run_to_end(u, shown_events)
+    if code not in (ExitCode.SUCCESS,):
+        raise typer.Exit(code)
+
+
+def _run_to_end(u: Up, shown_events: list[int]) -> int:
+    """Run `u` in this process; print its events and a closing line; return its exit code."""
     typer.echo(f"dvla: run {u.topo.run} -> {u.run_dir}  ({len(u.plan.processes)} processes)")
     try:
         code = u.run()
-    except NetnsError as err:  # the emulated cluster could not be built (it removed itself)
-        raise fail(str(err), code=ExitCode.ROLE_FAILED)
+    except (NetnsError, SshError) as err:  # the cluster could not be built or reached (nothing is left)
+        typer.echo(f"dvla: {err}", err=True)
+        return ExitCode.ROLE_FAILED
     for e in u.events[shown_events[0]:]:
         typer.echo(f"[dvla] {e}", err=True)
     res = u.monitor.result() if u.monitor else {}
@@ -83,8 +99,24 @@ def up(
         f"startup={_fmt(res.get('startup_s'))}s train={_fmt(res.get('train_s'))}s "
         f"steps/s={_fmt(res.get('train_steps_per_s'))}; results in {u.run_dir}"
     )
-    if code not in (ExitCode.SUCCESS,):
-        raise typer.Exit(code)
+    return code
+
+
+def _report_detached(u: Up, pid: int | None, runs: Path) -> None:
+    """Tell the user where the background run is and how to follow and stop it (or why it died)."""
+    log_path = u.run_dir / ORCHESTRATOR_LOG
+    if pid is None:
+        tail = log_path.read_text(errors="replace").splitlines()[-15:] if log_path.exists() else []
+        for line in tail:
+            typer.echo(f"  {line}", err=True)
+        raise fail(f"run {u.topo.run} did not start; see {log_path}", code=ExitCode.ROLE_FAILED)
+    runs_opt = "" if runs == RUNS_ROOT else f" --runs {runs}"
+    run = u.topo.run
+    first = u.plan.processes[0].config.name
+    typer.echo(f"dvla: run {run} is up in the background (orchestrator pid {pid}) -> {u.run_dir}")
+    typer.echo(f"  status:  dvla status {run}{runs_opt}")
+    typer.echo(f"  logs:    dvla logs {first} --run {run}{runs_opt} -f   (orchestrator: {log_path})")
+    typer.echo(f"  stop:    dvla down {run}{runs_opt}")
 
 
 def _fmt(x: float | None) -> str:

@@ -1,0 +1,525 @@
+"""`dvla bench swimlane`: do the lanes overlap? Real runs of `dvla up` (real processes, real
+ManiSkill, real Zenoh), each figure compared with a baseline measured in the same invocation.
+
+Two workloads, each run in two modes on the same topology, env and policy:
+
+* **default**: the topology given (``topologies/local.yaml``) without its evaluator (evaluation
+  is not part of the training pipeline), placement as in the file. ``sim_only`` (the same
+  rollout processes stepping random actions, nothing inferred, shipped or learned) against
+  ``async`` (training): ``async_over_sim_only`` = learner-consumed env steps/s ÷ simulated env
+  steps/s. The async run also measures RSS growth over the steady state, policy lag and the
+  inference latency split by weight swaps.
+* **balanced**: the same task with the rollouts (and the replicator) pinned to core 0 and the
+  actor to core 1, and PPO epochs chosen so that the learner needs about as long per batch as
+  the rollouts need to sample one. ``sync`` (lock-step: sample a batch, ship, learn, publish,
+  wait for the new weights) against ``async``: ``async_over_sync``; with equal halves the ideal
+  is 2.
+
+Every run is started through the orchestrator (:class:`dvla.orchestrator.run.Up`) and read
+through its status collection: after the first env step and a warm-up, a reading of every
+role's status opens the window and another closes it; rates, lane utilisation, latency and lag
+distributions are differences between the two (the roles keep cumulative counters). RSS comes
+from ``/proc/<pid>/status`` of every role process, sampled once per status round.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import platform
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from ..config import BudgetConfig, NodeConfig, RackConfig, RolePlacement, Topology
+from ..fabric.messages import RoleStatus
+from ..roles.swimlane import histogram_diff, histogram_percentile
+
+HEADLINE_KEYS = (
+    "sim_only_sps",
+    "async_sps",
+    "async_over_sim_only",
+    "balanced_async_sps",
+    "sync_sps",
+    "async_over_sync",
+    "infer_p99_ms_during_swap",
+    "infer_p99_ms_no_swap",
+    "swap_over_no_swap_p99",
+    "rss_growth_pct",
+    "policy_lag_mean",
+    "policy_lag_p99",
+)
+"""Top-level figures every result holds (``balanced_async_sps`` is the balanced workload's
+``async_sps``; the default workload's is ``async_sps``)."""
+
+GOALS = {
+    "async_over_sim_only": (">=", 0.85),
+    "async_over_sync": (">=", 1.7),
+    "swap_over_no_swap_p99": ("<=", 1.1),
+}
+
+STARTUP_LIMIT_S = 180.0
+"""A run whose rollouts have not stepped by then is abandoned (an error, not a figure)."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class Profile:
+    """Windows of one bench invocation (seconds)."""
+
+    #: after the first env step, before the window opens (first versions, caches, JIT)
+    warmup_s: float = 30.0
+    #: measurement window of each throughput run
+    window_s: float = 60.0
+    #: steady-state window of the default async run, over which RSS growth is measured
+    rss_window_s: float = 600.0
+    #: PPO update epochs of the balanced workload (the default workload keeps the file's)
+    balanced_epochs: int = 24
+    #: learner batch override (None: the topology's)
+    batch_steps: int | None = None
+    #: each workload's pair of runs, this many times (alternating), for the spread
+    repeats: int = 1
+    #: tiny windows: checks the machinery, not the speed
+    quick: bool = False
+
+
+QUICK = Profile(warmup_s=6.0, window_s=12.0, rss_window_s=12.0, balanced_epochs=4, batch_steps=400, quick=True)
+
+
+# --------------------------------------------------------------------------------------------
+# Topologies
+# --------------------------------------------------------------------------------------------
+
+
+def _task(topo: Topology, profile: Profile, epochs: int | None) -> Any:
+    ppo = topo.task.ppo
+    if profile.batch_steps is not None:
+        ppo = dataclasses.replace(ppo, batch_steps=profile.batch_steps)
+    if epochs is not None:
+        ppo = dataclasses.replace(ppo, update_epochs=epochs)
+    # Runs end when the window does: no step or success budget may stop them first.
+    budget = BudgetConfig(max_env_steps=None, until_success=None, max_wall_s=None)
+    return dataclasses.replace(topo.task, ppo=ppo, budget=budget)
+
+
+def default_workload(topo: Topology, profile: Profile) -> Topology:
+    """The topology as written, without evaluators, budgets off."""
+    racks = []
+    for rack in topo.racks:
+        nodes = []
+        for node in rack.nodes:
+            roles = tuple(r for r in node.roles if r.role != "evaluator")
+            nodes.append(dataclasses.replace(node, roles=roles))
+        racks.append(dataclasses.replace(rack, nodes=tuple(nodes)))
+    return dataclasses.replace(topo, run="swl-default", task=_task(topo, profile, None), racks=tuple(racks))
+
+
+def balanced_workload(topo: Topology, profile: Profile, epochs: int) -> Topology:
+    """Same task; rollouts and replicator on core 0, the actor alone on core 1."""
+    rollouts = sum(r.count for _rack, n in topo.nodes() for r in n.roles if r.role == "rollout")
+    sim = NodeConfig(
+        name="sim", roles=(RolePlacement(role="replicator"), RolePlacement(role="rollout", count=max(1, rollouts))),
+        cpus=(0,),
+    )
+    learn = NodeConfig(name="learn", roles=(RolePlacement(role="actor"),), cpus=(1,))
+    rack = RackConfig(name="rack0", nodes=(learn, sim))
+    return dataclasses.replace(topo, run="swl-balanced", task=_task(topo, profile, epochs), racks=(rack,))
+
+
+def placement_of(topo: Topology) -> list[dict[str, Any]]:
+    return [
+        {"node": n.name, "cpus": list(n.cpus) if n.cpus else "unpinned",
+         "roles": {r.role: r.count for r in n.roles}}
+        for _rack, n in topo.nodes()
+    ]
+
+
+# --------------------------------------------------------------------------------------------
+# One measured run
+# --------------------------------------------------------------------------------------------
+
+
+def rss_kib(pid: int) -> int | None:
+    """Resident set size of a process (KiB), or None once it is gone."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+@dataclass
+class _Window:
+    """State machine of one run: wait for steps, warm up, open, sample, close."""
+
+    warmup_s: float
+    window_s: float
+    mode: str
+    first_step: float | None = None
+    opened: dict[str, RoleStatus] | None = None
+    opened_at: float | None = None
+    closed: dict[str, RoleStatus] | None = None
+    rss: dict[str, list[tuple[float, int]]] = field(default_factory=dict)
+    pids: dict[str, int] = field(default_factory=dict)
+    ticks: list[tuple[float, int, int]] = field(default_factory=list)  # (t, consumed, produced)
+    error: str | None = None
+
+
+def _all_answered(statuses: dict[str, RoleStatus], expected: list[str]) -> bool:
+    return all(n in statuses for n in expected)
+
+
+def measure_run(
+    topo: Topology, mode: str, warmup_s: float, window_s: float, runs_root: Path, base_port: int,
+    progress: Callable[[str], None],
+) -> dict[str, Any]:
+    """Start `topo` in `mode`, measure one window after warm-up, stop it; figures as a dict."""
+    from ..orchestrator.run import Up, UpOptions
+
+    topo = dataclasses.replace(topo, mode=mode)  # type: ignore[arg-type]
+    w = _Window(warmup_s, window_s, mode)
+    t_start = time.monotonic()
+
+    def tick(u: Up) -> None:
+        m = u.monitor
+        if m is None or m.last is None:
+            return
+        now = time.monotonic()
+        statuses = m.last.statuses
+        expected = [p.config.name for p in u.plan.processes]
+        if w.first_step is None:
+            if any(s.kind == "rollout" and s.env_steps > 0 for s in statuses.values()):
+                w.first_step = now
+                progress(f"{topo.run}/{mode}: first env step after {now - t_start:.0f} s; warming up {warmup_s:.0f} s")
+            elif now - t_start > STARTUP_LIMIT_S:
+                w.error = f"no env step within {STARTUP_LIMIT_S:.0f} s"
+                u.interrupt()
+            return
+        if w.opened is None:
+            if now - w.first_step >= warmup_s and _all_answered(statuses, expected):
+                w.opened, w.opened_at = dict(statuses), now
+                w.pids = u.launcher.pids()
+                progress(f"{topo.run}/{mode}: window open for {window_s:.0f} s")
+            return
+        if w.closed is not None:
+            return
+        for name, pid in w.pids.items():
+            r = rss_kib(pid)
+            if r is not None:
+                w.rss.setdefault(name, []).append((now - w.opened_at, r))  # type: ignore[operator]
+        consumed = sum(s.env_steps for s in statuses.values() if s.kind == "actor")
+        produced = sum(s.env_steps for s in statuses.values() if s.kind == "rollout")
+        w.ticks.append((now - w.opened_at, consumed, produced))  # type: ignore[operator]
+        if now - w.opened_at >= window_s and _all_answered(statuses, expected):  # type: ignore[operator]
+            w.closed = dict(statuses)
+            u.interrupt()
+
+    opts = UpOptions(runs_root=runs_root, base_port=base_port, max_restarts=0)
+    u = Up(topo, opts, on_tick=tick)
+    code = u.run()
+    result = json.loads((u.run_dir / "result.json").read_text()) if (u.run_dir / "result.json").exists() else {}
+    if w.error is None and (w.opened is None or w.closed is None):
+        w.error = f"run ended before the window closed ({u.reason}); events: {u.events[-3:]}"
+    out: dict[str, Any] = {
+        "run": topo.run, "mode": mode, "exit_code": code, "reason": u.reason,
+        "wall_s": time.monotonic() - t_start,
+        "startup_s": None if w.first_step is None else w.first_step - t_start,
+        "accounting": result.get("accounting"), "error": w.error,
+    }
+    if w.error is not None:
+        out["events"] = u.events[-10:]
+        return out
+    out.update(window_figures(w.opened, w.closed, topo))  # type: ignore[arg-type]
+    out["rss"] = rss_figures(w.rss)
+    out["sps_intervals"] = interval_rates(w.ticks, 10.0, "consumed" if mode != "sim_only" else "produced")
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Figures from two readings
+# --------------------------------------------------------------------------------------------
+
+
+def _dt(a: RoleStatus, b: RoleStatus) -> float:
+    return max(1e-9, (b.time_ns - a.time_ns) / 1e9)
+
+
+def lane_figures(a: RoleStatus, b: RoleStatus) -> dict[str, dict[str, float]]:
+    """Per lane over the window: busy and wait fractions, items/s."""
+    dt = _dt(a, b)
+    out = {}
+    for lane, sb in b.lanes.items():
+        sa = a.lanes.get(lane, {})
+        out[lane] = {
+            "utilisation": round((sb.get("busy_s", 0.0) - sa.get("busy_s", 0.0)) / dt, 4),
+            "wait_fraction": round((sb.get("wait_s", 0.0) - sa.get("wait_s", 0.0)) / dt, 4),
+            "items_per_s": round((sb.get("items", 0.0) - sa.get("items", 0.0)) / dt, 3),
+            "items": int(sb.get("items", 0.0) - sa.get("items", 0.0)),
+            "busy_s": sb.get("busy_s", 0.0) - sa.get("busy_s", 0.0),
+        }
+    return out
+
+
+def window_figures(a: dict[str, RoleStatus], b: dict[str, RoleStatus], topo: Topology) -> dict[str, Any]:
+    """Rates, lane utilisation, batch times, latency and lag over the window [a, b]."""
+    batch = topo.task.ppo.batch_steps
+    roles = sorted(set(a) & set(b))
+    actors = [n for n in roles if b[n].kind == "actor"]
+    rollouts = [n for n in roles if b[n].kind == "rollout"]
+    consumed = sum((b[n].env_steps - a[n].env_steps) / _dt(a[n], b[n]) for n in actors)
+    produced = sum((b[n].env_steps - a[n].env_steps) / _dt(a[n], b[n]) for n in rollouts)
+    lanes = {n: lane_figures(a[n], b[n]) for n in roles}
+    out: dict[str, Any] = {
+        "window_s": statistics.mean(_dt(a[n], b[n]) for n in roles),
+        "consumed_sps": consumed,
+        "produced_sps": produced,
+        "lanes": lanes,
+        "batch_steps": batch,
+        "update_epochs": topo.task.ppo.update_epochs,
+        "placement": {n: b[n].extra.get("placement") for n in roles},
+    }
+    if actors:
+        ab, aa = b[actors[0]], a[actors[0]]
+        out["versions"] = int(ab.extra.get("published_version", 0)) - int(aa.extra.get("published_version", 0))
+        learn = lanes[actors[0]].get("learn", {})
+        out["learner_batch_s"] = learn["busy_s"] / learn["items"] if learn.get("items") else None
+        lag = histogram_diff(ab.extra.get("policy_lag_counts", {}), aa.extra.get("policy_lag_counts", {}))
+        out["policy_lag"] = lag_figures(lag)
+        out["dropped_stale"] = int(ab.extra.get("dropped_stale", 0)) - int(aa.extra.get("dropped_stale", 0))
+    # Time the rollouts need to sample one learner batch, all of them together.
+    out["rollout_batch_s"] = batch / produced if produced > 0 else None
+    lat: dict[str, dict[str, int]] = {"swap": {}, "no_swap": {}}
+    for n in rollouts:
+        ca = a[n].extra.get("infer_latency_counts", {})
+        cb = b[n].extra.get("infer_latency_counts", {})
+        for label in lat:
+            for k, v in histogram_diff(cb.get(label, {}), ca.get(label, {})).items():
+                lat[label][k] = lat[label].get(k, 0) + v
+    out["infer_latency"] = {
+        label: {"n": sum(c.values()), "p50_ms": histogram_percentile(c, 50), "p99_ms": histogram_percentile(c, 99)}
+        for label, c in lat.items()
+    }
+    return out
+
+
+def lag_figures(counts: dict[str, int]) -> dict[str, Any]:
+    """Mean, p99 and max of a lag histogram {lag: chunks}."""
+    items = sorted((int(k), int(v)) for k, v in counts.items())
+    total = sum(v for _k, v in items)
+    if total == 0:
+        return {"chunks": 0, "mean": None, "p99": None, "max": None, "counts": {}}
+    mean = sum(k * v for k, v in items) / total
+    rank, seen, p99 = math.ceil(0.99 * total), 0, items[-1][0]
+    for k, v in items:
+        seen += v
+        if seen >= rank:
+            p99 = k
+            break
+    return {"chunks": total, "mean": mean, "p99": p99, "max": items[-1][0], "counts": {str(k): v for k, v in items}}
+
+
+def rss_figures(samples: dict[str, list[tuple[float, int]]]) -> dict[str, Any]:
+    """Per role: RSS at the start and end of the window (median of the first / last 5 samples)."""
+    roles = {}
+    for name, s in samples.items():
+        if len(s) < 2:
+            continue
+        k = max(1, min(5, len(s) // 4))
+        start = statistics.median(r for _t, r in s[:k])
+        end = statistics.median(r for _t, r in s[-k:])
+        roles[name] = {
+            "start_kib": start, "end_kib": end, "max_kib": max(r for _t, r in s),
+            "growth_pct": 100.0 * (end - start) / start if start else None, "samples": len(s),
+            "span_s": s[-1][0] - s[0][0],
+        }
+    growths = [(r["growth_pct"], n) for n, r in roles.items() if r["growth_pct"] is not None]
+    worst = max(growths) if growths else (None, None)
+    return {"roles": roles, "max_growth_pct": worst[0], "max_growth_role": worst[1]}
+
+
+def interval_rates(ticks: list[tuple[float, int, int]], every_s: float, which: str) -> list[float]:
+    """Env steps/s over consecutive sub-windows (the spread within one window)."""
+    idx = 1 if which == "consumed" else 2
+    out, start = [], ticks[0] if ticks else None
+    for t in ticks[1:]:
+        if start is not None and t[0] - start[0] >= every_s:
+            out.append(round((t[idx] - start[idx]) / (t[0] - start[0]), 1))
+            start = t
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# The bench
+# --------------------------------------------------------------------------------------------
+
+
+def machine_info() -> dict[str, Any]:
+    info: dict[str, Any] = {
+        "python": platform.python_version(), "platform": platform.platform(), "cpus": os.cpu_count(),
+        "load_avg_start": list(os.getloadavg()),
+    }
+    try:
+        import torch
+
+        info["torch"] = torch.__version__
+    except ImportError:
+        pass
+    try:
+        import mani_skill
+
+        info["mani_skill"] = getattr(mani_skill, "__version__", "?")
+    except ImportError:
+        pass
+    try:
+        info["cpu_model"] = next(
+            line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+            if line.startswith("model name")
+        )
+    except (OSError, StopIteration):
+        pass
+    return info
+
+
+def _ratio(x: float | None, y: float | None) -> float | None:
+    return x / y if x is not None and y else None
+
+
+def run_bench(
+    topology: Path, profile: Profile, *, base_port: int = 19600, runs_root: Path | None = None,
+    workloads: tuple[str, ...] = ("default", "balanced"),
+    progress: Callable[[str], None] = lambda _m: None,
+) -> dict[str, Any]:
+    """Every run of the bench, in order; the JSON document of the results."""
+    from ..orchestrator.topology import load_topology
+
+    base = load_topology(topology)
+    t0 = time.monotonic()
+    tmp = None
+    if runs_root is None:
+        tmp = tempfile.mkdtemp(prefix="dvla-bench-swimlane-")
+        runs_root = Path(tmp)
+    doc: dict[str, Any] = {
+        "bench": "swimlane", "topology": str(topology), "profile": dataclasses.asdict(profile),
+        "machine": machine_info(), "argv": sys.argv, "goals": {k: list(v) for k, v in GOALS.items()},
+        "workloads": {},
+    }
+    try:
+        if "default" in workloads:
+            doc["workloads"]["default"] = _default(base, profile, runs_root, base_port, progress)
+        if "balanced" in workloads:
+            if (os.cpu_count() or 1) < 2 or not {0, 1} <= set(os.sched_getaffinity(0)):
+                doc["workloads"]["balanced"] = {"error": "needs cores 0 and 1"}
+            else:
+                doc["workloads"]["balanced"] = _balanced(base, profile, runs_root, base_port, progress)
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+    doc["machine"]["load_avg_end"] = list(os.getloadavg())
+    doc["elapsed_s"] = time.monotonic() - t0
+    doc.update(headline(doc["workloads"]))
+    doc["goals_met"] = {
+        k: (None if doc.get(k) is None else (doc[k] >= v if op == ">=" else doc[k] <= v))
+        for k, (op, v) in GOALS.items()
+    }
+    return doc
+
+
+def _pairs(
+    first: tuple[str, Topology, float], second: tuple[str, Topology, float], profile: Profile,
+    runs_root: Path, base_port: int, progress: Callable[[str], None],
+) -> list[dict[str, dict[str, Any]]]:
+    out = []
+    for i in range(profile.repeats):
+        pair = {}
+        for mode, topo, window in (first, second):
+            progress(f"{topo.run}: {mode} run {i + 1}/{profile.repeats}")
+            pair[mode] = measure_run(topo, mode, profile.warmup_s, window, runs_root, base_port, progress)
+            if pair[mode].get("error"):
+                progress(f"{topo.run}/{mode}: {pair[mode]['error']}")
+        out.append(pair)
+    return out
+
+
+def _median(xs: list[float | None]) -> float | None:
+    vals = [x for x in xs if x is not None]
+    return statistics.median(vals) if vals else None
+
+
+def _default(base: Topology, profile: Profile, runs_root: Path, port: int, progress: Callable[[str], None]) -> dict[str, Any]:
+    topo = default_workload(base, profile)
+    steady = max(profile.window_s, profile.rss_window_s)
+    pairs = _pairs(("sim_only", topo, profile.window_s), ("async", topo, steady), profile, runs_root, port, progress)
+    ratios = [_ratio(p["async"].get("consumed_sps"), p["sim_only"].get("produced_sps")) for p in pairs]
+    return {
+        "placement": placement_of(topo), "runs": pairs, "ratios": ratios,
+        "sim_only_sps": _median([p["sim_only"].get("produced_sps") for p in pairs]),
+        "async_sps": _median([p["async"].get("consumed_sps") for p in pairs]),
+        "async_over_sim_only": _median(ratios),
+    }
+
+
+def _balanced(base: Topology, profile: Profile, runs_root: Path, port: int, progress: Callable[[str], None]) -> dict[str, Any]:
+    topo = balanced_workload(base, profile, profile.balanced_epochs)
+    w = profile.window_s
+    pairs = _pairs(("sync", topo, w), ("async", topo, w), profile, runs_root, port, progress)
+    ratios = [_ratio(p["async"].get("consumed_sps"), p["sync"].get("consumed_sps")) for p in pairs]
+    learner = _median([p["async"].get("learner_batch_s") for p in pairs])
+    rollout = _median([p["async"].get("rollout_batch_s") for p in pairs])
+    return {
+        "placement": placement_of(topo), "runs": pairs, "ratios": ratios,
+        "async_sps": _median([p["async"].get("consumed_sps") for p in pairs]),
+        "sync_sps": _median([p["sync"].get("consumed_sps") for p in pairs]),
+        "async_over_sync": _median(ratios),
+        "learner_batch_s": learner,
+        "rollout_batch_s": rollout,
+        "learner_over_rollout": _ratio(learner, rollout),
+        "balanced_within_20pct": None if learner is None or rollout is None else abs(learner / rollout - 1) <= 0.2,
+    }
+
+
+def headline(workloads: dict[str, Any]) -> dict[str, Any]:
+    """Top-level figures (see HEADLINE_KEYS) from the workloads' results."""
+    d, b = workloads.get("default", {}), workloads.get("balanced", {})
+    out: dict[str, Any] = {
+        "sim_only_sps": d.get("sim_only_sps"),
+        "async_sps": d.get("async_sps"),
+        "async_over_sim_only": d.get("async_over_sim_only"),
+        "balanced_async_sps": b.get("async_sps"),
+        "sync_sps": b.get("sync_sps"),
+        "async_over_sync": b.get("async_over_sync"),
+        "learner_batch_s": b.get("learner_batch_s"),
+        "rollout_batch_s": b.get("rollout_batch_s"),
+    }
+    # Latency, lag and memory: from the default workload's async runs (the training steady state).
+    runs = [p["async"] for p in d.get("runs", []) if not p["async"].get("error")]
+    out["infer_p99_ms_during_swap"] = _median([r["infer_latency"]["swap"]["p99_ms"] or None for r in runs])
+    out["infer_p99_ms_no_swap"] = _median([r["infer_latency"]["no_swap"]["p99_ms"] or None for r in runs])
+    out["swap_over_no_swap_p99"] = _ratio(out["infer_p99_ms_during_swap"], out["infer_p99_ms_no_swap"])
+    out["infer_swap_batches"] = sum(r["infer_latency"]["swap"]["n"] for r in runs)
+    out["rss_growth_pct"] = max((r["rss"]["max_growth_pct"] for r in runs if r["rss"]["max_growth_pct"] is not None), default=None)
+    out["rss_window_s"] = _median([r.get("window_s") for r in runs])
+    out["policy_lag_mean"] = _median([r["policy_lag"]["mean"] for r in runs])
+    out["policy_lag_p99"] = _median([r["policy_lag"]["p99"] for r in runs])
+    return out
+
+
+def format_table(doc: dict[str, Any]) -> str:
+    lines = []
+    for k in HEADLINE_KEYS + ("learner_batch_s", "rollout_batch_s"):
+        v = doc.get(k)
+        goal = GOALS.get(k)
+        met = doc["goals_met"].get(k)
+        g = "" if goal is None else f"   (goal {goal[0]} {goal[1]}: {'-' if met is None else 'met' if met else 'missed'})"
+        lines.append(f"{k:28s} {'-' if v is None else f'{v:.3f}'}{g}")
+    for name, wl in doc["workloads"].items():
+        for i, r in enumerate(wl.get("ratios", [])):
+            lines.append(f"{name} repeat {i + 1}: ratio {'-' if r is None else f'{r:.3f}'}")
+    return "\n".join(lines)

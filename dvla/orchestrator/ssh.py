@@ -1,0 +1,419 @@
+"""Remote nodes over SSH: a node whose host is not this machine runs its roles through OpenSSH.
+
+Two halves live here, because they speak one small protocol:
+
+- **local** (:class:`SshWrapper`, a :class:`CommandWrapper`): turns a role's argv into
+  ``ssh ... HOST -- PYTHON -m dvla.orchestrator.ssh serve`` and writes one JSON line on the
+  process's stdin: the role's config, the run secret, the remote run directory and a few
+  environment variables. Nothing secret is ever on a command line. Then stdin stays open:
+  **closing it is how the orchestrator says stop**, and it closes by itself whenever the
+  orchestrator or the ssh client dies (the pipe's write end vanishes, or the connection drops and
+  sshd closes the remote command's stdin).
+- **remote** (:func:`serve`, run by ``python -m dvla.orchestrator.ssh serve`` on the node):
+  writes the config into ``<workdir>/<run>/roles/``, starts the role with the same entry point as
+  a local launch (``python -m dvla.roles.<kind> --config FILE``, secret in its environment),
+  streams its output to stderr (which ssh carries to the role's log in the local run directory),
+  and stops it (SIGTERM, then SIGKILL) as soon as stdin reaches end-of-file. When the role has
+  exited it writes the files the role produced in the remote run directory (summaries,
+  checkpoints) as a tar stream on stdout; the local side unpacks it into the run directory.
+
+ssh always runs with BatchMode (keys only, never a prompt); :func:`check_host` turns a failing
+connection into one line naming the host.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import io
+import json
+import logging
+import os
+import shlex
+import signal
+import subprocess
+import sys
+import tarfile
+import threading
+import time
+import uuid
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+from typing import TYPE_CHECKING, Any
+
+from ..config import SshConfig, Topology
+from .launcher import CommandWrapper
+
+if TYPE_CHECKING:  # only for annotations: the remote half must import as little as possible
+    from .launcher import Supervised
+    from .plan import Process
+
+log = logging.getLogger("dvla.ssh")
+
+#: exit status of the ssh client itself failing (connection, authentication, host key)
+SSH_FAILED = 255
+#: seconds the remote side gives a role between SIGTERM and SIGKILL after a hang-up
+REMOTE_STOP_GRACE_S = 10.0
+#: environment variables a remote role gets from the orchestrator's environment, when set there
+FORWARDED_ENV = ("DVLA_LOG_LEVEL", "OMP_NUM_THREADS", "PYTHONUNBUFFERED")
+#: files of the remote run directory never shipped back (configs are ours, *.tmp are half-written)
+NOT_SHIPPED_DIRS = ("roles",)
+TOKEN_FILE = ".dvla-run-token"
+
+
+class SshError(RuntimeError):
+    """A remote node cannot be reached or cannot run dvla; the message is one line naming the host."""
+
+
+# ----------------------------------------------------------------------------------------------
+# local half
+
+
+@dataclass(frozen=True)
+class SshTarget:
+    """One remote host and how to log in to it."""
+
+    host: str
+    ssh: SshConfig
+
+    @property
+    def destination(self) -> str:
+        return f"{self.ssh.user}@{self.host}" if self.ssh.user else self.host
+
+    def label(self) -> str:
+        """``user@host:port`` for messages."""
+        return f"{self.destination}:{self.ssh.port}"
+
+    def argv(self, remote_command: str) -> list[str]:
+        """The ssh client command line running `remote_command` (a shell string) on the host."""
+        s = self.ssh
+        opts = {
+            "BatchMode": "yes",  # keys only: a password or passphrase prompt fails instead of hanging
+            "PasswordAuthentication": "no",
+            "KbdInteractiveAuthentication": "no",
+            "StrictHostKeyChecking": s.host_key_check,
+            "ConnectTimeout": str(s.connect_timeout_s),
+            "ServerAliveInterval": "5",  # a dead network is noticed in ~15 s, and the run told
+            "ServerAliveCountMax": "3",
+            "ClearAllForwardings": "yes",
+            "LogLevel": "ERROR",  # keeps banners and warnings out of the role's log
+        }
+        if s.known_hosts_file:
+            opts["UserKnownHostsFile"] = s.known_hosts_file
+        if s.identity_file:
+            opts["IdentitiesOnly"] = "yes"
+        argv = ["ssh", "-T", "-p", str(s.port)]
+        if s.identity_file:
+            argv += ["-i", s.identity_file]
+        for key, value in opts.items():
+            argv += ["-o", f"{key}={value}"]
+        return argv + [self.destination, "--", remote_command]
+
+    def python_command(self, *args: str) -> str:
+        """Shell string running the remote Python with `args` (each quoted)."""
+        return " ".join(shlex.quote(a) for a in (self.ssh.python, *args))
+
+
+def _last_line(text: str) -> str:
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return lines[-1] if lines else "(no output)"
+
+
+def check_host(target: SshTarget, timeout_s: float | None = None) -> dict[str, Any]:
+    """Log in once and ask the remote Python about itself; raise :class:`SshError` (one line) if
+    the host, the login or the remote dvla fails. Returns what the remote side reported."""
+    timeout = timeout_s if timeout_s is not None else target.ssh.connect_timeout_s + 20
+    argv = target.argv(target.python_command("-m", "dvla.orchestrator.ssh", "probe"))
+    try:
+        proc = subprocess.run(argv, stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=timeout)
+    except FileNotFoundError:
+        raise SshError(f"ssh {target.label()}: the ssh client is not installed (apt-get install openssh-client)") from None
+    except subprocess.TimeoutExpired:
+        raise SshError(f"ssh {target.label()}: no answer in {timeout:.0f} s") from None
+    if proc.returncode == SSH_FAILED:
+        raise SshError(f"ssh {target.label()} failed: {_last_line(proc.stderr)}")
+    if proc.returncode != 0:
+        raise SshError(
+            f"ssh {target.label()}: remote python {target.ssh.python!r} cannot run dvla "
+            f"(exit {proc.returncode}): {_last_line(proc.stderr)}"
+        )
+    try:
+        return json.loads(_last_line(proc.stdout))
+    except ValueError:
+        raise SshError(f"ssh {target.label()}: unexpected probe answer {_last_line(proc.stdout)!r}") from None
+
+
+def remote_targets(topo: Topology) -> dict[str, SshTarget]:
+    """Node name -> SSH target, for every node of `topo` whose host is not this machine."""
+    from .plan import is_local_host
+
+    return {n.name: SshTarget(n.host, topo.ssh_for(n)) for _r, n in topo.nodes() if not is_local_host(n.host)}
+
+
+class SshWrapper(CommandWrapper):
+    """Launches the processes of remote nodes over SSH; local ones go to `local` (or run as is)."""
+
+    def __init__(self, topo: Topology, secret_hex: str, env: dict[str, str], local: CommandWrapper | None = None) -> None:
+        self.topo = topo
+        self.targets = remote_targets(topo)
+        self.secret_hex = secret_hex
+        self.env = {k: env[k] for k in FORWARDED_ENV if k in env}
+        self.local = local
+        # One token per `dvla up`: the first role of a run to reach a node wipes what an earlier
+        # run of the same id left in the remote run directory (a stale checkpoint would be resumed).
+        self.token = uuid.uuid4().hex
+
+    def target(self, proc: "Process") -> SshTarget | None:
+        return self.targets.get(proc.config.node)
+
+    def remote_run_dir(self, target: SshTarget) -> str:
+        return str(PurePosixPath(target.ssh.workdir) / self.topo.run)
+
+    def check_all(self) -> None:
+        """Probe every remote host once, in parallel; raise one :class:`SshError` for the first failure."""
+        targets = {t.label(): t for t in self.targets.values()}
+        errors: dict[str, str] = {}
+
+        def probe(label: str, t: SshTarget) -> None:
+            try:
+                info = check_host(t)
+                log.info("ssh %s ok: python %s, dvla at %s", label, info.get("python"), info.get("dvla"))
+            except SshError as err:
+                errors[label] = str(err)
+
+        threads = [threading.Thread(target=probe, args=item, name=f"ssh-probe-{item[0]}") for item in targets.items()]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        if errors:
+            raise SshError(errors[sorted(errors)[0]])
+
+    # -- CommandWrapper ------------------------------------------------------------------------
+
+    def __call__(self, proc: "Process", argv: list[str]) -> list[str]:
+        target = self.target(proc)
+        if target is None:
+            return self.local(proc, argv) if self.local is not None else argv
+        return target.argv(target.python_command("-m", "dvla.orchestrator.ssh", "serve"))
+
+    def stdin_payload(self, proc: "Process", argv: list[str]) -> bytes | None:
+        target = self.target(proc)
+        if target is None:
+            return self.local.stdin_payload(proc, argv) if self.local is not None else None
+        module = argv[argv.index("-m") + 1]  # the same entry point as a local launch
+        header = {
+            "module": module,
+            "config": json.loads(proc.config.to_json()),
+            "run_dir": self.remote_run_dir(target),
+            "token": self.token,
+            "secret_env": proc.config.secret_env,
+            "secret": self.secret_hex,
+            "env": self.env,
+        }
+        return (json.dumps(header) + "\n").encode()
+
+    def output_path(self, sup: "Supervised") -> Path | None:
+        if self.target(sup.proc) is None:
+            return self.local.output_path(sup) if self.local is not None else None
+        return sup.log_path.parent.parent / "remote" / f"{sup.name}.tar"
+
+    def finished(self, sup: "Supervised", code: int) -> str | None:
+        target = self.target(sup.proc)
+        if target is None:
+            return self.local.finished(sup, code) if self.local is not None else None
+        path = self.output_path(sup)
+        assert path is not None
+        note = None
+        if code == SSH_FAILED:
+            note = f"{sup.name}: ssh {target.label()} failed: {_last_log_line(sup.log_path)}"
+        try:
+            unpacked = unpack_results(path, sup.log_path.parent.parent)
+            if unpacked:
+                log.info("%s: %d file(s) back from %s", sup.name, len(unpacked), target.host)
+        except (OSError, tarfile.TarError) as err:
+            log.warning("%s: results from %s unreadable: %s", sup.name, target.host, err)
+        return note
+
+
+def _last_log_line(path: Path) -> str:
+    try:
+        return _last_line(path.read_text(errors="replace")[-4000:])
+    except OSError:
+        return "(no log)"
+
+
+def unpack_results(path: Path, run_dir: Path) -> list[str]:
+    """Unpack a remote role's result tar into `run_dir` (regular files under it only); delete it."""
+    if not path.exists():
+        return []
+    names: list[str] = []
+    try:
+        if path.stat().st_size == 0:
+            return names
+        with tarfile.open(path, "r:") as tar:
+            for member in tar:
+                rel = PurePosixPath(member.name)
+                if not member.isfile() or rel.is_absolute() or ".." in rel.parts:
+                    log.warning("ignoring %r in remote results %s", member.name, path.name)
+                    continue
+                dest = run_dir.joinpath(*rel.parts)
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                src = tar.extractfile(member)
+                assert src is not None
+                tmp = dest.with_name(dest.name + ".part")
+                with open(tmp, "wb") as out:
+                    while chunk := src.read(1 << 20):
+                        out.write(chunk)
+                tmp.replace(dest)
+                names.append(str(rel))
+    finally:
+        path.unlink(missing_ok=True)
+    return names
+
+
+# ----------------------------------------------------------------------------------------------
+# remote half: `python -m dvla.orchestrator.ssh serve|probe`
+
+
+def _die_with_parent() -> None:
+    """In the role, between fork and exec: die if the serving process dies (PR_SET_PDEATHSIG)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)
+    except OSError:
+        pass
+
+
+def _prepare_run_dir(run_dir: Path, token: str) -> None:
+    """Create the remote run directory; empty it first if an earlier run (another token) left it."""
+    run_dir.parent.mkdir(parents=True, exist_ok=True)
+    lock_path = run_dir.parent / f".{run_dir.name}.lock"
+    with open(lock_path, "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # roles of one node start at once: one of them wipes
+        token_path = run_dir / TOKEN_FILE
+        current = token_path.read_text().strip() if token_path.exists() else None
+        if current != token:
+            if run_dir.exists():
+                import shutil
+
+                shutil.rmtree(run_dir)
+            run_dir.mkdir(parents=True)
+            token_path.write_text(token + "\n")
+
+
+def _write_private(path: Path, text: str) -> None:
+    """Write a file only its owner can read (0600 from creation on)."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+
+
+def _results_tar(run_dir: Path, since: float) -> bytes:
+    """Files the role wrote in the run directory (modified since it started), as a tar."""
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as tar:
+        for path in sorted(run_dir.rglob("*")):
+            rel = path.relative_to(run_dir)
+            if not path.is_file() or rel.parts[0] in NOT_SHIPPED_DIRS or path.name == TOKEN_FILE:
+                continue
+            if path.suffix in (".tmp", ".part") or path.stat().st_mtime < since:
+                continue
+            tar.add(path, arcname=rel.as_posix(), recursive=False)
+    return buf.getvalue()
+
+
+def serve(stdin: Any = None, stdout: Any = None) -> int:
+    """Run one role as the orchestrator's stdin header says; stop it when stdin closes."""
+    stdin = stdin or sys.stdin.buffer
+    stdout = stdout or sys.stdout.buffer
+    line = stdin.readline()
+    if not line:
+        print("dvla ssh serve: no header on stdin", file=sys.stderr)
+        return 2
+    header = json.loads(line)
+    config = header["config"]
+    run_dir = Path(os.path.expanduser(header["run_dir"])).absolute()
+    _prepare_run_dir(run_dir, header["token"])
+    config["run_dir"] = str(run_dir)
+    roles_dir = run_dir / "roles"
+    roles_dir.mkdir(exist_ok=True)
+    config_path = roles_dir / f"{config['name']}.json"
+    _write_private(config_path, json.dumps(config, indent=1, sort_keys=True))
+    env = dict(os.environ)
+    env.update(header.get("env", {}))
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    env[header["secret_env"]] = header["secret"]  # the role's environment: never a command line
+
+    hangup = threading.Event()
+
+    def watch_stdin() -> None:
+        try:
+            while stdin.read(4096):
+                pass
+        except (OSError, ValueError):
+            pass
+        hangup.set()
+
+    def on_signal(_signum: int, _frame: Any) -> None:
+        hangup.set()
+
+    for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
+        signal.signal(sig, on_signal)
+    started = time.time() - 1.0  # mtime granularity
+    argv = [sys.executable, "-m", header["module"], "--config", str(config_path)]
+    print(f"--- {os.uname().nodename}: {' '.join(argv)}", file=sys.stderr, flush=True)
+    child = subprocess.Popen(
+        argv, stdin=subprocess.DEVNULL, stdout=sys.stderr.fileno(), stderr=sys.stderr.fileno(), env=env,
+        cwd=run_dir, start_new_session=True, preexec_fn=_die_with_parent,
+    )
+    threading.Thread(target=watch_stdin, name="stdin-watch", daemon=True).start()
+    stop_sent = None
+    while child.poll() is None:
+        if hangup.is_set():
+            now = time.monotonic()
+            if stop_sent is None:
+                print("--- hang-up from the orchestrator: stopping the role", file=sys.stderr, flush=True)
+                _killpg(child.pid, signal.SIGTERM)
+                stop_sent = now
+            elif now - stop_sent > REMOTE_STOP_GRACE_S:
+                _killpg(child.pid, signal.SIGKILL)
+        time.sleep(0.1)
+    code = child.returncode
+    try:
+        stdout.write(_results_tar(run_dir, started))
+        stdout.flush()
+    except (BrokenPipeError, OSError):
+        pass  # the orchestrator is gone: nobody to send results to
+    return code if code >= 0 else 128 - code
+
+
+def _killpg(pid: int, sig: int) -> None:
+    try:
+        os.killpg(pid, sig)
+    except (ProcessLookupError, PermissionError):
+        pass
+
+
+def probe() -> int:
+    """Print what `dvla up` needs to know about this host, as one JSON line."""
+    import platform
+
+    import dvla
+
+    print(json.dumps({"host": os.uname().nodename, "python": platform.python_version(), "dvla": dvla.__file__}))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    if args == ["serve"]:
+        return serve()
+    if args == ["probe"]:
+        return probe()
+    print("usage: python -m dvla.orchestrator.ssh serve|probe (started by `dvla up` over ssh)", file=sys.stderr)
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
