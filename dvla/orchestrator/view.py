@@ -17,9 +17,24 @@ def status_dict(s: RoleStatus) -> dict[str, Any]:
 
 
 def policy_lag(s: RoleStatus, latest: int | None = None) -> int | None:
+    """Versions a rollout (or evaluator) is behind the newest published one; None for others."""
     if s.kind not in ("rollout", "evaluator") or latest is None:
         return None
     return max(0, latest - s.policy_version)
+
+
+def lag_cell(s: RoleStatus, latest: int) -> str:
+    """LAG column: a leaf's versions behind; for the actor, the mean lag of the chunks it learned from."""
+    if s.kind == "actor":
+        mean = s.extra.get("policy_lag_mean")
+        return "-" if mean is None else f"~{float(mean):.1f}"
+    lag = policy_lag(s, latest)
+    return "-" if lag is None else str(lag)
+
+
+def lane_utilisation(s: RoleStatus) -> dict[str, float]:
+    """Busy fraction of each lane over the role's recent window."""
+    return {lane: float(st.get("utilisation", 0.0)) for lane, st in s.lanes.items()}
 
 
 def render_json(statuses: dict[str, RoleStatus], extra: dict[str, Any] | None = None) -> str:
@@ -28,6 +43,7 @@ def render_json(statuses: dict[str, RoleStatus], extra: dict[str, Any] | None = 
     for name in sorted(statuses):
         d = dataclasses.asdict(statuses[name])
         d["policy_lag"] = policy_lag(statuses[name], latest)
+        d["lane_utilisation"] = lane_utilisation(statuses[name])
         roles.append(d)
     return json.dumps({"roles": roles, **(extra or {})}, indent=1, sort_keys=True, default=str)
 
@@ -37,11 +53,14 @@ def latest_version(statuses: dict[str, RoleStatus]) -> int:
 
 
 def _lanes(s: RoleStatus) -> str:
-    parts = []
-    for lane, st in s.lanes.items():
-        util = st.get("utilisation", st.get("utilization", 0.0))
-        parts.append(f"{lane} {100 * float(util):.0f}%")
-    return " ".join(parts)
+    return " ".join(f"{lane} {100 * util:.0f}%" for lane, util in lane_utilisation(s).items())
+
+
+def _infer_cell(s: RoleStatus) -> str:
+    """Rollouts' per-step policy inference latency percentiles ("-" for other roles)."""
+    if "infer_ms_p50" not in s.extra:
+        return "-"
+    return f"{float(s.extra['infer_ms_p50']):.1f}/{float(s.extra.get('infer_ms_p99', 0.0)):.1f}"
 
 
 def render_table(
@@ -49,18 +68,17 @@ def render_table(
 ) -> str:
     latest = latest_version(statuses)
     restarts = restarts or {}
-    header = ["ROLE", "NODE", "RACK", "STATE", "VERSION", "LAG", "STEPS", "STEPS/S", "RESTARTS", "LANES (busy)"]
+    header = ["ROLE", "NODE", "RACK", "STATE", "VERSION", "LAG", "STEPS", "STEPS/S", "INFER ms p50/p99", "RESTARTS", "LANES (busy)"]
     rows = []
     names = sorted(set(statuses) | set(expected or []))
     for name in names:
         s = statuses.get(name)
         if s is None:
-            rows.append([name, "-", "-", "silent", "-", "-", "-", "-", str(restarts.get(name, 0)), ""])
+            rows.append([name, "-", "-", "silent", "-", "-", "-", "-", "-", str(restarts.get(name, 0)), ""])
             continue
-        lag = policy_lag(s, latest)
         version = s.extra.get("published_version", s.policy_version) if s.kind == "actor" else s.policy_version
-        rows.append([name, s.node, s.rack, s.state, str(version), "-" if lag is None else str(lag),
-                     str(s.env_steps), f"{s.steps_per_s:.0f}", str(restarts.get(name, 0)), _lanes(s)])
+        rows.append([name, s.node, s.rack, s.state, str(version), lag_cell(s, latest),
+                     str(s.env_steps), f"{s.steps_per_s:.0f}", _infer_cell(s), str(restarts.get(name, 0)), _lanes(s)])
     widths = [max(len(r[i]) for r in [header] + rows) for i in range(len(header))]
     lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in [header] + rows]
     return "\n".join(lines)

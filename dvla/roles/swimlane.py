@@ -735,8 +735,9 @@ class LatencyHistogram:
 def histogram_diff(later: dict[str, int], earlier: dict[str, int]) -> dict[str, int]:
     """Counts recorded between two readings of one label's buckets."""
     out = {}
-    for b, n in later.items():
-        d = int(n) - int(earlier.get(b, 0))
+    for b in sorted(set(later) | set(earlier), key=int):
+        n = int(later.get(b, 0))
+        d = n - int(earlier.get(b, 0))
         if d < 0:
             raise ValueError(f"bucket {b} went down ({earlier.get(b)} -> {n}): readings of different lanes?")
         if d:

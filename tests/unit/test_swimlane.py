@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import sys
@@ -12,12 +13,18 @@ import types
 import pytest
 
 from dvla.roles.swimlane import (
+    LATENCY_BUCKET_RATIO,
     BoundedQueue,
     LaneContext,
     LaneError,
     LaneStats,
+    LatencyHistogram,
     Swimlane,
+    bucket_upper_ms,
     current_lane,
+    histogram_diff,
+    histogram_percentile,
+    latency_bucket,
     pin_cpus,
     set_torch_threads,
 )
@@ -476,3 +483,199 @@ def test_set_torch_threads_tolerates_locked_interop(
 def test_set_torch_threads_without_torch(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(sys.modules, "torch", None)  # makes `import torch` raise ImportError
     assert set_torch_threads(1) is None
+
+
+# -- a role whose lane fails --------------------------------------------------------------------
+
+
+class _FailingRole:
+    """A role with a healthy lane and one that raises after a few items."""
+
+    policy_version = 0
+    env_steps = 0
+
+    def build(self, sl: Swimlane) -> None:
+        sl.lane("ship", _idle)
+        sl.lane("infer", self._infer)
+
+    def _infer(self, ctx: LaneContext) -> None:
+        for _ in range(3):
+            with ctx.busy():
+                ctx.count()
+        raise RuntimeError("policy forward failed")
+
+    def status_extra(self) -> dict[str, object]:
+        return {}
+
+    def close(self) -> None:
+        pass
+
+
+def test_role_with_a_failing_lane_exits_with_an_error_naming_the_lane(tmp_path) -> None:
+    """RoleHost over a real (loopback-only) fabric: the lane error ends the role, not a thread."""
+    from dvla.config import PlaneEndpoints, ReplicationConfig, RoleConfig, TaskConfig
+    from dvla.fabric import Fabric, plane_config
+    from dvla.roles.runtime import ExitStatus, RoleHost
+
+    cfg = RoleConfig(
+        name="rollout-n0-0", kind="rollout", run="lanefail", node="n0", rack="r0", seed=1, mode="async",
+        run_dir=str(tmp_path), data=PlaneEndpoints(), ctrl=PlaneEndpoints(mode="peer"),
+        shared_memory=False, parent="actor-n0-0", ancestors=("actor-n0-0",), children=(), actors=(),
+        rollouts=(), task=TaskConfig(), replication=ReplicationConfig(),
+    )
+    conf = plane_config(mode="peer", listen=("tcp/127.0.0.1:0",))
+    fabric = Fabric(run=cfg.run, name=cfg.name, ctrl_conf=conf, data_conf=None, secret=b"k" * 32)
+    try:
+        host = RoleHost(cfg, fabric, _FailingRole())
+        t0 = time.monotonic()
+        code = host.run()
+        elapsed = time.monotonic() - t0
+        status = host.status()
+    finally:
+        fabric.close()
+    assert code == ExitStatus.ERROR
+    assert elapsed < 5.0
+    assert host.state == "error"
+    assert host.swimlane.error is not None and host.swimlane.error.lane == "infer"
+    assert status.lanes["infer"]["errors"] == 1.0 and status.lanes["infer"]["items"] == 3.0
+    assert status.lanes["ship"]["alive"] == 0.0, "the healthy lane must have been stopped too"
+    summary = json.loads((tmp_path / "summaries" / "rollout-n0-0.json").read_text())
+    assert "rollout-n0-0/infer" in summary["error"] and "policy forward failed" in summary["error"]
+
+
+def test_stop_joins_every_lane_within_two_seconds_under_load() -> None:
+    """Lanes busy in short work items, blocked on full and empty queues: all gone within 2 s."""
+    q_full: BoundedQueue[int] = BoundedQueue(2, "chunks")
+    q_empty: BoundedQueue[int] = BoundedQueue(2, "obs")
+
+    def producer(ctx: LaneContext) -> None:
+        i = 0
+        while ctx.running:
+            if not q_full.put(i, ctx.stop):
+                return
+            i += 1
+
+    def spinner(ctx: LaneContext) -> None:
+        while ctx.running:
+            with ctx.busy():
+                sum(range(20_000))  # a short item of real work between stop checks
+            ctx.count()
+
+    sl = Swimlane("actor")
+    sl.lane("ingest", producer)
+    sl.lane("batch", lambda ctx: q_empty.get(ctx.stop) and None)
+    sl.lane("learn", spinner)
+    sl.lane("publish", spinner)
+    sl.start()
+    time.sleep(0.3)
+    assert q_full.depth == 2 and sl.state == "running"
+    t0 = time.monotonic()
+    stuck = sl.close(timeout=2.0)
+    assert stuck == [] and time.monotonic() - t0 < 2.0
+    assert not any(st["alive"] for st in sl.stats().values())
+    assert sl.stats()["learn"]["items"] > 0
+
+
+def test_swimlane_queues_are_bounded_and_reported() -> None:
+    sl = Swimlane("rollout")
+    q = sl.queue("chunks", 3)
+    with pytest.raises(ValueError):
+        sl.queue("chunks", 3)
+    for i in range(10):
+        q.put_nowait_or_drop(i)
+    st = sl.status()["queues"]["chunks"]
+    assert st == {"name": "chunks", "depth": 3, "maxsize": 3, "high_watermark": 3, "dropped": 7}
+
+
+# -- latency histograms -------------------------------------------------------------------------
+
+
+def test_latency_bucket_edges_bound_their_values() -> None:
+    for ms in (0.0, 0.0005, 0.001, 0.0123, 0.5, 1.0, 1.7, 33.3, 2500.0):
+        b = latency_bucket(ms)
+        assert bucket_upper_ms(b) >= ms * (1 - 1e-9)
+        if b > 0:
+            assert bucket_upper_ms(b - 1) < ms
+    assert bucket_upper_ms(latency_bucket(10.0)) <= 10.0 * LATENCY_BUCKET_RATIO
+
+
+def test_latency_histogram_percentiles_and_window_diff() -> None:
+    h = LatencyHistogram(("swap", "no_swap"))
+    for _ in range(50):
+        h.record("no_swap", 100.0)  # warm-up: slow
+    before = h.counts()
+    for i in range(1, 101):
+        h.record("no_swap", float(i) / 10)  # 0.1 .. 10.0 ms
+    h.record("swap", 2.0)
+    after = h.counts()
+    window = histogram_diff(after["no_swap"], before["no_swap"])
+    assert sum(window.values()) == 100
+    assert histogram_percentile(window, 50) == pytest.approx(5.0, rel=0.021)
+    assert histogram_percentile(window, 99) == pytest.approx(9.9, rel=0.021)
+    assert histogram_percentile(window, 100) == pytest.approx(10.0, rel=0.021)
+    # Without the diff the warm-up dominates the tail.
+    assert histogram_percentile(after["no_swap"], 99) == pytest.approx(100.0, rel=0.021)
+    assert histogram_diff(after["swap"], before["swap"]) == {str(latency_bucket(2.0)): 1}
+    assert histogram_percentile({}, 99) == 0.0
+    summary = h.summary()
+    assert summary["swap_n"] == 1 and summary["no_swap_n"] == 150
+    with pytest.raises(ValueError):
+        histogram_diff(before["no_swap"], after["no_swap"])  # counts never go down
+    with pytest.raises(KeyError):
+        h.record("other", 1.0)
+    with pytest.raises(ValueError):
+        LatencyHistogram(())
+
+
+def test_latency_histogram_counts_every_sample_from_a_lane_while_read() -> None:
+    h = LatencyHistogram(("no_swap",))
+    n = 20_000
+
+    def writer(ctx: LaneContext) -> None:
+        for i in range(n):
+            h.record("no_swap", 0.01 * (i % 100 + 1))
+
+    sl = Swimlane("rollout")
+    sl.lane("infer", writer)
+    sl.start()
+    while not sl.wait(timeout=0.001):
+        json.dumps(h.counts())  # a status thread reading concurrently
+    assert sl.join() == [] and sl.error is None
+    assert sum(h.counts()["no_swap"].values()) == n
+
+
+# -- lanes in `dvla status` ---------------------------------------------------------------------
+
+
+def _status(name: str, kind: str, version: int, lanes: dict[str, float], **extra: object):
+    from dvla.fabric.messages import RoleStatus
+
+    sl = {lane: {"busy_s": u * 10, "wait_s": 0.0, "items": 5.0, "utilisation": u} for lane, u in lanes.items()}
+    return RoleStatus(name=name, kind=kind, node="node0", rack="rack0", pid=1, state="running",
+                      policy_version=version, env_steps=100, steps_per_s=10.0, lanes=sl, extra=dict(extra),
+                      time_ns=time.time_ns())
+
+
+def test_status_shows_every_lane_utilisation_and_rollout_lag() -> None:
+    from dvla.orchestrator.view import render_json, render_table
+
+    statuses = {
+        "actor-node0-0": _status("actor-node0-0", "actor", 6, {"ingest": 0.05, "learn": 0.93},
+                                 published_version=9, policy_lag_mean=1.25),
+        "rollout-node0-0": _status("rollout-node0-0", "rollout", 7, {"sim": 0.81, "infer": 0.12}),
+        "rollout-node0-1": _status("rollout-node0-1", "rollout", 9, {"sim": 0.5, "infer": 0.2}),
+    }
+    table = render_table(statuses, expected=[*statuses, "evaluator-node0-0"])
+    rows = {line.split()[0]: line for line in table.splitlines()[1:]}
+    assert "LAG" in table.splitlines()[0] and "LANES" in table.splitlines()[0]
+    assert rows["rollout-node0-0"].split()[5] == "2"  # published 9, acting with 7
+    assert rows["rollout-node0-1"].split()[5] == "0"
+    assert rows["actor-node0-0"].split()[4:6] == ["9", "~1.2"]
+    assert "sim 81%" in rows["rollout-node0-0"] and "infer 12%" in rows["rollout-node0-0"]
+    assert "ingest 5%" in rows["actor-node0-0"] and "learn 93%" in rows["actor-node0-0"]
+    assert "silent" in rows["evaluator-node0-0"]
+    doc = json.loads(render_json(statuses))
+    by_name = {r["name"]: r for r in doc["roles"]}
+    assert by_name["rollout-node0-0"]["policy_lag"] == 2
+    assert by_name["rollout-node0-0"]["lane_utilisation"] == {"sim": 0.81, "infer": 0.12}
+    assert by_name["actor-node0-0"]["policy_lag"] is None
