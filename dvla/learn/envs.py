@@ -5,8 +5,18 @@ This module owns everything that touches a simulator:
 * :func:`make_env` builds one Gymnasium env from a :class:`~dvla.config.TaskConfig` (a ManiSkill3
   id, or a user ``"module:factory"``).
 * :class:`EnvGroup` steps ``n`` such envs sequentially in one process and hides the simulator's
-  types: callers get float32/bool numpy arrays with a leading env axis, auto-reset included.
+  types: callers get numpy arrays with a leading env axis, auto-reset included.
 * :func:`run_eval_episodes` plays deterministic episodes and reports success rates.
+
+Observations come in two forms, described by :attr:`EnvGroup.obs_spec`:
+
+* flat (``obs_mode="state"`` or any env with a Box observation space): one float32 array
+  ``[n, D]``, whose spec is ``{"state": ArraySpec((D,), "float32")}``;
+* structured (``obs_mode="rgb"``): a dict of arrays, every one with the env axis first:
+  ``"rgb"`` uint8 ``[n, H, W, 3 * cameras]`` (cameras side by side on the channel axis, kept
+  uint8 all the way to the policy), ``"proprio"`` float32 ``[n, 18]`` (``agent.qpos`` then
+  ``agent.qvel``) and ``"tokens"`` int32 ``[n, L]`` (the task instruction, see
+  :mod:`dvla.learn.vla.tokenizer`). These names are exactly the trajectory chunk's obs keys.
 
 Torch is used only to unwrap ManiSkill's tensors and to call the policy during evaluation.
 """
@@ -22,7 +32,43 @@ import numpy as np
 
 from dvla.config import TaskConfig
 
-__all__ = ["make_env", "resolve_sim_backend", "EnvGroup", "StepResult", "run_eval_episodes"]
+__all__ = [
+    "make_env", "resolve_sim_backend", "ArraySpec", "ObsSpec", "EnvGroup", "StepResult", "run_eval_episodes",
+    "obs_as_dict", "obs_to_torch",
+]
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """Shape (without the env axis) and dtype of one observation array."""
+
+    #: per-env shape, e.g. (64, 64, 3)
+    shape: tuple[int, ...]
+    #: numpy dtype name: "float32", "uint8" or "int32"
+    dtype: str
+    #: token arrays: ids lie in [0, vocab) (None for other arrays)
+    vocab: int | None = None
+
+
+ObsSpec = dict[str, ArraySpec]
+"""Observation name -> :class:`ArraySpec`; the names are the trajectory chunk's obs keys."""
+
+
+def obs_as_dict(obs: Any) -> dict[str, np.ndarray]:
+    """A flat observation array as ``{"state": obs}``; a dict as it is."""
+    return obs if isinstance(obs, dict) else {"state": obs}
+
+
+def obs_to_torch(obs: Any, device: Any = "cpu") -> Any:
+    """What a policy is called with: a tensor for flat observations, a dict of tensors otherwise.
+
+    Dtypes are kept (images stay uint8; the policy converts them).
+    """
+    import torch
+
+    if isinstance(obs, dict):
+        return {k: torch.as_tensor(v, device=device) for k, v in obs.items()}
+    return torch.as_tensor(obs, device=device)
 
 
 def resolve_sim_backend(name: str) -> str:
@@ -56,6 +102,8 @@ def make_env(task: TaskConfig, seed: int) -> Any:
     import gymnasium as gym
     import mani_skill.envs  # noqa: F401  (registers the ManiSkill ids; slow, so imported lazily)
 
+    import torch
+
     backend = resolve_sim_backend(task.sim_backend)
     kwargs: dict[str, Any] = dict(
         obs_mode=task.obs_mode,
@@ -64,8 +112,11 @@ def make_env(task: TaskConfig, seed: int) -> Any:
         num_envs=1,
         max_episode_steps=task.max_episode_steps,
     )
-    if backend == "physx_cpu":
-        # The default render backend wants a GPU; state obs never render, rgb uses the CPU path.
+    if task.obs_mode != "state":
+        kwargs["sensor_configs"] = dict(width=task.image_size, height=task.image_size)
+    if not torch.cuda.is_available():
+        # ManiSkill's default render backend wants a GPU; without one, render on the CPU
+        # (SAPIEN through a software Vulkan driver). With CUDA the GPU renderer is kept.
         kwargs["render_backend"] = "cpu"
     return gym.make(task.env, **kwargs)
 
@@ -78,12 +129,28 @@ def _to_numpy(x: Any) -> np.ndarray:
 
 def _flat_obs(obs: Any) -> np.ndarray:
     """A flat float32 vector from one env's observation (drops ManiSkill's batch dim of 1)."""
-    if isinstance(obs, dict):
-        raise TypeError(
-            "EnvGroup needs array observations; wrap dict observations (e.g. obs_mode='rgb') "
-            "in a flattening wrapper inside a 'module:factory' env"
-        )
     return _to_numpy(obs).astype(np.float32, copy=False).reshape(-1)
+
+
+def _structured_obs(obs: dict, tokens: np.ndarray) -> dict[str, np.ndarray]:
+    """rgb / proprio / tokens of one env from ManiSkill's rgb observation dict (batch dim 1)."""
+    try:
+        cameras = obs["sensor_data"]
+        images = [_to_numpy(cameras[name]["rgb"])[0] for name in sorted(cameras)]
+        agent = obs["agent"]
+        proprio = np.concatenate([_to_numpy(agent["qpos"]).reshape(-1), _to_numpy(agent["qvel"]).reshape(-1)])
+    except (KeyError, TypeError) as err:
+        raise TypeError(
+            f"dict observation without sensor_data/<camera>/rgb and agent/qpos, agent/qvel "
+            f"(top-level keys {sorted(obs)}); only ManiSkill's obs_mode='rgb' is understood"
+        ) from err
+    if not images:
+        raise TypeError("obs_mode='rgb' produced no camera image (sensor_data is empty)")
+    return {
+        "rgb": np.concatenate(images, axis=-1).astype(np.uint8, copy=False),
+        "proprio": proprio.astype(np.float32, copy=False),
+        "tokens": tokens,
+    }
 
 
 def _scalar(x: Any, dtype: type) -> Any:
@@ -100,16 +167,17 @@ def _single_space(env: Any, name: str) -> Any:
 class StepResult:
     """What :meth:`EnvGroup.step` returns; every array has a leading env axis of length n."""
 
-    #: observations to act on next, float32 [n, D]; already reset where the episode ended
-    next_obs: np.ndarray
+    #: observations to act on next, float32 [n, D] (a dict of [n, ...] arrays when structured);
+    #: already reset where the episode ended
+    next_obs: Any
     #: rewards, float32 [n]
     reward: np.ndarray
     #: the episode reached a terminal state (no bootstrap), bool [n]
     terminated: np.ndarray
     #: the episode hit its time limit (bootstrap from final_obs), bool [n]
     truncated: np.ndarray
-    #: observation reached before the auto-reset, float32 [n, D]; zeros where not episode_done
-    final_obs: np.ndarray
+    #: observation reached before the auto-reset, same form as next_obs; zeros where not episode_done
+    final_obs: Any
     #: info["success"] of this step (False when the env reports none), bool [n]
     success: np.ndarray
     #: the episode ended at this step and the env was reset, bool [n]
@@ -120,22 +188,36 @@ class EnvGroup:
     """``n`` envs of one task stepped one after another in this process.
 
     Seeding: env ``i`` plays its ``k``-th episode (counted from the last seeded reset) with seed
-    ``base + k * n + i``, so episode ``j = k * n + i`` of the group always uses ``base + j``
-    whatever ``n`` is, and no two episodes of the group repeat an initial state. ``base`` is the
-    constructor seed until :meth:`reset` is given another. Groups in different processes must
-    therefore get seeds further apart than the episodes they will play (e.g. ``seed * 10**6``),
-    or they replay each other's initial states.
+    ``base + (k * n + i) // group_size``. With ``group_size`` 1 (the default) episode
+    ``j = k * n + i`` of the group always uses ``base + j`` whatever ``n`` is, and no two
+    episodes of the group repeat an initial state. With ``group_size`` G (GRPO) envs
+    ``G*m .. G*m + G-1`` play their k-th episodes from one shared seed: G episodes per initial
+    state. ``base`` is the constructor seed until :meth:`reset` is given another. Groups in
+    different processes must therefore get seeds further apart than the episodes they will play
+    (e.g. ``seed * 10**6``), or they replay each other's initial states.
 
     ``ignore_terminations=True`` plays every episode to its time limit (success does not end
     it); ``terminated`` is then always False. Evaluation uses this so "success at end" means
     something for tasks that terminate on success.
+
+    ``task.action_chunk`` K > 1 makes one :meth:`step` play K simulator steps open loop with the
+    K actions laid side by side (``act_dim`` is K times the env's); rewards add up, success is
+    any sub-step's, and the transition ends early when the episode does. ``task.reward ==
+    "success"`` replaces the env's reward by 1 at the first successful step of an episode.
     """
 
-    def __init__(self, task: TaskConfig, n: int, seed: int, *, ignore_terminations: bool = False):
+    def __init__(
+        self, task: TaskConfig, n: int, seed: int, *, ignore_terminations: bool = False, group_size: int = 1
+    ):
         if n < 1:
             raise ValueError(f"an EnvGroup needs at least one env, got n={n}")
+        if group_size < 1 or n % group_size:
+            raise ValueError(f"group_size {group_size} must be >= 1 and divide the group's {n} envs")
+        if task.action_chunk < 1:
+            raise ValueError(f"task.action_chunk must be >= 1, got {task.action_chunk}")
         self.task = task
         self.n = n
+        self.group_size = group_size
         self.ignore_terminations = ignore_terminations
         self._envs: list[Any] = []
         try:
@@ -148,15 +230,37 @@ class EnvGroup:
         obs_space = _single_space(self._envs[0], "observation_space")
         if getattr(act_space, "shape", None) is None or len(act_space.shape) != 1:
             raise TypeError(f"EnvGroup needs a flat Box action space, got {act_space}")
-        self.act_dim = int(act_space.shape[0])
-        self.action_low = np.asarray(act_space.low, dtype=np.float32).reshape(self.act_dim)
-        self.action_high = np.asarray(act_space.high, dtype=np.float32).reshape(self.act_dim)
-        shape = getattr(obs_space, "shape", None)
-        self.obs_dim = int(np.prod(shape)) if shape else None
+        self.env_act_dim = int(act_space.shape[0])
+        self.chunk = task.action_chunk
+        self.act_dim = self.env_act_dim * self.chunk
+        low = np.asarray(act_space.low, dtype=np.float32).reshape(self.env_act_dim)
+        high = np.asarray(act_space.high, dtype=np.float32).reshape(self.env_act_dim)
+        self.action_low, self.action_high = np.tile(low, self.chunk), np.tile(high, self.chunk)
+        self.structured = hasattr(obs_space, "spaces")  # a gymnasium Dict space
+        self._tokens: np.ndarray | None = None
+        if self.structured:
+            from .vla.instructions import instruction_for
+            from .vla.tokenizer import DEFAULT_VOCAB_SIZE, tokenize
+
+            self.instruction = instruction_for(task.env, task.instruction)
+            self._tokens = tokenize(self.instruction, task.instruction_tokens)
+            self.obs_spec: ObsSpec | None = _structured_spec(obs_space, task.instruction_tokens, DEFAULT_VOCAB_SIZE)
+        else:
+            self.instruction = None
+            shape = getattr(obs_space, "shape", None)
+            self.obs_spec = {"state": ArraySpec((int(np.prod(shape)),), "float32")} if shape else None
         self._base = seed
         self._episode_index = np.zeros(n, dtype=np.int64)
         self._episode_seeds = np.zeros(n, dtype=np.int64)
-        self._obs: np.ndarray | None = None
+        self._succeeded = np.zeros(n, dtype=bool)
+        self._obs: dict[str, np.ndarray] | None = None
+
+    @property
+    def obs_dim(self) -> int | None:
+        """D of flat observations (None for structured ones, or before the first flat reset)."""
+        if self.structured or self.obs_spec is None:
+            return None
+        return self.obs_spec["state"].shape[0]
 
     # --- resets -------------------------------------------------------------------------------
 
@@ -165,20 +269,18 @@ class EnvGroup:
         """Reset seed of the episode each env is playing, int64 [n] (for grouping episodes)."""
         return self._episode_seeds.copy()
 
-    def reset(self, seed: int | None = None) -> np.ndarray:
-        """Start a fresh episode in every env; obs float32 [n, D].
+    def reset(self, seed: int | None = None) -> Any:
+        """Start a fresh episode in every env; returns the observations (see module docstring).
 
-        With ``seed`` the seed schedule restarts from it (episode j of the group uses seed + j),
-        so two resets with the same seed replay the same initial states.
+        With ``seed`` the seed schedule restarts from it, so two resets with the same seed replay
+        the same initial states.
         """
         if seed is not None:
             self._base = seed
             self._episode_index[:] = 0
-        obs = [self._reset_one(i, self._next_seed(i)) for i in range(self.n)]
-        self._obs = np.stack(obs)
-        return self._obs.copy()
+        return self._reset_all([self._next_seed(i) for i in range(self.n)])
 
-    def reset_seeded(self, seeds: Any) -> np.ndarray:
+    def reset_seeded(self, seeds: Any) -> Any:
         """Reset env i with ``seeds[i]`` now (e.g. several envs sharing one initial state).
 
         Later auto-resets continue the group's own schedule.
@@ -186,57 +288,80 @@ class EnvGroup:
         seeds = np.asarray(seeds, dtype=np.int64).reshape(-1)
         if seeds.shape[0] != self.n:
             raise ValueError(f"need {self.n} seeds, got {seeds.shape[0]}")
-        obs = [self._reset_one(i, int(s)) for i, s in enumerate(seeds)]
-        self._obs = np.stack(obs)
-        return self._obs.copy()
+        return self._reset_all([int(s) for s in seeds])
+
+    def _reset_all(self, seeds: list[int]) -> Any:
+        per_env = [self._reset_one(i, s) for i, s in enumerate(seeds)]
+        self._obs = {k: np.stack([o[k] for o in per_env]) for k in per_env[0]}
+        return self._out(self._obs, copy=True)
 
     def _next_seed(self, i: int) -> int:
-        s = self._base + int(self._episode_index[i]) * self.n + i
+        s = self._base + (int(self._episode_index[i]) * self.n + i) // self.group_size
         self._episode_index[i] += 1
         return s
 
-    def _reset_one(self, i: int, seed: int) -> np.ndarray:
+    def _reset_one(self, i: int, seed: int) -> dict[str, np.ndarray]:
         obs, _info = self._envs[i].reset(seed=seed)
         self._episode_seeds[i] = seed
-        return self._check_obs(_flat_obs(obs))
+        self._succeeded[i] = False
+        return self._convert(obs)
 
-    def _check_obs(self, obs: np.ndarray) -> np.ndarray:
-        if self.obs_dim is None:
-            self.obs_dim = obs.shape[0]
-        elif obs.shape[0] != self.obs_dim:
-            raise ValueError(f"observation has {obs.shape[0]} values, expected {self.obs_dim}")
-        return obs
+    def _convert(self, obs: Any) -> dict[str, np.ndarray]:
+        if self.structured:
+            return _structured_obs(obs, self._tokens)
+        flat = _flat_obs(obs)
+        if self.obs_spec is None:
+            self.obs_spec = {"state": ArraySpec((flat.shape[0],), "float32")}
+        elif flat.shape[0] != self.obs_dim:
+            raise ValueError(f"observation has {flat.shape[0]} values, expected {self.obs_dim}")
+        return {"state": flat}
+
+    def _out(self, obs: dict[str, np.ndarray], copy: bool = False) -> Any:
+        if not self.structured:
+            return obs["state"].copy() if copy else obs["state"]
+        return {k: v.copy() for k, v in obs.items()} if copy else obs
 
     # --- stepping -----------------------------------------------------------------------------
 
     def step(self, actions: Any) -> StepResult:
-        """Apply ``actions`` [n, A] (clipped to the action space); auto-reset ended episodes."""
+        """Apply ``actions`` [n, act_dim] (clipped to the action space); auto-reset ended episodes."""
         if self._obs is None:
             raise RuntimeError("call reset() before step()")
         actions = np.asarray(actions, dtype=np.float32).reshape(self.n, self.act_dim)
         actions = np.clip(actions, self.action_low, self.action_high)
-        n, d = self.n, self.obs_dim
-        next_obs = np.empty((n, d), dtype=np.float32)
-        final_obs = np.zeros((n, d), dtype=np.float32)
-        reward = np.empty(n, dtype=np.float32)
+        n, a = self.n, self.env_act_dim
+        next_obs = {k: np.empty_like(v) for k, v in self._obs.items()}
+        final_obs = {k: np.zeros_like(v) for k, v in self._obs.items()}
+        reward = np.zeros(n, dtype=np.float32)
         terminated = np.zeros(n, dtype=bool)
         truncated = np.zeros(n, dtype=bool)
         success = np.zeros(n, dtype=bool)
         for i, env in enumerate(self._envs):
-            obs, r, term, trunc, info = env.step(actions[i])
-            obs = self._check_obs(_flat_obs(obs))
-            reward[i] = _scalar(r, float)
-            terminated[i] = _scalar(term, bool) and not self.ignore_terminations
-            truncated[i] = _scalar(trunc, bool)
-            if "success" in info:
-                success[i] = _scalar(info["success"], bool)
+            for k in range(self.chunk):
+                raw, r, term, trunc, info = env.step(actions[i, k * a : (k + 1) * a])
+                ok = "success" in info and _scalar(info["success"], bool)
+                success[i] |= ok
+                if self.task.reward == "success":
+                    reward[i] += float(ok and not self._succeeded[i])
+                else:
+                    reward[i] += _scalar(r, float)
+                self._succeeded[i] |= ok
+                terminated[i] = _scalar(term, bool) and not self.ignore_terminations
+                truncated[i] = _scalar(trunc, bool)
+                if terminated[i] or truncated[i]:
+                    break
+            obs = self._convert(raw)
             if terminated[i] or truncated[i]:
-                final_obs[i] = obs
+                for key, arr in obs.items():
+                    final_obs[key][i] = arr
                 obs = self._reset_one(i, self._next_seed(i))
-            next_obs[i] = obs
+            for key, arr in obs.items():
+                next_obs[key][i] = arr
         self._obs = next_obs
         done = terminated | truncated
-        return StepResult(next_obs.copy(), reward, terminated, truncated, final_obs, success, done)
+        return StepResult(
+            self._out(next_obs, copy=True), reward, terminated, truncated, self._out(final_obs), success, done
+        )
 
     def close(self) -> None:
         for env in self._envs:
@@ -251,6 +376,28 @@ class EnvGroup:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _structured_spec(space: Any, n_tokens: int, vocab: int) -> ObsSpec:
+    """The spec of :func:`_structured_obs`'s output, read from ManiSkill's Dict space."""
+    try:
+        cameras = space["sensor_data"]
+        shapes = [tuple(cameras[name]["rgb"].shape) for name in sorted(cameras.spaces)]
+        agent = space["agent"]
+        n_proprio = int(np.prod(agent["qpos"].shape) + np.prod(agent["qvel"].shape))
+    except (KeyError, TypeError) as err:
+        raise TypeError(
+            f"observation space without sensor_data/<camera>/rgb and agent/qpos, agent/qvel "
+            f"(keys {sorted(space.spaces)}); only ManiSkill's obs_mode='rgb' is understood"
+        ) from err
+    if not shapes or len({s[:2] for s in shapes}) != 1:
+        raise TypeError(f"cameras must share one image size, got {shapes}")
+    h, w = shapes[0][:2]
+    return {
+        "rgb": ArraySpec((h, w, sum(s[2] for s in shapes)), "uint8"),
+        "proprio": ArraySpec((n_proprio,), "float32"),
+        "tokens": ArraySpec((n_tokens,), "int32", vocab=vocab),
+    }
 
 
 # --- evaluation -------------------------------------------------------------------------------
@@ -303,7 +450,7 @@ def _play_eval(policy: Any, group: EnvGroup, n_episodes: int, seed: int, device:
     started = time.perf_counter()
     while len(returns) < n_episodes:
         with torch.no_grad():
-            action, _, _ = policy.act(torch.as_tensor(obs, device=device), deterministic=True)
+            action, _, _ = policy.act(obs_to_torch(obs, device), deterministic=True)
         res = group.step(action.cpu().numpy())
         active = episode < n_episodes
         env_steps += int(active.sum())

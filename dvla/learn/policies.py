@@ -1,14 +1,20 @@
 """Policies the actor trains and the rollouts run, and the registry naming them.
 
-A task names its policy with ``TaskConfig.policy``: a registry name (``"mlp"``) or
-``"module:Class"`` for a user policy, built by :func:`make_policy` as
-``Class(obs_dim, act_dim, **TaskConfig.policy_kwargs)``.
+A task names its policy with ``TaskConfig.policy``: a registry name (``"mlp"``, ``"tiny-vla"``)
+or ``"module:Class"`` for a user policy, built by :func:`make_policy` as
+``Class(obs, act_dim, **TaskConfig.policy_kwargs)``. ``obs`` is the int ``D`` for flat float32
+observations (``obs_mode="state"``) and an :data:`~dvla.learn.envs.ObsSpec` (name ->
+shape/dtype) for structured ones (``obs_mode="rgb"``: ``rgb``, ``proprio``, ``tokens``).
+docs/policies.md is the full protocol, including what a user policy must respect for weight
+replication.
 
-The policy protocol
--------------------
-A policy is a ``torch.nn.Module`` (its ``state_dict`` is what the replication tree ships, so all
-weights must live in parameters or buffers) with these methods; ``obs`` is float32 ``[B, D]``,
-``action`` float32 ``[B, A]``, every other output ``[B]``:
+The policy protocol (short form)
+--------------------------------
+A policy is a ``torch.nn.Module`` (its floating-point ``state_dict`` entries are what the
+replication tree ships, so all weights must live in parameters or buffers) with these methods;
+``obs`` is a float32 tensor ``[B, D]`` for flat observations and a dict of ``[B, ...]`` tensors
+(images uint8, tokens int32) for structured ones; ``action`` is float32 ``[B, A]``, every other
+output ``[B]``:
 
 * ``act(obs, deterministic=False) -> (action, logprob, value)``: sample an action (the mean when
   ``deterministic``), without gradients. ``logprob`` must be the log-density of exactly the
@@ -25,13 +31,13 @@ from __future__ import annotations
 
 import importlib
 import math
-from typing import Any, Callable, Protocol, Sequence, runtime_checkable
+from typing import Any, Callable, Mapping, Protocol, Sequence, runtime_checkable
 
 import torch
 from torch import Tensor, nn
 from torch.distributions import Normal
 
-__all__ = ["Policy", "MLPPolicy", "register_policy", "make_policy", "registered_policies"]
+__all__ = ["Policy", "MLPPolicy", "register_policy", "make_policy", "policy_obs_arg", "registered_policies"]
 
 
 @runtime_checkable
@@ -67,7 +73,12 @@ def register_policy(name: str) -> Callable[[type], type]:
 
 
 def registered_policies() -> list[str]:
-    return sorted(_REGISTRY)
+    return sorted(set(_REGISTRY) | set(_LAZY))
+
+
+#: built-in policies living in their own modules, imported on first use (torch models of the
+#: VLA package are not needed by state-only runs)
+_LAZY: dict[str, str] = {"tiny-vla": "dvla.learn.vla.model"}
 
 
 def _policy_class(spec: str) -> type:
@@ -77,14 +88,33 @@ def _policy_class(spec: str) -> type:
         if cls is None:
             raise ValueError(f"{spec!r}: module {module_name!r} has no attribute {attr!r}")
         return cls
+    if spec not in _REGISTRY and spec in _LAZY:
+        importlib.import_module(_LAZY[spec])
     if spec not in _REGISTRY:
         raise ValueError(f"unknown policy {spec!r}; registered: {registered_policies()}")
     return _REGISTRY[spec]
 
 
-def make_policy(spec: str, obs_dim: int, act_dim: int, **kwargs: Any) -> nn.Module:
-    """Build a policy from a registry name or ``"module:Class"``."""
-    policy = _policy_class(spec)(obs_dim, act_dim, **kwargs)
+def policy_obs_arg(obs_spec: Mapping[str, Any]) -> Any:
+    """The first constructor argument for observations described by ``obs_spec``: the int D for
+    flat observations (``{"state": (D,) float32}``), the spec itself otherwise."""
+    if set(obs_spec) == {"state"}:
+        return int(obs_spec["state"].shape[0])
+    return dict(obs_spec)
+
+
+def make_policy(spec: str, obs: Any, act_dim: int, **kwargs: Any) -> nn.Module:
+    """Build a policy from a registry name or ``"module:Class"``.
+
+    ``obs`` is an int D (flat observations), or an ObsSpec, which is turned into D when it only
+    holds ``"state"`` (see :func:`policy_obs_arg`).
+    """
+    if isinstance(obs, Mapping):
+        obs = policy_obs_arg(obs)
+    try:
+        policy = _policy_class(spec)(obs, act_dim, **kwargs)
+    except TypeError as err:
+        raise TypeError(f"policy {spec!r} with policy_kwargs {sorted(kwargs)}: {err}") from err
     missing = [m for m in ("act", "evaluate", "value", "state_dict") if not callable(getattr(policy, m, None))]
     if missing:
         raise TypeError(f"policy {spec!r} lacks {missing}; see dvla.learn.policies for the protocol")
@@ -132,6 +162,11 @@ class MLPPolicy(nn.Module):
         obs_norm: bool = False,
     ):
         super().__init__()
+        if isinstance(obs_dim, Mapping):
+            raise TypeError(
+                f"the mlp policy needs flat observations (obs_mode: state), got {sorted(obs_dim)}; "
+                "use policy: tiny-vla for rgb observations"
+            )
         self.obs_dim = int(obs_dim)
         self.act_dim = int(act_dim)
         hidden = tuple(int(h) for h in hidden)

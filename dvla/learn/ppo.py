@@ -214,10 +214,11 @@ class PPOLearner:
         missing = [k for k in BATCH_KEYS if k not in batch]
         if missing:
             raise KeyError(f"batch lacks {missing}")
-        out = {k: torch.as_tensor(batch[k], dtype=torch.float32, device=self.device) for k in BATCH_KEYS}
-        size = out["obs"].shape[0]
-        if any(v.shape[0] != size for v in out.values()):
-            raise ValueError(f"batch arrays disagree on length: { {k: tuple(v.shape) for k, v in out.items()} }")
+        out = {k: torch.as_tensor(batch[k], dtype=torch.float32, device=self.device) for k in BATCH_KEYS if k != "obs"}
+        out["obs"] = _obs_tensors(batch["obs"], self.device)
+        size = _obs_len(out["obs"])
+        if any(v.shape[0] != size for v in _flat_items(out)):
+            raise ValueError(f"batch arrays disagree on length: { {k: tuple(v.shape) for k, v in _flat_items(out, True)} }")
         if size < self.cfg.minibatches:
             raise ValueError(f"batch of {size} is smaller than minibatches={self.cfg.minibatches}")
         return out
@@ -227,7 +228,7 @@ class PPOLearner:
         started = time.perf_counter()
         cfg = self.cfg
         b = self._tensors(batch)
-        size = b["obs"].shape[0]
+        size = _obs_len(b["obs"])
         observe = getattr(self.policy, "observe", None)
         if callable(observe):
             observe(b["obs"])
@@ -241,7 +242,7 @@ class PPOLearner:
             order = torch.randperm(size, generator=self._gen).to(self.device)
             for start in range(0, mb_size * cfg.minibatches, mb_size):
                 idx = order[start : start + mb_size]
-                mb = {k: v[idx] for k, v in b.items()}
+                mb = {k: _take(v, idx) for k, v in b.items()}
                 logprob, entropy, value = self.policy.evaluate(mb["obs"], mb["actions"])
                 kl = _approx_kl(logprob.detach() - start_logprobs[idx])
                 if cfg.target_kl is not None and kl > cfg.target_kl:
@@ -300,6 +301,34 @@ class PPOLearner:
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         self.policy.load_state_dict(state["policy"])
         self.optimizer.load_state_dict(state["optimizer"])
+
+
+# --- structured observations (dict of tensors: uint8 images, int32 tokens, float32 proprio) ----
+
+
+def _obs_tensors(obs: Any, device: torch.device) -> Any:
+    """Flat observations as float32; a dict keeps each array's dtype (images stay uint8)."""
+    if isinstance(obs, Mapping):
+        return {k: torch.as_tensor(v, device=device) for k, v in obs.items()}
+    return torch.as_tensor(obs, dtype=torch.float32, device=device)
+
+
+def _obs_len(obs: Any) -> int:
+    return int(next(iter(obs.values())).shape[0]) if isinstance(obs, Mapping) else int(obs.shape[0])
+
+
+def _take(v: Any, idx: Tensor) -> Any:
+    return {k: a[idx] for k, a in v.items()} if isinstance(v, Mapping) else v[idx]
+
+
+def _flat_items(b: Mapping[str, Any], named: bool = False) -> list:
+    items = []
+    for k, v in b.items():
+        if isinstance(v, Mapping):
+            items += [(f"{k}.{kk}", vv) for kk, vv in v.items()]
+        else:
+            items.append((k, v))
+    return items if named else [v for _, v in items]
 
 
 def _approx_kl(log_ratio: Tensor) -> float:

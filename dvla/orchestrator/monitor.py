@@ -58,7 +58,9 @@ class Monitor:
         self.evals_path = self.run_dir / "evals.csv"
         self._metrics = open(self.metrics_path, "w", newline="")
         self._mw = csv.writer(self._metrics)
-        self._mw.writerow(["time_s", "env_steps", "produced_steps", "steps_per_s", "version", "policy_lag_mean", "roles_up"])
+        self._mw.writerow(["time_s", "env_steps", "produced_steps", "steps_per_s", "version", "policy_lag_mean", "roles_up",
+                           # rollouts' per-step inference latency, the slowest rollout's percentiles
+                           "infer_ms_p50", "infer_ms_p99"])
         self._evals = open(self.evals_path, "w", newline="")
         self._ew = csv.writer(self._evals)
         self._ew.writerow(["time_s", "version", "env_steps", "success_once", "success_at_end", "return_mean", "episodes"])
@@ -86,7 +88,11 @@ class Monitor:
             self._rate_mark = (t, env_steps)
         snap = Snapshot(t, statuses, env_steps, produced, self._rate, int(version))
         lag = actors[0].extra.get("policy_lag_mean", 0.0) if actors else 0.0
-        self._mw.writerow([f"{t:.2f}", env_steps, produced, f"{self._rate:.1f}", version, f"{lag:.2f}", len(statuses)])
+        rollouts = [s.extra for s in statuses.values() if s.kind == "rollout"]
+        p50 = max((float(e.get("infer_ms_p50", 0.0)) for e in rollouts), default=0.0)
+        p99 = max((float(e.get("infer_ms_p99", 0.0)) for e in rollouts), default=0.0)
+        self._mw.writerow([f"{t:.2f}", env_steps, produced, f"{self._rate:.1f}", version, f"{lag:.2f}", len(statuses),
+                           f"{p50:.3f}", f"{p99:.3f}"])
         self._metrics.flush()
         self.last = snap
         self._drain_evals()

@@ -26,7 +26,8 @@ from ..fabric.codec import encode
 from ..fabric.fabric import DATA
 from ..fabric.messages import RoleStatus, TrajectoryChunk, WeightSnapshot
 from ..learn import PPOLearner, compute_gae, make_policy
-from ..learn.dims import probe_dims
+from ..learn.dims import probe_spec
+from ..learn.grpo import group_advantages
 from ..replication import ParamLayout, ReplicationError, WeightEncoder, flatten, unflatten_into
 from .checkpoint import load_checkpoint, save_checkpoint
 from .runtime import main
@@ -44,8 +45,8 @@ class Actor:
         task = cfg.task
         self.device = torch.device(resolve_device(task.device))
         torch.manual_seed(cfg.seed)
-        self.obs_dim, self.act_dim = probe_dims(task)
-        self.policy = make_policy(task.policy, self.obs_dim, self.act_dim, **task.policy_kwargs).to(self.device)
+        self.obs_spec, self.act_dim = probe_spec(task)  # flat: {"state"}; rgb: rgb/proprio/tokens
+        self.policy = make_policy(task.policy, self.obs_spec, self.act_dim, **task.policy_kwargs).to(self.device)
         self.learner = PPOLearner(self.policy, task.ppo, self.device)
         self.layout = ParamLayout.from_state_dict(self.policy.state_dict())
         self.ckpt_dir = Path(cfg.run_dir) / "checkpoints"
@@ -61,7 +62,7 @@ class Actor:
         chunks_per_batch = -(-task.ppo.batch_steps // (task.chunk_steps * max(1, task.envs_per_rollout // 2)))
         self.slots = SlotPool(
             n_slots=3 * chunks_per_batch + 8, T=task.chunk_steps, n_max=n_group,
-            obs_dim=self.obs_dim, act_dim=self.act_dim, pin=self.device.type == "cuda",
+            obs_spec=self.obs_spec, act_dim=self.act_dim, pin=self.device.type == "cuda",
         )
         self.policy_version = start
         self.published_version = start
@@ -217,14 +218,23 @@ class Actor:
             self.versions.put(flat, ctx.stop, stats=ctx.stats)
             ctx.count()
 
-    def _advantages(self, b: dict[str, torch.Tensor], ppo: Any) -> dict[str, torch.Tensor]:
+    def _advantages(self, b: dict[str, Any], ppo: Any) -> dict[str, Any]:
         """Values of the current critic and GAE over [T, N] (N = envs of every slot stacked)."""
         T, N = b["rewards"].shape
-        with torch.no_grad():
-            values = self.policy.value(b["obs"].reshape(T * N, -1)).reshape(T, N)
-            final_v = self.policy.value(b["final_obs"].reshape(T * N, -1)).reshape(T, N)
-            last_v = self.policy.value(b["next_obs"]).reshape(N)
+        obs = _policy_obs(b["obs"], 2)
+        if self.cfg.task.algorithm == "grpo":
+            return self._grpo_advantages(b, obs, ppo)
         ended = b["terminated"] | b["truncated"]
+        with torch.no_grad():
+            values = self.policy.value(obs).reshape(T, N)
+            # V(final_obs) only where an episode ended (elsewhere final_obs is zeros)
+            final_v = torch.zeros_like(values)
+            rows = ended.reshape(-1).nonzero().squeeze(1)
+            if rows.numel():
+                final = _policy_obs(b["final_obs"], 2)
+                final = {k: v[rows] for k, v in final.items()} if isinstance(final, dict) else final[rows]
+                final_v.view(-1)[rows] = self.policy.value(final)
+            last_v = self.policy.value(_policy_obs(b["next_obs"], 1)).reshape(N)
         next_values = torch.empty_like(values)
         next_values[:-1] = values[1:]
         next_values[-1] = last_v
@@ -234,12 +244,30 @@ class Actor:
             b["rewards"] * ppo.reward_scale, values, next_values, no_bootstrap, ended, ppo.gamma, ppo.gae_lambda
         )
         return {
-            "obs": b["obs"].reshape(T * N, -1),
+            "obs": obs,
             "actions": b["actions"].reshape(T * N, -1),
             "logprobs": b["logprobs"].reshape(T * N),
             "advantages": adv.reshape(T * N),
             "returns": ret.reshape(T * N),
             "values": values.reshape(T * N),
+        }
+
+    def _grpo_advantages(self, b: dict[str, Any], obs: Any, ppo: Any) -> dict[str, Any]:
+        """GRPO: each column is one whole episode, G adjacent columns one group (dvla/learn/grpo.py).
+
+        No critic: the value head is trained towards 0 (returns = 0), which costs little and keeps
+        the batch format of PPO.
+        """
+        T, N = b["rewards"].shape
+        adv = group_advantages(b["rewards"] * ppo.reward_scale, b["terminated"], b["truncated"], self.cfg.task.group_size)
+        zeros = torch.zeros(T * N, device=adv.device)
+        return {
+            "obs": obs,
+            "actions": b["actions"].reshape(T * N, -1),
+            "logprobs": b["logprobs"].reshape(T * N),
+            "advantages": adv.reshape(T * N),
+            "returns": zeros,
+            "values": zeros,
         }
 
     def _publish(self, ctx: LaneContext) -> None:
@@ -306,6 +334,13 @@ class Actor:
 
     def close(self) -> None:
         pass
+
+
+def _policy_obs(obs: dict[str, torch.Tensor], lead: int) -> Any:
+    """Stacked observations as the policy takes them: the ``lead`` leading axes ([T, N] or [N])
+    merged into one; the bare tensor for flat observations, the dict for structured ones."""
+    flat = {k: v.reshape(-1, *v.shape[lead:]) for k, v in obs.items()}
+    return flat["state"] if set(flat) == {"state"} else flat
 
 
 if __name__ == "__main__":

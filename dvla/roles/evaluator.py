@@ -35,7 +35,7 @@ class Evaluator:
         self.fabric = fabric
         task = cfg.task
         self.group = EnvGroup(task, min(8, task.eval.episodes), cfg.seed + task.eval.seed_offset, ignore_terminations=True)
-        self.policy = make_policy(task.policy, self.group.obs_dim, self.group.act_dim, **task.policy_kwargs).eval()
+        self.policy = make_policy(task.policy, self.group.obs_spec, self.group.act_dim, **task.policy_kwargs).eval()
         self.layout = ParamLayout.from_state_dict(self.policy.state_dict())
         self.policy_version = -1
         self.env_steps = 0

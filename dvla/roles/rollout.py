@@ -29,6 +29,8 @@ from ..config import RoleConfig
 from ..fabric import Fabric
 from ..fabric.messages import TrajectoryChunk
 from ..learn import EnvGroup, make_policy
+from ..learn.envs import obs_as_dict, obs_to_torch
+from ..learn.grpo import grpo_envs
 from ..replication import ParamLayout, unflatten_into
 from .runtime import main
 from .swimlane import LaneContext, LatencyHistogram, Swimlane
@@ -108,11 +110,11 @@ class Rollout:
         self.groups: list[_Group] = []
         seed = cfg.seed * 10_000
         for gid, size in enumerate(sizes):
-            envs = EnvGroup(task, size, seed + gid * 1000)
+            envs = EnvGroup(task, size, seed + gid * 1000, **grpo_envs(task))
             self.groups.append(_Group(gid, envs, envs.reset()))
         g0 = self.groups[0].envs
-        self.obs_dim, self.act_dim = g0.obs_dim, g0.act_dim
-        self.pool = PolicyPool(lambda: make_policy(task.policy, self.obs_dim, self.act_dim, **task.policy_kwargs).eval())
+        self.obs_spec, self.act_dim = g0.obs_spec, g0.act_dim  # flat: {"state"}; rgb: rgb/proprio/tokens
+        self.pool = PolicyPool(lambda: make_policy(task.policy, self.obs_spec, self.act_dim, **task.policy_kwargs).eval())
         self.T = task.chunk_steps
         for g in self.groups:
             g.buf = self._alloc(g.envs.n)
@@ -137,16 +139,17 @@ class Rollout:
         return self.pool.active_version
 
     def _alloc(self, n: int) -> dict[str, np.ndarray]:
-        T, D, A = self.T, self.obs_dim, self.act_dim
+        T, A = self.T, self.act_dim
         return {
-            "obs": np.zeros((T, n, D), np.float32),
+            # observations keep their dtype (uint8 images) all the way to the wire
+            "obs": {k: np.zeros((T, n, *s.shape), s.dtype) for k, s in self.obs_spec.items()},
             "actions": np.zeros((T, n, A), np.float32),
             "logprobs": np.zeros((T, n), np.float32),
             "rewards": np.zeros((T, n), np.float32),
             "terminated": np.zeros((T, n), bool),
             "truncated": np.zeros((T, n), bool),
             "success": np.zeros((T, n), bool),
-            "final_obs": np.zeros((T, n, D), np.float32),
+            "final_obs": {k: np.zeros((T, n, *s.shape), s.dtype) for k, s in self.obs_spec.items()},
         }
 
     # -- wiring -------------------------------------------------------------------------------
@@ -188,7 +191,7 @@ class Rollout:
                 g = self.groups[gid]
                 t0 = time.perf_counter()
                 with torch.no_grad():
-                    obs = torch.from_numpy(g.obs)
+                    obs = obs_to_torch(g.obs)
                     action, logprob, _ = self.pool.active.act(obs)
                 ms = (time.perf_counter() - t0) * 1e3
                 seq1 = self.pool.stage_seq
@@ -237,7 +240,8 @@ class Rollout:
 
     def _record_step(self, g: _Group, actions: np.ndarray, logprobs: np.ndarray, version: int) -> None:
         b, t = g.buf, g.t
-        b["obs"][t] = g.obs
+        for k, v in obs_as_dict(g.obs).items():
+            b["obs"][k][t] = v
         step = g.envs.step(actions)
         b["actions"][t] = actions  # as sampled: the log-probs are of these, the env clips
         b["logprobs"][t] = logprobs
@@ -245,7 +249,8 @@ class Rollout:
         b["terminated"][t] = step.terminated
         b["truncated"][t] = step.truncated
         b["success"][t] = step.success
-        b["final_obs"][t] = step.final_obs
+        for k, v in obs_as_dict(step.final_obs).items():
+            b["final_obs"][k][t] = v
         g.obs = step.next_obs
         g.versions.append(version)
         g.t += 1
@@ -262,15 +267,15 @@ class Rollout:
             seq=self.seq,
             policy_version=min(g.versions),
             env_steps=self.T * g.envs.n,
-            obs={"state": b["obs"]},
+            obs=b["obs"],
             actions=b["actions"],
             logprobs=b["logprobs"],
             rewards=b["rewards"],
             terminated=b["terminated"],
             truncated=b["truncated"],
             success=b["success"],
-            next_obs={"state": g.obs.copy()},
-            final_obs={"state": b["final_obs"]},
+            next_obs={k: v.copy() for k, v in obs_as_dict(g.obs).items()},
+            final_obs=b["final_obs"],
             created_ns=time.time_ns(),
         )
         self.seq += 1

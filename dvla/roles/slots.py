@@ -1,7 +1,8 @@
 """The actor's trajectory pool: fixed-size slots allocated once (pinned host memory on CUDA).
 
 `ingest` decodes a chunk straight into a free slot; `batch` stacks slots into a learner batch and
-releases them. No allocation happens per chunk in steady state; when every slot is taken,
+releases them. Observations are one array per obs key (``{"state"}`` for flat observations;
+``rgb``/``proprio``/``tokens`` for structured ones), each in its wire dtype (images stay uint8). No allocation happens per chunk in steady state; when every slot is taken,
 `acquire` waits, the data-plane inbox fills, and backpressure reaches the rollouts.
 """
 
@@ -9,6 +10,7 @@ from __future__ import annotations
 
 import queue
 import threading
+from typing import Any, Mapping, NamedTuple
 
 import numpy as np
 import torch
@@ -16,22 +18,39 @@ import torch
 from ..fabric.messages import TrajectoryChunk
 
 _FIELDS_TN = ("logprobs", "rewards", "terminated", "truncated", "success")
+_TORCH_DTYPES = {"float32": torch.float32, "uint8": torch.uint8, "int32": torch.int32}
+"""Observation dtypes a slot can hold (numpy name -> torch dtype)."""
+
+
+class _Spec(NamedTuple):
+    shape: tuple[int, ...]
+    dtype: str
 
 
 class SlotPool:
     """`n_slots` slots of [T, n_max, ...] arrays; a chunk may use fewer than n_max env columns."""
 
-    def __init__(self, *, n_slots: int, T: int, n_max: int, obs_dim: int, act_dim: int, pin: bool = False) -> None:
+    def __init__(
+        self, *, n_slots: int, T: int, n_max: int, act_dim: int, obs_dim: int | None = None,
+        obs_spec: Mapping[str, Any] | None = None, pin: bool = False,
+    ) -> None:
+        """``obs_spec`` (name -> spec with ``shape`` and numpy ``dtype``) or, for flat
+        observations, ``obs_dim`` D (the same as ``{"state": ((D,), float32)}``)."""
         self.n_slots, self.T, self.n_max = n_slots, T, n_max
+        if obs_spec is None:
+            if obs_dim is None:
+                raise ValueError("SlotPool needs obs_spec or obs_dim")
+            obs_spec = {"state": _Spec((obs_dim,), "float32")}
 
         def alloc(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
             t = torch.zeros(shape, dtype=dtype)
             return t.pin_memory() if pin else t
 
         S = n_slots
-        self.obs = alloc((S, T, n_max, obs_dim), torch.float32)
-        self.final_obs = alloc((S, T, n_max, obs_dim), torch.float32)
-        self.next_obs = alloc((S, n_max, obs_dim), torch.float32)
+        dtypes = {k: _TORCH_DTYPES[np.dtype(v.dtype).name] for k, v in obs_spec.items()}
+        self.obs = {k: alloc((S, T, n_max, *v.shape), dtypes[k]) for k, v in obs_spec.items()}
+        self.final_obs = {k: alloc((S, T, n_max, *v.shape), dtypes[k]) for k, v in obs_spec.items()}
+        self.next_obs = {k: alloc((S, n_max, *v.shape), dtypes[k]) for k, v in obs_spec.items()}
         self.actions = alloc((S, T, n_max, act_dim), torch.float32)
         self.tn = {
             "logprobs": alloc((S, T, n_max), torch.float32),
@@ -63,17 +82,20 @@ class SlotPool:
 
     def fill(self, slot: int, c: TrajectoryChunk) -> str | None:
         """Copy a chunk into `slot`; returns a reason string when its shape does not fit."""
-        state = c.obs.get("state")
-        if state is None or "state" not in c.next_obs or "state" not in c.final_obs:
-            return "no 'state' observation"
+        if c.obs.keys() != self.obs.keys():
+            return f"observation keys {sorted(c.obs)} != the policy's {sorted(self.obs)}"
         T, n = c.rewards.shape
         if T != self.T or not 1 <= n <= self.n_max:
             return f"chunk shape T={T}, N={n} does not fit slots of T={self.T}, N<={self.n_max}"
-        if state.shape[2:] != self.obs.shape[3:] or c.actions.shape[2:] != self.actions.shape[3:]:
-            return f"obs {state.shape} / actions {c.actions.shape} do not match the policy"
-        self.obs[slot, :, :n] = torch.from_numpy(np.ascontiguousarray(state))
-        self.final_obs[slot, :, :n] = torch.from_numpy(np.ascontiguousarray(c.final_obs["state"]))
-        self.next_obs[slot, :n] = torch.from_numpy(np.ascontiguousarray(c.next_obs["state"]))
+        if c.actions.shape[2:] != self.actions.shape[3:]:
+            return f"actions {c.actions.shape} do not match the policy"
+        for k, arr in c.obs.items():
+            if arr.shape[2:] != self.obs[k].shape[3:] or _TORCH_DTYPES.get(arr.dtype.name) != self.obs[k].dtype:
+                return f"obs[{k!r}] {arr.dtype}{list(arr.shape)} does not match the policy"
+        for k in self.obs:
+            self.obs[k][slot, :, :n] = torch.from_numpy(np.ascontiguousarray(c.obs[k]))
+            self.final_obs[k][slot, :, :n] = torch.from_numpy(np.ascontiguousarray(c.final_obs[k]))
+            self.next_obs[k][slot, :n] = torch.from_numpy(np.ascontiguousarray(c.next_obs[k]))
         self.actions[slot, :, :n] = torch.from_numpy(np.ascontiguousarray(c.actions))
         for name in _FIELDS_TN:
             self.tn[name][slot, :, :n] = torch.from_numpy(np.ascontiguousarray(getattr(c, name)))
@@ -91,18 +113,19 @@ class SlotPool:
     def rollout(self, slot: int) -> str:
         return self._rollout[slot]
 
-    def stack(self, slots: list[int], device: torch.device) -> dict[str, torch.Tensor]:
-        """One [T, N_total, ...] batch on `device` from the given slots (env columns side by side)."""
+    def stack(self, slots: list[int], device: torch.device) -> dict[str, Any]:
+        """One [T, N_total, ...] batch on `device` from the given slots (env columns side by side);
+        ``obs``, ``final_obs`` and ``next_obs`` are dicts of tensors (one per obs key)."""
         out: dict[str, torch.Tensor] = {}
 
         def cat(src: torch.Tensor, env_axis: int) -> torch.Tensor:
             parts = [src[s].narrow(env_axis, 0, self._n[s]) for s in slots]
             return torch.cat(parts, dim=env_axis).to(device, non_blocking=True)
 
-        out["obs"] = cat(self.obs, 1)
-        out["final_obs"] = cat(self.final_obs, 1)
+        out["obs"] = {k: cat(v, 1) for k, v in self.obs.items()}
+        out["final_obs"] = {k: cat(v, 1) for k, v in self.final_obs.items()}
         out["actions"] = cat(self.actions, 1)
-        out["next_obs"] = cat(self.next_obs, 0)
+        out["next_obs"] = {k: cat(v, 0) for k, v in self.next_obs.items()}
         for name, src in self.tn.items():
             out[name] = cat(src, 1)
         out["steps"] = torch.tensor(sum(self.steps(s) for s in slots))

@@ -1,0 +1,196 @@
+"""``tiny-vla``: a small vision-language-action policy for structured (``obs_mode="rgb"``) observations.
+
+One transformer encoder reads a single token sequence::
+
+    [ACT] [VAL] | image patches (conv patchify) | proprioception | instruction words
+
+and two learned readout tokens give the outputs: ``[ACT]`` the mean of a Gaussian over the
+action (state-independent learned log-std), ``[VAL]`` the critic's value. Image, proprioception
+and word tokens get learned position (and type) embeddings; padding words are masked out. With
+``task.action_chunk`` K the action is K env actions side by side, so the head predicts K future
+actions at once.
+
+Sizes come from ``policy_kwargs`` (``d_model``, ``layers``, ``heads``, ``patch_size``,
+``mlp_ratio``) on top of a named preset (``size``, default ``tiny``: see :data:`PRESETS`); the
+image size is the task's ``image_size``. The ``tiny`` preset has about 0.4 M parameters and
+runs on a laptop CPU; ``1b`` is about a billion parameters for GPU machines.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping
+
+import torch
+from torch import Tensor, nn
+from torch.distributions import Normal
+
+from ..policies import register_policy
+from .tokenizer import PAD_ID
+
+__all__ = ["TinyVLA", "PRESETS", "preset_kwargs", "count_parameters"]
+
+PRESETS: dict[str, dict[str, int]] = {
+    "tiny": dict(d_model=64, layers=2, heads=4, patch_size=8),
+    "small": dict(d_model=128, layers=4, heads=4, patch_size=8),
+    "base": dict(d_model=256, layers=6, heads=8, patch_size=8),
+    # GPU machines: ~1.0e9 parameters (20 blocks of 12 * 2048^2), 224 px images, 14 px patches
+    "1b": dict(d_model=2048, layers=20, heads=16, patch_size=14),
+}
+"""Named sizes; explicit ``policy_kwargs`` override a preset's entries."""
+
+
+def preset_kwargs(size: str, **overrides: int) -> dict[str, int]:
+    """A preset's sizes updated with ``overrides``."""
+    if size not in PRESETS:
+        raise ValueError(f"policy_kwargs.size: unknown tiny-vla size {size!r} (expected one of {', '.join(PRESETS)})")
+    return {**PRESETS[size], **overrides}
+
+
+def _spec_shape(spec: Any) -> tuple[int, ...]:
+    return tuple(int(x) for x in spec.shape)
+
+
+@register_policy("tiny-vla")
+class TinyVLA(nn.Module):
+    """Patch + word + proprioception transformer with Gaussian action and value readouts.
+
+    ``obs`` is the ObsSpec of structured observations: ``rgb`` (required, uint8 [H, W, C]),
+    ``proprio`` (float32 [P], optional) and ``tokens`` (int32 [L] with ``vocab``, optional).
+    ``observe`` keeps running mean/variance of ``proprio`` in buffers (they replicate with the
+    weights), so joint positions and velocities of any scale arrive standardised.
+    """
+
+    def __init__(
+        self,
+        obs: Mapping[str, Any],
+        act_dim: int,
+        *,
+        size: str = "tiny",
+        d_model: int | None = None,
+        layers: int | None = None,
+        heads: int | None = None,
+        patch_size: int | None = None,
+        mlp_ratio: int = 4,
+        init_log_std: float = -0.5,
+        device: Any = None,
+    ):
+        super().__init__()
+        if not isinstance(obs, Mapping) or "rgb" not in obs:
+            raise TypeError(
+                f"tiny-vla needs structured observations with an 'rgb' image (obs_mode: rgb), got {obs!r}"
+            )
+        sizes = preset_kwargs(size, **{
+            k: int(v) for k, v in
+            (("d_model", d_model), ("layers", layers), ("heads", heads), ("patch_size", patch_size)) if v is not None
+        })
+        d_model, layers, heads, patch_size = sizes["d_model"], sizes["layers"], sizes["heads"], sizes["patch_size"]
+        h, w, c = _spec_shape(obs["rgb"])
+        if patch_size < 1 or h % patch_size or w % patch_size:
+            raise ValueError(f"policy_kwargs.patch_size: {patch_size} must divide the image size {h}x{w}")
+        if d_model % heads:
+            raise ValueError(f"policy_kwargs.d_model: {d_model} must be a multiple of heads={heads}")
+        self.act_dim = int(act_dim)
+        self.d_model = d_model
+        factory = {"device": device}
+        self.patchify = nn.Conv2d(c, d_model, kernel_size=patch_size, stride=patch_size, **factory)
+        n_patches = (h // patch_size) * (w // patch_size)
+        self.patch_pos = nn.Parameter(torch.zeros(1, n_patches, d_model, **factory))
+        self.readout = nn.Parameter(torch.zeros(1, 2, d_model, **factory))  # [ACT], [VAL]
+        self.n_proprio = _spec_shape(obs["proprio"])[0] if "proprio" in obs else 0
+        if self.n_proprio:
+            self.proprio_in = nn.Linear(self.n_proprio, d_model, **factory)
+            self.register_buffer("proprio_mean", torch.zeros(self.n_proprio, **factory))
+            self.register_buffer("proprio_var", torch.ones(self.n_proprio, **factory))
+            self.register_buffer("proprio_count", torch.zeros((), **factory))
+        self.n_words = _spec_shape(obs["tokens"])[0] if "tokens" in obs else 0
+        if self.n_words:
+            vocab = getattr(obs["tokens"], "vocab", None)
+            if not vocab:
+                raise ValueError("tiny-vla: the 'tokens' observation spec does not say its vocab size")
+            self.word_embed = nn.Embedding(int(vocab), d_model, **factory)
+            self.word_pos = nn.Parameter(torch.zeros(1, self.n_words, d_model, **factory))
+        block = nn.TransformerEncoderLayer(
+            d_model, heads, dim_feedforward=mlp_ratio * d_model, dropout=0.0,
+            activation="gelu", batch_first=True, norm_first=True, **factory,
+        )
+        self.encoder = nn.TransformerEncoder(block, layers, enable_nested_tensor=False)
+        self.norm = nn.LayerNorm(d_model, **factory)
+        self.mean_head = nn.Linear(d_model, self.act_dim, **factory)
+        self.value_head = nn.Linear(d_model, 1, **factory)
+        self.log_std = nn.Parameter(torch.full((self.act_dim,), float(init_log_std), **factory))
+        if device is None or torch.device(device).type != "meta":
+            self._init_weights()
+
+    def _init_weights(self) -> None:
+        for p in (self.patch_pos, self.readout, *([self.word_pos] if self.n_words else [])):
+            nn.init.normal_(p, std=0.02)
+        # Near-zero initial mean action (as the MLP policy): the untrained arm stays still.
+        nn.init.orthogonal_(self.mean_head.weight, 0.01)
+        nn.init.zeros_(self.mean_head.bias)
+        nn.init.orthogonal_(self.value_head.weight, 1.0)
+        nn.init.zeros_(self.value_head.bias)
+
+    # --- inputs -------------------------------------------------------------------------------
+
+    @torch.no_grad()
+    def observe(self, obs: Mapping[str, Tensor]) -> None:
+        """Fold a batch's proprioception into the running statistics (Chan's parallel update)."""
+        if not self.n_proprio:
+            return
+        x = obs["proprio"].reshape(-1, self.n_proprio).to(self.proprio_mean.dtype)
+        n = x.shape[0]
+        if n == 0:
+            return
+        mean, var = x.mean(0), x.var(0, unbiased=False)
+        total = self.proprio_count + n
+        delta = mean - self.proprio_mean
+        m2 = self.proprio_var * self.proprio_count + var * n + delta.pow(2) * self.proprio_count * n / total
+        self.proprio_mean += delta * n / total
+        self.proprio_var.copy_(m2 / total)
+        self.proprio_count.copy_(total)
+
+    def _encode(self, obs: Mapping[str, Tensor]) -> Tensor:
+        """[B, 2, d_model]: the two readout tokens after the encoder."""
+        rgb = obs["rgb"]
+        b = rgb.shape[0]
+        dtype = self.readout.dtype
+        img = rgb.to(dtype).permute(0, 3, 1, 2) / 255.0 - 0.5
+        parts = [self.readout.expand(b, -1, -1), self.patchify(img).flatten(2).transpose(1, 2) + self.patch_pos]
+        masks = [torch.zeros(b, parts[0].shape[1] + parts[1].shape[1], dtype=torch.bool, device=rgb.device)]
+        if self.n_proprio:
+            p = obs["proprio"].to(dtype)
+            p = ((p - self.proprio_mean) / (self.proprio_var + 1e-8).sqrt()).clamp(-10.0, 10.0)
+            parts.append(self.proprio_in(p).unsqueeze(1))
+            masks.append(torch.zeros(b, 1, dtype=torch.bool, device=rgb.device))
+        if self.n_words:
+            ids = obs["tokens"].long()
+            parts.append(self.word_embed(ids) + self.word_pos)
+            masks.append(ids == PAD_ID)
+        x = self.encoder(torch.cat(parts, 1), src_key_padding_mask=torch.cat(masks, 1))
+        return self.norm(x[:, :2])
+
+    # --- the policy protocol ------------------------------------------------------------------
+
+    def _heads(self, obs: Mapping[str, Tensor]) -> tuple[Normal, Tensor]:
+        z = self._encode(obs)
+        mean = self.mean_head(z[:, 0])
+        return Normal(mean, self.log_std.exp().expand_as(mean)), self.value_head(z[:, 1]).squeeze(-1)
+
+    def value(self, obs: Mapping[str, Tensor]) -> Tensor:
+        return self.value_head(self._encode(obs)[:, 1]).squeeze(-1)
+
+    @torch.no_grad()
+    def act(self, obs: Mapping[str, Tensor], deterministic: bool = False) -> tuple[Tensor, Tensor, Tensor]:
+        dist, value = self._heads(obs)
+        action = dist.mean if deterministic else dist.sample()
+        return action, dist.log_prob(action).sum(-1), value
+
+    def evaluate(self, obs: Mapping[str, Tensor], action: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        dist, value = self._heads(obs)
+        return dist.log_prob(action).sum(-1), dist.entropy().sum(-1), value
+
+
+def count_parameters(module: nn.Module) -> int:
+    """Number of parameter elements (works on meta-device modules)."""
+    return sum(math.prod(p.shape) for p in module.parameters())
