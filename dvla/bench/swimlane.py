@@ -79,8 +79,10 @@ class Profile:
     window_s: float = 60.0
     #: steady-state window of the default async run, over which RSS growth is measured
     rss_window_s: float = 600.0
-    #: PPO update epochs of the balanced workload (the default workload keeps the file's)
-    balanced_epochs: int = 24
+    #: PPO update epochs of the balanced workload (the default workload keeps the file's); when
+    #: the async run finds learner and rollouts more than 20% apart per batch, the epochs are
+    #: rescaled by their ratio and the pair is measured again (once)
+    balanced_epochs: int = 16
     #: learner batch override (None: the topology's)
     batch_steps: int | None = None
     #: each workload's pair of runs, this many times (alternating), for the spread
@@ -467,14 +469,26 @@ def _default(base: Topology, profile: Profile, runs_root: Path, port: int, progr
 
 
 def _balanced(base: Topology, profile: Profile, runs_root: Path, port: int, progress: Callable[[str], None]) -> dict[str, Any]:
-    topo = balanced_workload(base, profile, profile.balanced_epochs)
+    epochs = profile.balanced_epochs
     w = profile.window_s
-    pairs = _pairs(("sync", topo, w), ("async", topo, w), profile, runs_root, port, progress)
+    rejected: list[dict[str, Any]] = []
+    for attempt in range(2):
+        topo = balanced_workload(base, profile, epochs)
+        pairs = _pairs(("sync", topo, w), ("async", topo, w), profile, runs_root, port, progress)
+        learner = _median([p["async"].get("learner_batch_s") for p in pairs])
+        rollout = _median([p["async"].get("rollout_batch_s") for p in pairs])
+        if attempt == 1 or learner is None or rollout is None or abs(learner / rollout - 1) <= 0.2:
+            break
+        scaled = max(1, round(epochs * rollout / learner))
+        progress(f"balanced: learner {learner:.2f} s vs rollouts {rollout:.2f} s per batch with {epochs} "
+                 f"epochs: measuring again with {scaled}")
+        rejected.append({"update_epochs": epochs, "learner_batch_s": learner, "rollout_batch_s": rollout,
+                         "runs": pairs})
+        epochs = scaled
     ratios = [_ratio(p["async"].get("consumed_sps"), p["sync"].get("consumed_sps")) for p in pairs]
-    learner = _median([p["async"].get("learner_batch_s") for p in pairs])
-    rollout = _median([p["async"].get("rollout_batch_s") for p in pairs])
     return {
-        "placement": placement_of(topo), "runs": pairs, "ratios": ratios,
+        "placement": placement_of(topo), "update_epochs": epochs, "runs": pairs, "ratios": ratios,
+        "unbalanced_attempts": rejected,
         "async_sps": _median([p["async"].get("consumed_sps") for p in pairs]),
         "sync_sps": _median([p["sync"].get("consumed_sps") for p in pairs]),
         "async_over_sync": _median(ratios),

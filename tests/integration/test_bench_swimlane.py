@@ -1,0 +1,89 @@
+"""`dvla bench swimlane --quick`: the benchmark's machinery on real runs (orchestrator, role
+processes, ManiSkill, Zenoh), not its speed.
+
+Checks that the JSON holds every headline figure with a sane value, that each run measured a
+real window (steps, versions, lanes, placement as configured), that the lock-step baseline is
+really lock-step (every chunk it learned from was sampled with the newest weights), that the
+chunk accounting closes, and that no role process is left behind.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from dvla.bench.swimlane import HEADLINE_KEYS
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def finite(x: object) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def positive(x: object) -> bool:
+    return finite(x) and x > 0  # type: ignore[operator]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_bench_swimlane_quick_writes_every_figure(tmp_path: Path) -> None:
+    out = tmp_path / "bench" / "swimlane.json"
+    runs = tmp_path / "runs"
+    proc = subprocess.run(
+        [sys.executable, "-m", "dvla", "bench", "swimlane", "--json", str(out), "--quick", "--runs", str(runs),
+         "--base-port", "19640"],
+        cwd=ROOT, capture_output=True, text=True, timeout=840,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    doc = json.loads(out.read_text())
+    for key in HEADLINE_KEYS:
+        assert key in doc, key
+    for key in ("sim_only_sps", "async_sps", "async_over_sim_only", "balanced_async_sps", "sync_sps",
+                "async_over_sync", "infer_p99_ms_no_swap", "learner_batch_s", "rollout_batch_s"):
+        assert positive(doc[key]), (key, doc[key])
+    assert finite(doc["rss_growth_pct"]) and -50 < doc["rss_growth_pct"] < 500
+    assert finite(doc["policy_lag_mean"]) and doc["policy_lag_mean"] >= 0
+    assert finite(doc["policy_lag_p99"]) and doc["policy_lag_p99"] >= doc["policy_lag_mean"] - 1e-9
+    # A swap batch needs a version to land inside the short window; when one did, its p99 is real.
+    assert doc["infer_swap_batches"] >= 0
+    if doc["infer_swap_batches"]:
+        assert positive(doc["infer_p99_ms_during_swap"])
+    assert doc["profile"]["quick"] is True and doc["command"].startswith("dvla bench swimlane")
+    assert {"python", "cpus", "load_avg_start", "load_avg_end"} <= set(doc["machine"])
+
+    default, balanced = doc["workloads"]["default"], doc["workloads"]["balanced"]
+    for wl in (default, balanced):
+        for pair in wl["runs"]:
+            for mode, run in pair.items():
+                assert run["error"] is None, (mode, run)
+                acct = run["accounting"]
+                assert acct["unaccounted"] == 0, (mode, acct)
+                assert run["window_s"] > 5
+    sim_only = default["runs"][0]["sim_only"]
+    assert sim_only["consumed_sps"] == 0 and sim_only["accounting"]["produced"] == 0  # nothing shipped
+    assert all(lanes["sim"]["utilisation"] > 0.5 for n, lanes in sim_only["lanes"].items() if n.startswith("rollout"))
+    async_default = default["runs"][0]["async"]
+    assert async_default["versions"] >= 1 and async_default["policy_lag"]["chunks"] > 0
+    assert async_default["infer_latency"]["no_swap"]["n"] > 0
+    assert async_default["rss"]["roles"] and all(r["samples"] >= 2 for r in async_default["rss"]["roles"].values())
+    assert not any(n.startswith("evaluator") for n in async_default["lanes"])
+
+    sync = balanced["runs"][0]["sync"]
+    assert sync["versions"] >= 1
+    # Lock-step: every chunk the learner got was sampled with the newest published weights.
+    assert sync["policy_lag"]["chunks"] > 0 and sync["policy_lag"]["max"] == 0, sync["policy_lag"]
+    for run in (sync, balanced["runs"][0]["async"]):
+        for name, placement in run["placement"].items():
+            want = [1] if name.startswith("actor") else [0]
+            assert placement["cpus"] == want, (name, placement)
+            assert placement["torch_threads"] == {"intra": 1, "interop": 1}
+    assert isinstance(balanced["balanced_within_20pct"], bool)
+
+    leftover = subprocess.run(["pgrep", "-f", str(runs)], capture_output=True, text=True).stdout.split()
+    assert leftover == [], leftover
