@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from .commands import bench, down, logs, plan, status, up
+from .commands import bench, doctor, down, logs, plan, status, up
 
 app = typer.Typer(
     name="dvla",
@@ -18,6 +18,7 @@ app.command("status")(status.status)
 app.command("down")(down.down)
 app.command("logs")(logs.logs)
 app.command("plan")(plan.plan)
+app.command("doctor")(doctor.doctor)
 app.add_typer(bench.app, name="bench")
 
 

@@ -1,0 +1,371 @@
+"""`dvla doctor`'s checks: can this host run the roles (of a topology, when one is given)?
+
+Each check returns a :class:`CheckResult`: ok, warn, fail or skip, what was found, and for a
+problem the command that fixes it. A check is *required* when the host cannot run its roles
+without it (a simulator needs a Vulkan device, `emulate: netns` needs namespaces and `tc`, a
+remote node needs a working ssh login); a required check that fails is ``fail``, an optional one
+``warn``. Anything slow or able to crash (importing torch, SAPIEN's device query) runs in a
+subprocess with a timeout, so one broken driver cannot hang or kill the doctor.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import platform
+import shutil
+import socket
+import subprocess
+import sys
+from dataclasses import asdict, dataclass
+from typing import Callable, Literal
+
+from ..config import Topology
+from .plan import is_local_host, make_plan
+
+Status = Literal["ok", "warn", "fail", "skip"]
+STATUSES: tuple[Status, ...] = ("ok", "warn", "fail", "skip")
+#: seconds a probing subprocess may take (SAPIEN's first Vulkan query can take a while on lavapipe)
+PROBE_TIMEOUT_S = 90.0
+SETUP_PYTHON = "bash scripts/setup.sh python"
+SETUP_SYSTEM = "bash scripts/setup.sh system"
+
+
+@dataclass(frozen=True, kw_only=True)
+class CheckResult:
+    """The outcome of one check."""
+
+    #: short name, e.g. "vulkan"
+    name: str
+    #: ok, warn (a problem that does not block), fail (a required check failed) or skip
+    status: Status
+    #: what was found (one line)
+    detail: str
+    #: how to fix a warn or fail (a command where one exists)
+    fix: str | None = None
+    #: whether the host cannot run its roles without this check passing
+    required: bool = False
+
+
+def outcome(name: str, good: bool, detail: str, *, fix: str | None = None, required: bool) -> CheckResult:
+    """ok when `good`; otherwise fail if `required`, else warn."""
+    if good:
+        return CheckResult(name=name, status="ok", detail=detail, required=required)
+    return CheckResult(name=name, status="fail" if required else "warn", detail=detail, fix=fix, required=required)
+
+
+def skip(name: str, detail: str) -> CheckResult:
+    return CheckResult(name=name, status="skip", detail=detail)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Needs:
+    """What the roles placed on this host need, from a topology (or everything, without one)."""
+
+    #: rollouts or evaluators run here (SAPIEN, ManiSkill, Vulkan)
+    simulator: bool = True
+    #: a role here wants CUDA (device or sim backend set to cuda)
+    cuda: bool = False
+    #: emulate: netns
+    netns: bool = False
+    #: (role, listen endpoint) of every plane bound on this machine
+    endpoints: tuple[tuple[str, str], ...] = ()
+    #: remote nodes to log in to
+    remote_nodes: tuple[str, ...] = ()
+    #: a topology was given
+    topology: bool = False
+
+
+def needs_of(topo: Topology | None) -> Needs:
+    if topo is None:
+        return Needs()
+    plan = make_plan(topo, run_dir=f"runs/{topo.run}")
+    local = [p for p in plan.processes if is_local_host(p.host)]
+    kinds = frozenset(p.config.kind for p in local)
+    task = topo.task
+    return Needs(
+        simulator=bool(kinds & {"rollout", "evaluator"}),
+        cuda=task.device == "cuda" or task.sim_backend == "physx_cuda",
+        netns=topo.emulate == "netns",
+        endpoints=tuple((p.config.name, ep) for p in local for ep in (*p.config.ctrl.listen, *p.config.data.listen)),
+        remote_nodes=tuple(n.name for _r, n in topo.nodes() if not is_local_host(n.host)),
+        topology=True,
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# helpers
+
+
+def _python_probe(code: str, timeout: float = PROBE_TIMEOUT_S) -> tuple[int, str, str]:
+    """Run `code` in a fresh interpreter: (exit code, stdout, stderr); -1 on timeout."""
+    try:
+        p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return -1, "", f"no answer in {timeout:.0f} s"
+    return p.returncode, p.stdout, p.stderr
+
+
+def _last(text: str) -> str:
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return lines[-1] if lines else "(no output)"
+
+
+def parse_device_summary(text: str) -> list[str]:
+    """Names of the render devices SAPIEN marks ``Supported: 1`` in `get_device_summary()`."""
+    devices, current = [], None
+    for line in text.splitlines():
+        line = line.strip()
+        if line.startswith(("GPU:", "CPU:")):
+            current = line.split(":", 1)[1].strip()
+        elif line.replace(" ", "") == "Supported:1" and current:
+            devices.append(current)
+            current = None
+    return devices
+
+
+def parse_ntp(value: str) -> bool | None:
+    """`timedatectl show -p NTPSynchronized --value` -> synchronised? (None: unknown)."""
+    v = value.strip().lower()
+    return True if v == "yes" else False if v == "no" else None
+
+
+# ----------------------------------------------------------------------------------------------
+# checks
+
+
+def check_python() -> CheckResult:
+    ok = sys.version_info >= (3, 10)
+    return outcome("python", ok, f"{platform.python_version()} at {sys.executable}",
+                   fix="install Python >= 3.10", required=True)
+
+
+def check_torch(needs: Needs) -> list[CheckResult]:
+    code = ("import json, torch; print(json.dumps({'v': torch.__version__, 'cuda': torch.cuda.is_available(),"
+            " 'n': torch.cuda.device_count()}))")
+    rc, out, err = _python_probe(code)
+    if rc != 0:
+        return [outcome("torch", False, f"import failed: {_last(err)}", fix=SETUP_PYTHON, required=True),
+                skip("cuda", "torch unavailable")]
+    info = json.loads(_last(out))
+    torch_ok = outcome("torch", True, f"torch {info['v']}", required=True)
+    if info["cuda"]:
+        cuda = outcome("cuda", True, f"{info['n']} CUDA device(s)", required=needs.cuda)
+    elif needs.cuda:
+        cuda = outcome("cuda", False, "no CUDA device, but the topology asks for cuda", required=True,
+                       fix="install the NVIDIA driver and the CUDA build of torch (bash scripts/setup.sh python on a GPU host), "
+                           "or set task.device and task.sim_backend to cpu/physx_cpu")
+    else:
+        cuda = CheckResult(name="cuda", status="ok", detail="no CUDA device: torch runs on the CPU")
+    return [torch_ok, cuda]
+
+
+def check_zenoh() -> CheckResult:
+    try:
+        from importlib.metadata import PackageNotFoundError, version
+
+        import zenoh  # noqa: F401
+
+        try:
+            v = version("eclipse-zenoh")
+        except PackageNotFoundError:
+            v = "unknown"
+    except ImportError as err:
+        return outcome("zenoh", False, f"import failed: {err}", fix=SETUP_PYTHON, required=True)
+    major = v.split(".")[0]
+    ok = major == "1"
+    return outcome("zenoh", ok, f"eclipse-zenoh {v}" + ("" if ok else " (dvla needs 1.x)"),
+                   fix="python -m pip install 'eclipse-zenoh>=1.4,<2'", required=True)
+
+
+def check_vulkan(needs: Needs) -> CheckResult:
+    """A Vulkan device SAPIEN can render with (the simulator of rollouts and evaluators)."""
+    fix = f"install a Vulkan driver: {SETUP_SYSTEM} (Mesa lavapipe >= 24.3 where there is no GPU driver)"
+    rc, out, err = _python_probe("import sapien.render as r; print(r.get_device_summary())")
+    devices = parse_device_summary(out) if rc == 0 else []
+    if devices:
+        return outcome("vulkan", True, "SAPIEN render device: " + ", ".join(devices), required=needs.simulator)
+    why = f"SAPIEN found no supported device ({_last(err) if rc != 0 else 'none listed'})"
+    if shutil.which("vulkaninfo"):
+        try:
+            p = subprocess.run(["vulkaninfo", "--summary"], capture_output=True, text=True, timeout=30)
+            names = [l.split("=", 1)[1].strip() for l in p.stdout.splitlines() if l.strip().startswith("deviceName")]
+            if p.returncode == 0 and names:
+                why += f"; vulkaninfo lists {', '.join(names)}"
+        except subprocess.TimeoutExpired:
+            why += "; vulkaninfo timed out"
+    return outcome("vulkan", False, why, fix=fix, required=needs.simulator)
+
+
+def check_maniskill(needs: Needs) -> CheckResult:
+    rc, out, err = _python_probe("import mani_skill; print(mani_skill.__version__)")
+    detail = f"mani_skill {_last(out)}" if rc == 0 else f"import failed: {_last(err)}"
+    return outcome("maniskill", rc == 0, detail, fix=SETUP_PYTHON, required=needs.simulator)
+
+
+def _bind_error(endpoint: str) -> tuple[str, int, int | None]:
+    """(address, port, errno or None) of trying to listen on a ``tcp/ADDR:PORT`` endpoint."""
+    addr, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+    addr = addr.strip("[]")
+    family = socket.AF_INET6 if ":" in addr else socket.AF_INET
+    try:
+        with socket.socket(family, socket.SOCK_STREAM) as s:
+            s.bind((addr, int(port)))
+            s.listen(1)
+    except OSError as err:
+        return addr, int(port), err.errno
+    return addr, int(port), None
+
+
+def check_ports(needs: Needs) -> CheckResult:
+    if not needs.topology:
+        return skip("ports", "give a TOPOLOGY to check the ports its planes listen on")
+    if not needs.endpoints:
+        return skip("ports", "no plane listens on this host")
+    busy, foreign, inside = [], [], 0
+    for role, ep in needs.endpoints:
+        addr, port, code = _bind_error(ep)
+        if code is None:
+            continue
+        if code == errno.EADDRNOTAVAIL and needs.netns:
+            inside += 1  # a namespace address: only exists once `dvla up` builds the fabric
+        elif code == errno.EADDRNOTAVAIL:
+            foreign.append(f"{addr} ({role})")
+        else:
+            busy.append(f"{port} ({role}: {os.strerror(code)})")
+    checked = len(needs.endpoints) - inside
+    if checked == 0 and not busy and not foreign:
+        return skip("ports", f"all {inside} listen ports are inside netns namespaces: dvla up checks them")
+    note = f"; {inside} inside netns namespaces, checked by dvla up" if inside else ""
+    if busy:
+        return outcome("ports", False, f"in use: {', '.join(busy)}{note}", required=True,
+                       fix="stop what holds them (ss -ltnp shows it) or start at another port: dvla up --base-port N")
+    if foreign:
+        return outcome("ports", False, f"not an address of this host: {', '.join(foreign)}", required=True,
+                       fix="set the node's address: to one of this host's addresses (ip -br addr)")
+    return outcome("ports", True, f"{checked} listen port(s) free{note}", required=True)
+
+
+def _run(cmd: list[str]) -> tuple[bool, str]:
+    try:
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired) as err:
+        return False, f"`{' '.join(cmd)}`: {err}"
+    return p.returncode == 0, f"`{' '.join(cmd)}`: {_last(p.stderr)}"
+
+
+def check_netns(needs: Needs) -> CheckResult:
+    """Build a throwaway namespace with a veth pair, a bridge and a tbf shaper; remove it."""
+    fix = "run as root with iproute2 installed (apt-get install iproute2); the kernel needs network " \
+          "namespaces, veth, bridge and sch_tbf (modprobe veth bridge sch_tbf)"
+    if os.geteuid() != 0:
+        return outcome("netns", False, "not root: emulate: netns needs root", fix=fix, required=needs.netns)
+    if not shutil.which("ip") or not shutil.which("tc"):
+        return outcome("netns", False, "ip or tc not found", fix=fix, required=needs.netns)
+    ns = f"dvdoc{os.getpid()}"
+    # exactly what an emulated cluster is made of: veth pairs, a bridge, tbf on a veth
+    steps = [
+        ["ip", "netns", "add", ns],
+        ["ip", "-n", ns, "link", "add", "v0", "type", "veth", "peer", "name", "v1"],
+        ["ip", "-n", ns, "link", "add", "b0", "type", "bridge"],
+        ["ip", "-n", ns, "link", "set", "v1", "master", "b0", "up"],
+        ["ip", "-n", ns, "link", "set", "v0", "up"],
+        ["tc", "-n", ns, "qdisc", "add", "dev", "v0", "root", "tbf", "rate", "1mbit", "burst", "32kbit", "latency", "25ms"],
+    ]
+    try:
+        for cmd in steps:
+            ok, msg = _run(cmd)
+            if not ok:
+                return outcome("netns", False, msg, fix=fix, required=needs.netns)
+    finally:
+        _run(["ip", "netns", "del", ns])
+    return outcome("netns", True, "namespace, veth, bridge and tbf work (throwaway namespace removed)", required=needs.netns)
+
+
+def check_ssh(topo: Topology | None, needs: Needs) -> list[CheckResult]:
+    if not needs.remote_nodes or topo is None:
+        return [skip("ssh", "no remote nodes" if needs.topology else "give a TOPOLOGY to check its remote nodes")]
+    from .ssh import SshError, check_host, remote_targets
+
+    results = []
+    for node, target in remote_targets(topo).items():
+        fix = (f"key login must work without a prompt: ssh-copy-id -p {target.ssh.port} {target.destination}; "
+               f"dvla must be installed for {target.ssh.python} there")
+        try:
+            info = check_host(target)
+            results.append(outcome(f"ssh:{node}", True, f"{target.label()}: python {info.get('python')}, dvla {info.get('dvla')}",
+                                   required=True))
+        except SshError as err:
+            results.append(outcome(f"ssh:{node}", False, str(err), fix=fix, required=True))
+    return results
+
+
+def check_clock() -> CheckResult:
+    """Clock synchronisation: metrics and status timestamps are compared across hosts."""
+    if not shutil.which("timedatectl"):
+        return skip("clock", "timedatectl not found: check NTP by hand (chronyc tracking)")
+    try:
+        p = subprocess.run(["timedatectl", "show", "-p", "NTPSynchronized", "--value"], capture_output=True,
+                           text=True, timeout=10)
+    except subprocess.TimeoutExpired:
+        return skip("clock", "timedatectl did not answer")
+    synced = parse_ntp(p.stdout) if p.returncode == 0 else None
+    if synced is None:
+        return skip("clock", f"NTP status unknown ({_last(p.stderr)})")
+    return outcome("clock", synced, "NTP synchronised" if synced else "clock not NTP-synchronised",
+                   fix="timedatectl set-ntp true (or install chrony)", required=False)
+
+
+def run_checks(topo: Topology | None, progress: Callable[[str], None] | None = None) -> list[CheckResult]:
+    """Every check, in a fixed order."""
+    needs = needs_of(topo)
+    steps: list[tuple[str, Callable[[], CheckResult | list[CheckResult]]]] = [
+        ("python", check_python),
+        ("torch", lambda: check_torch(needs)),
+        ("zenoh", check_zenoh),
+        ("vulkan", lambda: check_vulkan(needs)),
+        ("maniskill", lambda: check_maniskill(needs)),
+        ("ports", lambda: check_ports(needs)),
+        ("netns", lambda: check_netns(needs)),
+        ("ssh", lambda: check_ssh(topo, needs)),
+        ("clock", check_clock),
+    ]
+    results: list[CheckResult] = []
+    for name, fn in steps:
+        if progress is not None:
+            progress(name)
+        r = fn()
+        results.extend(r if isinstance(r, list) else [r])
+    return results
+
+
+# ----------------------------------------------------------------------------------------------
+# rendering
+
+
+def exit_code(results: list[CheckResult]) -> int:
+    """1 when a required check failed, else 0 (warnings do not fail the doctor)."""
+    return 1 if any(r.status == "fail" for r in results) else 0
+
+
+_LABEL = {"ok": "ok", "warn": "WARN", "fail": "FAIL", "skip": "skip"}
+
+
+def format_text(results: list[CheckResult], header: str) -> str:
+    width = max((len(r.name) for r in results), default=4)
+    lines = [header]
+    for r in results:
+        lines.append(f"  {_LABEL[r.status]:<4}  {r.name:<{width}}  {r.detail}")
+        if r.fix and r.status in ("warn", "fail"):
+            lines.append(f"  {'':<4}  {'':<{width}}  fix: {r.fix}")
+    counts = {s: sum(r.status == s for r in results) for s in STATUSES}
+    verdict = "this host can run its roles" if exit_code(results) == 0 else "a required check failed"
+    lines.append(f"{counts['ok']} ok, {counts['warn']} warning(s), {counts['fail']} failure(s), "
+                 f"{counts['skip']} skipped: {verdict}")
+    return "\n".join(lines)
+
+
+def format_json(results: list[CheckResult], context: dict) -> str:
+    doc = {**context, "ok": exit_code(results) == 0, "checks": [asdict(r) for r in results]}
+    return json.dumps(doc, indent=1)
