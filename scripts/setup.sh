@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Idempotent set-up for dvla on a Debian-based machine.
 #   1. system packages: a Vulkan driver for SAPIEN (Mesa lavapipe >= 24.3 when no GPU driver
-#      is present), iproute2/iptables for emulated clusters;
+#      is present), iproute2/iptables for emulated clusters, OpenSSH (client and server) for
+#      remote nodes and their test;
 #   2. Python packages: a CPU torch on machines without CUDA, the stock (CUDA) torch otherwise;
 #   3. dvla itself, editable, with its test extras.
 # Re-running it skips every step that is already done.
@@ -40,11 +41,14 @@ add_backports_suite() {
 }
 
 system_packages() {
-  command -v apt-get >/dev/null 2>&1 || { log "no apt-get: install a Vulkan driver, iproute2 and iptables yourself"; return 0; }
+  command -v apt-get >/dev/null 2>&1 || { log "no apt-get: install a Vulkan driver, iproute2, iptables and OpenSSH yourself"; return 0; }
   local need=()
   command -v ip >/dev/null 2>&1 || need+=(iproute2)
   command -v iptables >/dev/null 2>&1 || need+=(iptables)
   command -v tc >/dev/null 2>&1 || need+=(iproute2)
+  # remote nodes are reached over ssh; the SSH test runs sshd inside a network namespace
+  command -v ssh >/dev/null 2>&1 || need+=(openssh-client)
+  [ -x /usr/sbin/sshd ] || need+=(openssh-server)
   dpkg-query -W -f='${Status}' libvulkan1 2>/dev/null | grep -q 'ok installed' || need+=(libvulkan1)
   local want_mesa=0
   if ! have_gpu && ! lavapipe_ok; then want_mesa=1; fi
