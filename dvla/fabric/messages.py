@@ -291,7 +291,11 @@ class SnapshotRequest(Message):
 
 @dataclass(frozen=True, kw_only=True)
 class WeightSnapshot(Message):
-    """Reply of a ``snapshot`` queryable: the sender's latest verified full weights (catch-up)."""
+    """Reply of a ``snapshot`` queryable: the sender's latest verified full weights (catch-up).
+
+    Empty ``data`` is a header-only reply: the sender holds ``version`` (-1: nothing yet) and
+    the requester already has it or newer, so no parameters are sent.
+    """
 
     TYPE_TAG: ClassVar[str] = "snapshot"
 
@@ -309,7 +313,8 @@ class WeightSnapshot(Message):
     created_ns: int = field(default_factory=_now_ns)
 
     def validate(self) -> None:
-        _require(self.version >= 0, "schema", f"version {self.version} < 0")
+        _require(self.version >= -1, "schema", f"version {self.version} < -1")
+        _require(self.version >= 0 or not self.data, "schema", "version -1 (nothing held) with parameters")
         _require(len(self.data) % 4 == 0, "shape", f"snapshot of {len(self.data)} bytes is not float32")
 
 

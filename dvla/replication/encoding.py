@@ -20,13 +20,13 @@ little-endian, as are the hosts the framework runs on.
 
 from __future__ import annotations
 
-import hashlib
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple, Union
 
 import numpy as np
+import xxhash
 
 from dvla.config import ENCODINGS, ReplicationConfig
 from dvla.replication.layout import LayoutMismatch, ParamLayout, ReplicationError
@@ -75,10 +75,16 @@ class StaleVersion(ReplicationError):
 
 
 def checksum(flat: np.ndarray) -> str:
-    """Hex digest (blake2b, 16 bytes) of the exact bytes of a C-contiguous array, without copying."""
+    """Hex digest (XXH3-128, 16 bytes) of the exact bytes of a C-contiguous array, without copying.
+
+    A fast non-cryptographic hash is enough here: it detects a replica that differs from what
+    the actor published (lost or damaged chunks, a decoding bug); forgery is stopped earlier by
+    the HMAC signature of every manifest and chunk. At ~10 GB/s it costs nothing next to the
+    transfer (blake2b, at ~0.35 GB/s, cost a 64 MiB version more CPU than its decoding).
+    """
     if not flat.flags.c_contiguous:
         raise ValueError("checksum needs a C-contiguous array")
-    return hashlib.blake2b(memoryview(flat).cast("B"), digest_size=16).hexdigest()
+    return xxhash.xxh3_128_hexdigest(memoryview(flat).cast("B"))
 
 
 def _all_finite(x: np.ndarray) -> bool:
@@ -366,6 +372,11 @@ class WeightEncoder:
     def checksum(self) -> str:
         """:func:`checksum` of ``published``."""
         return self._checksum
+
+    @property
+    def latest(self) -> int:
+        """Version of ``published`` (what :meth:`snapshot` would serve); -1 before the first encode."""
+        return -1 if self._fresh else self.version
 
     def _wants_full(self, version: int) -> bool:
         if self.encoding == "full" or self._fresh:

@@ -28,12 +28,12 @@ from ..fabric.messages import RoleStatus, TrajectoryChunk, WeightSnapshot
 from ..learn import PPOLearner, compute_gae, make_policy
 from ..learn.dims import probe_spec
 from ..learn.grpo import group_advantages
-from ..replication import ParamLayout, ReplicationError, WeightEncoder, flatten, unflatten_into
+from ..replication import ParamLayout, WeightEncoder, flatten, unflatten_into
 from .checkpoint import load_checkpoint, save_checkpoint
 from .runtime import main
 from .slots import SlotPool
 from .swimlane import LaneContext, Swimlane
-from .weightsync import send_version
+from .weightsync import send_version, snapshot_reply
 
 log = logging.getLogger("dvla.actor")
 
@@ -74,6 +74,8 @@ class Actor:
         #: a reader diffs two readings to get the lag distribution of a window
         self.ingest_lag_counts: dict[int, int] = {}
         self.bytes_published = 0
+        #: bytes and count of versions sent, split into full versions and deltas
+        self.publish_bytes = {"full_versions": 0, "full_bytes": 0, "delta_versions": 0, "delta_bytes": 0}
         self._snapshot: bytes | None = None
         self._snapshot_lock = threading.Lock()
 
@@ -279,11 +281,15 @@ class Actor:
             if flat is None:
                 break
             with ctx.busy():
-                enc = self.encoder.encode(flat)
-                with self._snapshot_lock:
+                with self._snapshot_lock:  # a snapshot being served never sees a half-encoded version
+                    enc = self.encoder.encode(flat)
                     self._snapshot = None  # rebuilt lazily on the next snapshot query
                     self.published_version = enc.version
-                self.bytes_published += send_version(f, key, self.cfg.name, enc)
+                sent = send_version(f, key, self.cfg.name, enc)
+                self.bytes_published += sent
+                kind = "full" if enc.encoding == "full" else "delta"
+                self.publish_bytes[f"{kind}_versions"] += 1
+                self.publish_bytes[f"{kind}_bytes"] += sent
                 if enc.version % every == 0 or last is None:
                     self._checkpoint(flat)
                 last = flat
@@ -291,19 +297,20 @@ class Actor:
         if last is not None:
             self._checkpoint(last)
 
-    def _serve_snapshot(self, _req: Any) -> bytes | WeightSnapshot:
+    def _serve_snapshot(self, req: Any) -> Any:
         with self._snapshot_lock:
-            if self._snapshot is None:
-                try:
-                    version, payload, checksum = self.encoder.snapshot()
-                except ReplicationError:
-                    return None  # nothing published yet
-                snap = WeightSnapshot(
-                    sender=self.cfg.name, version=version, layout_hash=self.layout.hash,
-                    checksum=checksum, data=bytes(payload), created_ns=time.time_ns(),
-                )
-                self._snapshot = encode(snap)
-            return self._snapshot
+            return snapshot_reply(self.cfg.name, req, self.encoder.latest, self.layout.hash, self._encoded_snapshot)
+
+    def _encoded_snapshot(self) -> bytes:
+        """The published version, encoded once per version (called under the lock)."""
+        if self._snapshot is None:
+            version, payload, checksum = self.encoder.snapshot()
+            snap = WeightSnapshot(
+                sender=self.cfg.name, version=version, layout_hash=self.layout.hash,
+                checksum=checksum, data=bytes(payload), created_ns=time.time_ns(),
+            )
+            self._snapshot = encode(snap)
+        return self._snapshot
 
     def _checkpoint(self, flat: np.ndarray) -> None:
         """Checkpoint the published version's weights (not the live, possibly mid-update ones)."""
@@ -329,6 +336,7 @@ class Actor:
             "policy_lag_p99": float(lags[min(len(lags) - 1, int(len(lags) * 0.99))]) if lags else 0.0,
             "policy_lag_counts": {str(k): v for k, v in sorted(dict(self.ingest_lag_counts).items())},
             "bytes_published": self.bytes_published,
+            "publish_bytes": dict(self.publish_bytes),
             "learn": self.learn_stats,
         }
 

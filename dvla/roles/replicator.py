@@ -27,7 +27,7 @@ from ..learn.dims import probe_dims
 from ..replication import ParamLayout, checksum
 from .runtime import main
 from .swimlane import LaneContext, Swimlane
-from .weightsync import WeightSync
+from .weightsync import WeightSync, snapshot_reply
 
 log = logging.getLogger("dvla.replicator")
 
@@ -88,17 +88,21 @@ class Replicator:
                 self.forwarded += 1
             ctx.count()
 
-    def _serve_snapshot(self, _req: Any) -> bytes | None:
+    def _serve_snapshot(self, req: Any) -> Any:
         with self._snap_lock:
-            if self._flat is None:
-                return None
-            if self._snapshot is None:
-                snap = WeightSnapshot(
-                    sender=self.cfg.name, version=self._snap_version, layout_hash=self.layout.hash,
-                    checksum=checksum(self._flat), data=self._flat.tobytes(), created_ns=time.time_ns(),
-                )
-                self._snapshot = encode(snap)
-            return self._snapshot
+            version = self._snap_version if self._flat is not None else -1
+            return snapshot_reply(self.cfg.name, req, version, self.layout.hash, self._encoded_snapshot)
+
+    def _encoded_snapshot(self) -> bytes:
+        """The verified active version, encoded once per version (called under the lock)."""
+        if self._snapshot is None:
+            assert self._flat is not None
+            snap = WeightSnapshot(
+                sender=self.cfg.name, version=self._snap_version, layout_hash=self.layout.hash,
+                checksum=checksum(self._flat), data=self._flat.tobytes(), created_ns=time.time_ns(),
+            )
+            self._snapshot = encode(snap)
+        return self._snapshot
 
     def status_extra(self) -> dict[str, Any]:
         return {

@@ -67,6 +67,11 @@ class WeightSync:
         self._alive: set[str] = set(parents)
         self._lock = threading.Lock()
         self._want_snapshot = True
+        self._fetch: threading.Thread | None = None
+        self._fetch_result: list[tuple[str, Any]] = []
+        self._next_fetch = 0.0
+        #: how long one snapshot query waits for its reply (a full snapshot of a large model)
+        self.fetch_timeout_s = 5.0 + layout.nbytes / 25e6
         self._current: str | None = None
         self._inboxes: dict[str, Any] = {}
         for p in parents:
@@ -103,10 +108,17 @@ class WeightSync:
 
     # -- the lane -----------------------------------------------------------------------------
     def step(self, ctx: LaneContext, timeout: float = 0.1) -> None:
-        """One iteration of the receiving lane: catch up if needed, then handle one message."""
-        if self._want_snapshot:
+        """One iteration of the receiving lane: catch up if needed, then handle one message.
+
+        A snapshot fetch runs on a helper thread while this lane keeps draining the stream, so
+        a large snapshot in flight never fills the inbox and never holds Zenoh's receive thread
+        (which the snapshot reply itself needs).
+        """
+        if self._want_snapshot and self._fetch is None and time.monotonic() >= self._next_fetch:
+            self._start_fetch()
+        if self._fetch is not None and not self._fetch.is_alive():
             with ctx.busy():
-                self._catch_up()
+                self._finish_fetch()
         inbox = self._inboxes[self.parent]
         with ctx.waiting():
             got = inbox.get(timeout=timeout)
@@ -174,40 +186,73 @@ class WeightSync:
         self.counters["versions"] += 1
         self.on_version(m.version, flat)
 
-    def _catch_up(self) -> bool:
-        """Ask the current parent (then further ancestors) for its latest full weights."""
+    # -- catch-up -----------------------------------------------------------------------------
+    def _start_fetch(self) -> None:
         order = [self.parent] + [p for p in self.parents if p != self.parent]
-        for p in order:
-            replies = self.fabric.query(
-                self.fabric.keys.snapshot(p), SnapshotRequest(requester=self.fabric.name, have_version=self.version),
-                expect=WeightSnapshot, timeout=5.0,
-            )
-            for _sender, snap in replies:
-                if snap.version < 0:
-                    continue  # parent has nothing yet
-                if snap.version <= self.version:
-                    self._want_snapshot = False
-                    return True
-                try:
-                    if snap.layout_hash != self.layout.hash:
-                        raise ReplicationError(f"layout {snap.layout_hash} != ours {self.layout.hash}")
-                    self.decoder.reset()
-                    flat = self.decoder.load_snapshot(Snapshot(snap.version, snap.data, snap.checksum))
-                except ReplicationError as err:
-                    self.counters["rejected"] += 1
-                    log.warning("weights: snapshot v%d from %s rejected: %s", snap.version, p, err)
-                    continue
-                self.version = snap.version
-                self.counters["snapshots"] += 1
-                self._want_snapshot = False
-                log.info("weights: caught up to v%d by snapshot from %s", snap.version, p)
-                self.on_version(snap.version, flat)
-                return True
-        time.sleep(0.2)  # nobody has weights yet (the actor publishes v1 shortly)
-        return False
+        have = self.version
+        result: list[tuple[str, Any]] = []
+
+        def fetch() -> None:
+            # Parent first, then further ancestors; the first one that answers decides.
+            for p in order:
+                replies = self.fabric.query(
+                    self.fabric.keys.snapshot(p), SnapshotRequest(requester=self.fabric.name, have_version=have),
+                    expect=WeightSnapshot, timeout=self.fetch_timeout_s,
+                )
+                if replies:
+                    result.append((p, replies[0][1]))
+                    return
+
+        self._fetch_result = result
+        self._fetch = threading.Thread(target=fetch, name=f"{self.fabric.name}-catchup", daemon=True)
+        self._fetch.start()
+
+    def _finish_fetch(self) -> None:
+        """Use what the finished fetch brought (on the lane's thread: the decoder is the lane's)."""
+        self._fetch = None
+        if not self._fetch_result:
+            self._next_fetch = time.monotonic() + 0.5  # nobody answered: try again shortly
+            return
+        p, snap = self._fetch_result[0]
+        if snap.version < 0:
+            # The parent holds nothing yet: the stream's first version is a full one.
+            self._want_snapshot = False
+            return
+        if snap.version <= self.version:
+            self._want_snapshot = False
+            return
+        if not snap.data:  # header-only although we are behind: it moved on meanwhile; ask again
+            return
+        try:
+            if snap.layout_hash != self.layout.hash:
+                raise ReplicationError(f"layout {snap.layout_hash} != ours {self.layout.hash}")
+            self.decoder.reset()
+            flat = self.decoder.load_snapshot(Snapshot(snap.version, snap.data, snap.checksum))
+        except ReplicationError as err:
+            self.counters["rejected"] += 1
+            log.warning("weights: snapshot v%d from %s rejected: %s", snap.version, p, err)
+            self._next_fetch = time.monotonic() + 0.5
+            return
+        self.version = snap.version
+        self.counters["snapshots"] += 1
+        self._want_snapshot = False
+        log.info("weights: caught up to v%d by snapshot from %s", snap.version, p)
+        self.on_version(snap.version, flat)
 
     def status(self) -> dict[str, Any]:
         return {"parent": self.parent, "version": self.version, **self.counters}
+
+
+def snapshot_reply(
+    sender: str, request: Any, version: int, layout_hash: str, build: Callable[[], Any]
+) -> Any:
+    """What a ``snapshot`` queryable answers: the full snapshot from ``build()`` only when the
+    requester is behind; otherwise (or when nothing is held yet, ``version`` -1) a header-only
+    reply, so an up-to-date or early requester never costs a full copy of the weights."""
+    have = request.have_version if isinstance(request, SnapshotRequest) else -1
+    if version < 0 or have >= version:
+        return WeightSnapshot(sender=sender, version=max(version, -1), layout_hash=layout_hash, checksum="", data=b"")
+    return build()
 
 
 def send_version(fabric: Fabric, key: str, sender: str, enc: EncodedVersion) -> int:

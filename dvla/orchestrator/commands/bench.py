@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -95,6 +96,38 @@ def swimlane(
     except (RuntimeError, OSError, ValueError) as err:
         raise fail(f"bench swimlane: {err}", code=1)
     doc["command"] = "dvla " + " ".join(sys.argv[1:])
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps(doc, indent=1, default=str))
+    typer.echo(format_table(doc))
+    typer.echo(f"wrote {json_path}  ({doc['elapsed_s']:.0f} s)")
+
+
+@app.command("replication")
+def replication(
+    json_path: Annotated[Path, typer.Option("--json", help="write the results (JSON) here")],
+    topology: Annotated[Path, typer.Argument(help="topology YAML of the cluster (emulate: netns for real links)")] = Path("topologies/8node.yaml"),
+    size_mib: Annotated[float, typer.Option(help="size of one version, MiB (full encoding)")] = 64.0,
+    versions: Annotated[int, typer.Option(help="measured versions per scheme (after one warm-up version)")] = 3,
+    node_gbit: Annotated[float, typer.Option(help="node NIC rate, Gbit/s")] = 1.0,
+    uplink_gbit: Annotated[float, typer.Option(help="rack uplink rate, Gbit/s")] = 0.2,
+    training_steps: Annotated[int, typer.Option(help="env steps of each encoding's training run (0: skip that part)")] = 40000,
+    train_topology: Annotated[Path, typer.Option(help="topology of the training runs")] = Path("topologies/local.yaml"),
+) -> None:
+    """Weight tree vs star broadcast vs link bound on the emulated cluster; bytes per version of each
+    encoding in real training, with each run's eval success."""
+    from ...bench.replication import format_table, run_bench
+
+    if size_mib <= 0 or versions < 1 or node_gbit <= 0 or uplink_gbit <= 0 or training_steps < 0:
+        raise fail("--size-mib, --versions, --node-gbit and --uplink-gbit must be positive, --training-steps >= 0")
+    t0 = time.monotonic()
+    try:
+        doc = run_bench(topology, train_topology, size_mib=size_mib, versions=versions, node_gbit=node_gbit,
+                        uplink_gbit=uplink_gbit, training_steps=training_steps,
+                        progress=lambda m: typer.echo(f"[bench] {m}", err=True))
+    except (RuntimeError, TimeoutError, OSError, ValueError) as err:
+        raise fail(f"bench replication: {err}", code=1)
+    doc["command"] = "dvla " + " ".join(sys.argv[1:])
+    doc["elapsed_s"] = time.monotonic() - t0
     json_path.parent.mkdir(parents=True, exist_ok=True)
     json_path.write_text(json.dumps(doc, indent=1, default=str))
     typer.echo(format_table(doc))

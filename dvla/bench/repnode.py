@@ -1,0 +1,256 @@
+"""Processes of the replication benchmark and of the emulated-cluster replication tests.
+
+``python -m dvla.bench.repnode --mode source|relay|sink --config ROLE.json --numel N``
+
+Each process runs under the same :class:`~dvla.roles.runtime.RoleHost` as a real role (liveliness
+token, status queryable, commands, signals, summary file), with the RoleConfig the orchestrator's
+planner wrote, so it sits in the real link graph and weight tree:
+
+- ``source`` stands where the actor does: it originates versions exactly as the actor's
+  ``publish`` lane does (:class:`~dvla.replication.WeightEncoder` + :func:`send_version`) and
+  serves snapshots. It publishes the next version each time the driver raises the number in its
+  trigger file (``<run_dir>/bench/trigger``), so the driver decides when a transfer starts.
+- ``relay`` is the real :class:`~dvla.roles.replicator.Replicator`, given the synthetic layout
+  instead of building a policy. ``--corrupt V:I`` makes it flip one byte of chunk I of version V
+  on the way to its children (fault injection: its own copy stays correct, its children must
+  reject the version and repair it from a snapshot).
+- ``sink`` stands where a rollout does: the same :class:`~dvla.roles.weightsync.WeightSync` the
+  rollouts use, recording when it held each version and the checksum of what it holds.
+
+No simulator, no policy: a version is a flat float32 vector of ``--numel`` elements, so the
+processes start in about a second and the figures are about moving weights, nothing else.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..config import RoleConfig
+from ..fabric import Fabric
+from ..fabric.codec import encode
+from ..fabric.messages import WeightChunk, WeightSnapshot
+from ..replication import ParamLayout, WeightEncoder
+from ..roles.replicator import Replicator
+from ..roles.runtime import ExitStatus, RoleHost, open_fabric, setup_logging
+from ..roles.swimlane import LaneContext, Swimlane
+from ..roles.weightsync import WeightSync, send_version, snapshot_reply
+
+log = logging.getLogger("dvla.repnode")
+
+MODES = ("source", "relay", "sink")
+#: largest tensor of the synthetic layout (elements); a real model is many tensors, not one
+TENSOR_NUMEL = 1 << 22
+#: versions whose timings a status reply carries (the newest ones)
+KEEP_VERSIONS = 64
+
+
+def synthetic_layout(numel: int) -> ParamLayout:
+    """A layout of `numel` float32 elements in tensors of at most :data:`TENSOR_NUMEL`."""
+    if numel < 1:
+        raise ValueError(f"numel must be >= 1, got {numel}")
+    sizes = [TENSOR_NUMEL] * (numel // TENSOR_NUMEL) + ([numel % TENSOR_NUMEL] if numel % TENSOR_NUMEL else [])
+    names = tuple(f"block{i}.weight" for i in range(len(sizes)))
+    return ParamLayout(names=names, shapes=tuple((s,) for s in sizes), dtypes=("float32",) * len(sizes))
+
+
+def trigger_path(run_dir: str | Path) -> Path:
+    """The file whose integer content is the number of versions the source should have published."""
+    return Path(run_dir) / "bench" / "trigger"
+
+
+def write_trigger(run_dir: str | Path, versions: int) -> None:
+    path = trigger_path(run_dir)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(str(int(versions)))
+    tmp.replace(path)
+
+
+def _read_trigger(path: Path) -> int:
+    try:
+        return int(path.read_text().strip() or 0)
+    except (OSError, ValueError):
+        return 0
+
+
+def _trim(d: dict[str, Any]) -> dict[str, Any]:
+    keys = sorted(d, key=int)[-KEEP_VERSIONS:]
+    return {k: d[k] for k in keys}
+
+
+class Source:
+    """The actor's place in the tree: originates versions on trigger, serves snapshots."""
+
+    def __init__(self, cfg: RoleConfig, fabric: Fabric, layout: ParamLayout) -> None:
+        self.cfg = cfg
+        self.fabric = fabric
+        self.layout = layout
+        self.encoder = WeightEncoder.from_config(layout, cfg.replication)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.flat = self.rng.standard_normal(layout.numel, dtype=np.float32)
+        self.policy_version = 0
+        self.env_steps = 0
+        self.published: dict[str, dict[str, Any]] = {}
+        self._snap_lock = threading.Lock()
+        self._snapshot: bytes | None = None
+
+    def build(self, sl: Swimlane) -> None:
+        self.fabric.serve(self.fabric.keys.snapshot(self.cfg.name), self._serve_snapshot)
+        sl.lane("publish", self._publish)
+
+    def _publish(self, ctx: LaneContext) -> None:
+        key, trigger = self.fabric.keys.weights(self.cfg.name), trigger_path(self.cfg.run_dir)
+        while ctx.running:
+            if self.encoder.version >= _read_trigger(trigger):
+                ctx.sleep(0.005)
+                continue
+            with ctx.busy():
+                t0 = time.time_ns()
+                with self._snap_lock:
+                    enc = self.encoder.encode(self.flat)
+                    self._snapshot = None
+                t_enc = time.time_ns()
+                sent = send_version(self.fabric, key, self.cfg.name, enc)
+                t1 = time.time_ns()
+                self.policy_version = enc.version
+                self.published[str(enc.version)] = {
+                    "t0_ns": t0, "encoded_ns": t_enc, "sent_ns": t1, "bytes": sent,
+                    "payload_bytes": enc.total_bytes, "encoding": enc.encoding, "checksum": enc.checksum,
+                }
+                self.published = _trim(self.published)
+                log.info("published v%d (%s, %d bytes) in %.3f s", enc.version, enc.encoding, sent, (t1 - t0) / 1e9)
+                # The next version's parameters: a random update, prepared outside the timed part.
+                self.flat += 1e-3 * self.rng.standard_normal(self.layout.numel, dtype=np.float32)
+            ctx.count()
+
+    def _serve_snapshot(self, req: Any) -> Any:
+        with self._snap_lock:
+            return snapshot_reply(self.cfg.name, req, self.encoder.latest, self.layout.hash, self._encoded_snapshot)
+
+    def _encoded_snapshot(self) -> bytes:
+        if self._snapshot is None:
+            snap = self.encoder.snapshot()
+            self._snapshot = encode(WeightSnapshot(
+                sender=self.cfg.name, version=snap.version, layout_hash=self.layout.hash,
+                checksum=snap.checksum, data=snap.payload, created_ns=time.time_ns(),
+            ))
+        return self._snapshot
+
+    def status_extra(self) -> dict[str, Any]:
+        return {"published": self.published}
+
+    def close(self) -> None:
+        pass
+
+
+class Sink:
+    """A rollout's place in the tree: follows its parent, records what it holds and when."""
+
+    def __init__(self, cfg: RoleConfig, fabric: Fabric, layout: ParamLayout) -> None:
+        self.cfg = cfg
+        self.fabric = fabric
+        self.layout = layout
+        self.policy_version = -1
+        self.env_steps = 0
+        self.held: dict[str, dict[str, Any]] = {}
+
+    def build(self, sl: Swimlane) -> None:
+        self.weights = WeightSync(self.fabric, self.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version)
+        sl.lane("sync", self._sync)
+
+    def _on_version(self, version: int, flat: np.ndarray) -> None:
+        # Held from here on: verified against the manifest's checksum (recomputed over the
+        # result by the decoder) and swapped in.
+        self.held[str(version)] = {"held_ns": time.time_ns(), "checksum": self.weights.decoder.checksum,
+                                   "parent": self.weights.parent}
+        self.held = _trim(self.held)
+        self.policy_version = version
+
+    def _sync(self, ctx: LaneContext) -> None:
+        while ctx.running:
+            self.weights.step(ctx)
+
+    def status_extra(self) -> dict[str, Any]:
+        return {"held": self.held, "weights": self.weights.status()}
+
+    def close(self) -> None:
+        pass
+
+
+class CorruptingRelay(Replicator):
+    """A replicator that damages one chunk of one version on its way to the children."""
+
+    def __init__(self, cfg: RoleConfig, fabric: Fabric, layout: ParamLayout, version: int, index: int) -> None:
+        super().__init__(cfg, fabric, layout)
+        self.corrupt_at = (version, index)
+        self.corrupted = 0
+
+    def _cut_through(self, msg: Any) -> None:
+        if isinstance(msg, WeightChunk) and (msg.version, msg.index) == self.corrupt_at:
+            data = bytearray(msg.data)
+            data[len(data) // 2] ^= 0xFF
+            msg = dataclasses.replace(msg, data=bytes(data))
+            self.corrupted += 1
+            log.warning("fault injection: flipped a byte of chunk %d of v%d", msg.index, msg.version)
+        super()._cut_through(msg)
+
+    def status_extra(self) -> dict[str, Any]:
+        return {**super().status_extra(), "corrupted": self.corrupted}
+
+
+def make_node(mode: str, cfg: RoleConfig, fabric: Fabric, layout: ParamLayout, corrupt: tuple[int, int] | None) -> Any:
+    if mode == "source":
+        return Source(cfg, fabric, layout)
+    if mode == "sink":
+        return Sink(cfg, fabric, layout)
+    if corrupt is not None:
+        return CorruptingRelay(cfg, fabric, layout, *corrupt)
+    return Replicator(cfg, fabric, layout)
+
+
+def _parse_corrupt(text: str | None) -> tuple[int, int] | None:
+    if not text:
+        return None
+    try:
+        version, index = (int(x) for x in text.split(":"))
+    except ValueError:
+        raise SystemExit(f"--corrupt: expected VERSION:CHUNK, got {text!r}")
+    return version, index
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description="a source, relay or sink of the replication benchmark")
+    p.add_argument("--mode", choices=MODES, required=True)
+    p.add_argument("--config", required=True, help="RoleConfig JSON written by the planner")
+    p.add_argument("--numel", type=int, required=True, help="float32 elements per version")
+    p.add_argument("--corrupt", default=None, help="relay only: VERSION:CHUNK to damage on the way down")
+    args = p.parse_args(argv)
+    cfg = RoleConfig.from_json(Path(args.config).read_text())
+    setup_logging(cfg.name)
+    layout = synthetic_layout(args.numel)
+    fabric = open_fabric(cfg)
+    try:
+        node = make_node(args.mode, cfg, fabric, layout, _parse_corrupt(args.corrupt))
+        host = RoleHost(cfg, fabric, node)
+        signal.signal(signal.SIGTERM, lambda *_: host.swimlane.stop())
+        signal.signal(signal.SIGINT, lambda *_: host.swimlane.stop())
+        return int(host.run())
+    except Exception:
+        log.exception("%s failed", cfg.name)
+        return int(ExitStatus.ERROR)
+    finally:
+        fabric.close()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
