@@ -246,7 +246,8 @@ class NodeConfig:
     name: str
     #: "localhost" (or 127.0.0.1) for this machine, else a host reachable over SSH
     host: str = "localhost"
-    #: address the node's planes bind to (None: derived: loopback, or the netns address)
+    #: address the node's planes bind to (None: derived: loopback, the netns address, or the host
+    #: name of a remote node); local nodes of a topology with remote nodes must set it
     address: str | None = None
     #: roles placed on this node
     roles: tuple[RolePlacement, ...] = ()
