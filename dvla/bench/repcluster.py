@@ -47,17 +47,17 @@ def without_roles(topo: Topology, kinds: set[str]) -> Topology:
 class _RepLauncher(Launcher):
     """The orchestrator's launcher, starting repnode processes instead of roles."""
 
-    def __init__(self, *args: Any, numel: int, corrupt: dict[str, str], **kwargs: Any) -> None:
+    def __init__(self, *args: Any, numel: int, faults: dict[str, list[str]], **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.numel = numel
-        self.corrupt = corrupt
+        self.faults = faults
 
     def command(self, sup: Supervised) -> list[str]:
         cfg = sup.proc.config
         argv = [sys.executable, "-m", "dvla.bench.repnode", "--mode", MODE_OF_KIND[cfg.kind],
                 "--config", str(sup.config_path), "--numel", str(self.numel)]
-        if cfg.name in self.corrupt:
-            argv += ["--corrupt", self.corrupt[cfg.name]]
+        for fault in self.faults.get(cfg.name, []):
+            argv += ["--fault", fault]
         return self.wrap(sup.proc, argv) if self.wrap is not None else argv
 
 
@@ -70,7 +70,7 @@ class RepCluster:
         run_dir: Path,
         numel: int,
         *,
-        corrupt: dict[str, str] | None = None,
+        faults: dict[str, list[str]] | None = None,
         netns: Any = None,
     ) -> None:
         self.topo = without_roles(topo, {"evaluator"})
@@ -82,7 +82,7 @@ class RepCluster:
         self._own_netns = netns is None and self.topo.emulate == "netns"
         self.netns = netns
         env = dict(os.environ, DVLA_SECRET=self.secret, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1")
-        self.launcher = _RepLauncher(self.run_dir, env, max_restarts=0, numel=numel, corrupt=corrupt or {})
+        self.launcher = _RepLauncher(self.run_dir, env, max_restarts=0, numel=numel, faults=faults or {})
         self.fabric: Fabric | None = None
 
     # -- names --------------------------------------------------------------------------------

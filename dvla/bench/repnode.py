@@ -11,9 +11,8 @@ planner wrote, so it sits in the real link graph and weight tree:
   serves snapshots. It publishes the next version each time the driver raises the number in its
   trigger file (``<run_dir>/bench/trigger``), so the driver decides when a transfer starts.
 - ``relay`` is the real :class:`~dvla.roles.replicator.Replicator`, given the synthetic layout
-  instead of building a policy. ``--corrupt V:I`` makes it flip one byte of chunk I of version V
-  on the way to its children (fault injection: its own copy stays correct, its children must
-  reject the version and repair it from a snapshot).
+  instead of building a policy; ``--fault`` injects one fault on the way to its children (a
+  corrupted chunk, or a stall in the middle of a transfer): see :class:`FaultyRelay`.
 - ``sink`` stands where a rollout does: the same :class:`~dvla.roles.weightsync.WeightSync` the
   rollouts use, recording when it held each version and the checksum of what it holds.
 
@@ -52,6 +51,9 @@ MODES = ("source", "relay", "sink")
 TENSOR_NUMEL = 1 << 22
 #: versions whose timings a status reply carries (the newest ones)
 KEEP_VERSIONS = 64
+
+#: an injected relay fault: (kind, version, chunk index, seconds)
+Fault = tuple[str, int, int, float]
 
 
 def synthetic_layout(numel: int) -> ParamLayout:
@@ -187,45 +189,67 @@ class Sink:
         pass
 
 
-class CorruptingRelay(Replicator):
-    """A replicator that damages one chunk of one version on its way to the children."""
+class FaultyRelay(Replicator):
+    """A replicator with injected faults on the way to its children (tests, chaos):
 
-    def __init__(self, cfg: RoleConfig, fabric: Fabric, layout: ParamLayout, version: int, index: int) -> None:
+    - ``corrupt:V:I`` flips a byte of chunk I of version V (signed afresh, so only the checksum
+      can catch it; its own verified copy stays correct, so its snapshot repairs the children);
+    - ``stall:V:I:S`` stops forwarding for S seconds after chunk I of version V (a transfer
+      caught in the middle, e.g. to kill the relay at a known point).
+    """
+
+    def __init__(self, cfg: RoleConfig, fabric: Fabric, layout: ParamLayout, faults: list[Fault]) -> None:
         super().__init__(cfg, fabric, layout)
-        self.corrupt_at = (version, index)
-        self.corrupted = 0
+        self.faults = {(v, i): (kind, seconds) for kind, v, i, seconds in faults}
+        self.injected = 0
 
     def _cut_through(self, msg: Any) -> None:
-        if isinstance(msg, WeightChunk) and (msg.version, msg.index) == self.corrupt_at:
+        fault = self.faults.get((msg.version, msg.index)) if isinstance(msg, WeightChunk) else None
+        if fault is None:
+            super()._cut_through(msg)
+            return
+        (kind, seconds), version, index = fault, msg.version, msg.index
+        if kind == "corrupt":
             data = bytearray(msg.data)
             data[len(data) // 2] ^= 0xFF
             msg = dataclasses.replace(msg, data=bytes(data))
-            self.corrupted += 1
-            log.warning("fault injection: flipped a byte of chunk %d of v%d", msg.index, msg.version)
+            self.injected += 1
+            log.warning("fault injection: flipped a byte of chunk %d of v%d", index, version)
         super()._cut_through(msg)
+        if kind == "stall":
+            self.injected += 1
+            log.warning("fault injection: forwarding stalls %.1f s after chunk %d of v%d", seconds, index, version)
+            # Let the forward lane send what came before, then hold the receive lane.
+            deadline = time.monotonic() + 5.0
+            while self.outbox.depth and time.monotonic() < deadline:
+                time.sleep(0.005)
+            self._stop.wait(seconds)
 
     def status_extra(self) -> dict[str, Any]:
-        return {**super().status_extra(), "corrupted": self.corrupted}
+        return {**super().status_extra(), "faults_injected": self.injected}
 
 
-def make_node(mode: str, cfg: RoleConfig, fabric: Fabric, layout: ParamLayout, corrupt: tuple[int, int] | None) -> Any:
+def make_node(mode: str, cfg: RoleConfig, fabric: Fabric, layout: ParamLayout, faults: list[Fault]) -> Any:
     if mode == "source":
         return Source(cfg, fabric, layout)
     if mode == "sink":
         return Sink(cfg, fabric, layout)
-    if corrupt is not None:
-        return CorruptingRelay(cfg, fabric, layout, *corrupt)
+    if faults:
+        return FaultyRelay(cfg, fabric, layout, faults)
     return Replicator(cfg, fabric, layout)
 
 
-def _parse_corrupt(text: str | None) -> tuple[int, int] | None:
-    if not text:
-        return None
+def parse_fault(text: str) -> Fault:
+    """``corrupt:V:I`` or ``stall:V:I:S`` -> (kind, version, chunk index, seconds)."""
+    parts = text.split(":")
     try:
-        version, index = (int(x) for x in text.split(":"))
+        if parts[0] == "corrupt" and len(parts) == 3:
+            return "corrupt", int(parts[1]), int(parts[2]), 0.0
+        if parts[0] == "stall" and len(parts) == 4:
+            return "stall", int(parts[1]), int(parts[2]), float(parts[3])
     except ValueError:
-        raise SystemExit(f"--corrupt: expected VERSION:CHUNK, got {text!r}")
-    return version, index
+        pass
+    raise SystemExit(f"--fault: expected corrupt:VERSION:CHUNK or stall:VERSION:CHUNK:SECONDS, got {text!r}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -233,14 +257,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mode", choices=MODES, required=True)
     p.add_argument("--config", required=True, help="RoleConfig JSON written by the planner")
     p.add_argument("--numel", type=int, required=True, help="float32 elements per version")
-    p.add_argument("--corrupt", default=None, help="relay only: VERSION:CHUNK to damage on the way down")
+    p.add_argument("--fault", action="append", default=[], help="relay only, repeatable: corrupt:V:I or stall:V:I:S (see FaultyRelay)")
     args = p.parse_args(argv)
     cfg = RoleConfig.from_json(Path(args.config).read_text())
     setup_logging(cfg.name)
     layout = synthetic_layout(args.numel)
     fabric = open_fabric(cfg)
     try:
-        node = make_node(args.mode, cfg, fabric, layout, _parse_corrupt(args.corrupt))
+        node = make_node(args.mode, cfg, fabric, layout, [parse_fault(f) for f in args.fault])
         host = RoleHost(cfg, fabric, node)
         signal.signal(signal.SIGTERM, lambda *_: host.swimlane.stop())
         signal.signal(signal.SIGINT, lambda *_: host.swimlane.stop())
