@@ -1,0 +1,67 @@
+"""End to end on the VLA path: `dvla up topologies/local-vla.yaml` (shortened) renders camera
+images in the rollouts, trains tiny-vla on the actor, and every rollout acts with trained
+versions; inference latency percentiles appear in `dvla status` and metrics.csv, and the
+images travel as uint8."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.integration.test_up_e2e import ROOT, dvla, free_port_block, pids_of_run
+
+ROLLOUTS = ("rollout-node0-0", "rollout-node0-1")
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_local_vla_end_to_end(tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    up = subprocess.Popen(
+        [sys.executable, "-m", "dvla", "up", "topologies/local-vla.yaml", "--runs", str(runs),
+         "--base-port", str(free_port_block()), "--max-env-steps", "1200", "--quiet"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    run_dir = runs / "local-vla"
+    latency: dict[str, float] = {}
+    try:
+        deadline = time.monotonic() + 600
+        while time.monotonic() < deadline and up.poll() is None and len(latency) < len(ROLLOUTS):
+            if (run_dir / "state.json").exists():
+                st = dvla("status", "local-vla", "--runs", str(runs), "--format", "json", timeout=60)
+                if st.returncode == 0:
+                    for role in json.loads(st.stdout)["roles"]:
+                        if role["name"] in ROLLOUTS and role["extra"].get("infer_ms_p50", 0) > 0:
+                            latency[role["name"]] = role["extra"]["infer_ms_p99"]
+            time.sleep(3)
+        out, _ = up.communicate(timeout=600)
+    finally:
+        if up.poll() is None:
+            up.kill()
+            up.wait()
+    assert up.returncode == 0, out
+    assert set(latency) == set(ROLLOUTS), f"dvla status never showed inference latency: {latency}\n{out}"
+
+    result = json.loads((run_dir / "result.json").read_text())
+    assert result["reason"] == "max_env_steps" and result["accounting"]["unaccounted"] == 0
+    summaries = {p.stem: json.loads(p.read_text()) for p in (run_dir / "summaries").glob("*.json")}
+    assert summaries["actor-node0-0"]["extra"]["published_version"] >= 3
+    assert summaries["actor-node0-0"]["extra"]["learn"]["batch_size"] == 400
+    for name in ROLLOUTS:
+        s = summaries[name]["extra"]
+        assert summaries[name]["policy_version"] >= 2, f"{name} never acted with a trained version"
+        assert s["infer_ms_p50"] > 0 and s["infer_ms_p99"] >= s["infer_ms_p50"]
+        # Per env step a chunk carries the 64x64x3 image twice (obs, final_obs) plus small
+        # arrays: about 25 kB as uint8; float32 images would be four times that.
+        per_step = s["bytes_produced"] / summaries[name]["env_steps"]
+        assert 2 * 64 * 64 * 3 < per_step < 3 * 64 * 64 * 3, per_step
+    with open(run_dir / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert any(float(r["infer_ms_p50"]) > 0 and float(r["infer_ms_p99"]) > 0 for r in rows)
+    assert pids_of_run(run_dir) == []
