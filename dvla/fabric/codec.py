@@ -42,6 +42,7 @@ __all__ = [
     "Limits",
     "decode",
     "encode",
+    "encode_into",
 ]
 
 SCHEMA_VERSION = 1
@@ -222,6 +223,11 @@ _SCHEMAS_BY_CLASS: dict[type, _Schema] = {s.cls: s for s in _SCHEMAS_BY_TAG.valu
 _U8 = struct.Struct("<B")
 _SHAPE_STRUCTS = [struct.Struct(f"<{n}I") for n in range(256)]
 _MAX_DIM = (1 << 32) - 1
+#: u8 name length + name, per wire dtype name
+_NAME_PREFIX = {name: _U8.pack(len(name)) + name for name in _DTYPES_BY_WIRE_NAME}
+#: pad-length byte followed by that many zero bytes, per pad length
+_PAD_BYTES = [_U8.pack(pad) + bytes(pad) for pad in range(ARRAY_ALIGN)]
+_EXT_FRAME_LEN = (3, 4, 6)
 
 
 def _ext_frame(length: int, kind: int) -> bytes:
@@ -266,6 +272,12 @@ def _wire_array(arr: np.ndarray, path: Path, limits: Limits) -> tuple[bytes, np.
     return name, arr
 
 
+def _copy_at(view: memoryview, pos: int, src: Any) -> int:
+    end = pos + len(src)
+    view[pos:end] = src
+    return end
+
+
 class _Writer:
     """Accumulates the output as a list of pieces; small values go through one msgpack Packer,
     array and bin data are appended as buffer views so ``b"".join`` copies them exactly once."""
@@ -295,6 +307,40 @@ class _Writer:
             raise CodecError("oversize", f"message {self.offset} bytes > {self.limits.max_message_bytes}")
         return b"".join(self.pieces)
 
+    def finish_into(self, out: bytearray) -> int:
+        """Write the message into ``out``, resized to exactly its length; returns that length.
+
+        A buffer reused for messages of similar size keeps its allocation (CPython only
+        reallocates a bytearray that grows, or shrinks below half), so steady traffic costs
+        no allocation and no page faults: the array bytes are copied once, into ``out``.
+        """
+        self._flush()
+        n = self.offset
+        if n > self.limits.max_message_bytes:
+            raise CodecError("oversize", f"message {n} bytes > {self.limits.max_message_bytes}")
+        have = len(out)
+        if have > n:
+            del out[n:]
+        elif have < n:
+            out.extend(bytes(n - have))
+        view = memoryview(out)
+        try:
+            pos = 0
+            run: list[Any] = []  # consecutive small pieces, copied as one
+            for piece in self.pieces:
+                if type(piece) is np.ndarray:
+                    if run:
+                        pos = _copy_at(view, pos, b"".join(run))
+                        run.clear()
+                    pos = _copy_at(view, pos, memoryview(piece).cast("B"))
+                else:
+                    run.append(piece)
+            if run:
+                _copy_at(view, pos, b"".join(run))
+        finally:
+            view.release()  # a live export would forbid resizing `out` next time
+        return n
+
     def map_header(self, n: int, path: Path) -> None:
         if n > self.limits.max_map_len:
             raise CodecError("oversize", f"{_path_str(path)}: map of {n} entries > {self.limits.max_map_len}")
@@ -307,7 +353,9 @@ class _Writer:
         self.packer.pack(value)
 
     def value(self, value: Any, path: Path, depth: int) -> None:
-        if value is None or isinstance(value, (bool, int, float)):
+        if type(value) is np.ndarray:  # most values of a trajectory chunk
+            self.array(value, path)
+        elif value is None or isinstance(value, (bool, int, float)):
             self.packer.pack(value)
         elif isinstance(value, str):
             self.string(value, path)
@@ -357,22 +405,37 @@ class _Writer:
 
     def array(self, value: np.ndarray, path: Path) -> None:
         name, arr = _wire_array(value, path, self.limits)
-        header = b"".join((_U8.pack(len(name)), name, _U8.pack(arr.ndim), _SHAPE_STRUCTS[arr.ndim].pack(*arr.shape)))
+        ndim = arr.ndim
+        header = _NAME_PREFIX[name] + _U8.pack(ndim) + _SHAPE_STRUCTS[ndim].pack(*arr.shape)
+        hlen = len(header) + 1  # + the pad-length byte
         nbytes = arr.nbytes
         # Pick the frame size assuming the largest pad, so choosing the pad can't change it.
-        kind = _ext_kind(len(header) + 1 + (ARRAY_ALIGN - 1) + nbytes)
-        frame_len = (3, 4, 6)[kind]
+        kind = _ext_kind(hlen + (ARRAY_ALIGN - 1) + nbytes)
         self._flush()
-        pad = -(self.offset + frame_len + len(header) + 1) % ARRAY_ALIGN
-        frame = _ext_frame(len(header) + 1 + pad + nbytes, kind)
-        head = b"".join((frame, header, _U8.pack(pad), bytes(pad)))
-        self._raw(head, len(head))
+        pad = -(self.offset + _EXT_FRAME_LEN[kind] + hlen) % ARRAY_ALIGN
+        head = _ext_frame(hlen + pad + nbytes, kind) + header + _PAD_BYTES[pad]
+        self.pieces.append(head)
+        self.offset += len(head)
         if nbytes:
-            self._raw(arr, nbytes)
+            self.pieces.append(arr)
+            self.offset += nbytes
 
 
 def encode(msg: Message, limits: Limits = DEFAULT_LIMITS) -> bytes:
     """Encode a message. Raises :class:`CodecError` if it is not a valid, encodable message."""
+    return _write(msg, limits).finish()
+
+
+def encode_into(msg: Message, out: bytearray, limits: Limits = DEFAULT_LIMITS) -> int:
+    """Encode a message into ``out`` (resized to fit exactly); returns the encoded length.
+
+    The same bytes as :func:`encode`, without a fresh allocation per message: meant for a
+    buffer that one publisher reuses (its content is overwritten by the next call).
+    """
+    return _write(msg, limits).finish_into(out)
+
+
+def _write(msg: Message, limits: Limits) -> "_Writer":
     schema = _SCHEMAS_BY_CLASS.get(type(msg))
     if schema is None:
         raise CodecError("type", f"not a fabric message: {type(msg).__name__}")
@@ -390,7 +453,7 @@ def encode(msg: Message, limits: Limits = DEFAULT_LIMITS) -> bytes:
         for name, value in values:
             writer.packer.pack(name)
             writer.value(value, name, 2)
-        return writer.finish()
+        return writer
     except CodecError:
         raise
     except (TypeError, ValueError, OverflowError) as exc:
@@ -460,8 +523,22 @@ class _Reader:
         pos = self.pos
         if pos >= self.end:
             raise self._truncated(1, pos)
-        b = self.data[pos]
-        self.pos = pos + 1
+        data = self.data
+        b = data[pos]
+        pos += 1
+        self.pos = pos
+        if 0xA0 <= b <= 0xBF:  # fixstr, the most common value (every map key): inlined
+            n = b & 0x1F
+            if n > self.limits.max_str_len:
+                raise CodecError("oversize", f"string of {n} bytes > {self.limits.max_str_len}")
+            stop = pos + n
+            if stop > self.end:
+                raise self._truncated(n, pos)
+            self.pos = stop
+            try:
+                return str(data[pos:stop], "utf-8")
+            except UnicodeDecodeError as exc:
+                raise CodecError("malformed", f"invalid UTF-8 at offset {pos}") from exc
         if b <= 0x7F:
             return b
         if b >= 0xE0:
@@ -470,8 +547,13 @@ class _Reader:
             return self.mapping(b & 0x0F, depth + 1)
         if b <= 0x9F:
             return self.sequence(b & 0x0F, depth + 1)
-        if b <= 0xBF:
-            return self.string(b & 0x1F)
+        if 0xC7 <= b <= 0xC9:  # ext 8/16/32 (arrays): skip the generic sized-value dispatch
+            width = 1 << (b - 0xC7)
+            if pos + width + 1 > self.end:
+                raise self._truncated(width + 1, pos)
+            n = data[pos] if width == 1 else (_BE_U16 if width == 2 else _BE_U32)(data, pos)[0]
+            self.pos = pos + width
+            return self.ext(n)
         if b == 0xC0:
             return None
         if b == 0xC2:
@@ -540,10 +622,22 @@ class _Reader:
         self._enter(depth, n, 2, self.limits.max_map_len, "map")
         out: dict[str, Any] = {}
         value = self.value
+        data, end, max_str = self.data, self.end, self.limits.max_str_len
         for _ in range(n):
-            key = value(depth)
-            if type(key) is not str:
-                raise CodecError("schema", f"map key {key!r} is not a str")
+            pos = self.pos
+            b = data[pos] if pos < end else 0
+            if 0xA0 <= b <= 0xBF and (b & 0x1F) <= max_str and pos + 1 + (b & 0x1F) <= end:
+                # a short str key (every key the reference encoder writes): read inline
+                stop = pos + 1 + (b & 0x1F)
+                try:
+                    key = str(data[pos + 1:stop], "utf-8")
+                except UnicodeDecodeError as exc:
+                    raise CodecError("malformed", f"invalid UTF-8 at offset {pos + 1}") from exc
+                self.pos = stop
+            else:
+                key = value(depth)
+                if type(key) is not str:
+                    raise CodecError("schema", f"map key {key!r} is not a str")
             if key in out:
                 raise CodecError("schema", f"duplicate map key {key!r}")
             out[key] = value(depth)
@@ -597,7 +691,8 @@ class _Reader:
             raise CodecError("oversize", f"array of {nbytes} bytes > {limits.max_array_bytes}")
         if count == 0:
             return np.empty(shape, dtype)
-        return np.frombuffer(data, dtype=dtype, count=count, offset=p).reshape(shape)
+        # One constructor call: a view of `data` (half the cost of frombuffer + reshape).
+        return np.ndarray(shape, dtype, data, p)
 
 
 def _as_byte_sequence(buf: Any) -> bytes | bytearray | memoryview:
