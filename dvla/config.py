@@ -18,6 +18,7 @@ ROLE_KINDS = ("actor", "rollout", "replicator", "evaluator")
 """Every role a topology may place. ``evaluator`` is a rollout that runs deterministic eval episodes."""
 
 ENCODINGS = ("full", "delta-bf16", "delta-topk")
+COMPRESSIONS = ("none", "zstd")
 """Weight encodings of the replication tree (see docs/replication.md)."""
 
 RoleKind = Literal["actor", "rollout", "replicator", "evaluator"]
@@ -188,6 +189,9 @@ class ReplicationConfig:
     encoding: str = "full"
     #: fraction of entries sent per version by delta-topk
     topk_fraction: float = 0.05
+    #: lossless compression of delta payloads: "zstd" (byte planes + zstd, sent when smaller) or
+    #: "none"; full versions are never compressed
+    compression: str = "zstd"
     #: a full snapshot every this many versions
     snapshot_every: int = 10
     #: max children per tree node

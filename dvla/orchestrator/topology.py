@@ -28,6 +28,7 @@ import yaml
 from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 
 from dvla.config import (
+    COMPRESSIONS,
     ENCODINGS,
     OBS_MODES,
     ROLE_KINDS,
@@ -720,6 +721,9 @@ def _check_encoding(p: _Partial, ctx: _Context) -> None:
     encoding = p.get("encoding")
     if isinstance(encoding, str) and encoding not in ENCODINGS:
         ctx.report(p.where("encoding"), _unknown_value("encoding", encoding, ENCODINGS))
+    compression = p.get("compression")
+    if isinstance(compression, str) and compression not in COMPRESSIONS:
+        ctx.report(p.where("compression"), _unknown_value("compression", compression, COMPRESSIONS))
 
 
 def _check_rack_nodes(p: _Partial, ctx: _Context) -> None:

@@ -34,6 +34,7 @@ from dvla.replication.encoding import (
     chunk_count,
     chunk_span,
     split_chunks,
+    split_encoding,
     topk_count,
 )
 from dvla.replication.layout import LayoutMismatch, ParamLayout, ReplicationError, flatten, unflatten_into
@@ -60,6 +61,7 @@ __all__ = [
     "chunk_span",
     "flatten",
     "split_chunks",
+    "split_encoding",
     "topk_count",
     "unflatten_into",
 ]

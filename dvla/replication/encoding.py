@@ -20,6 +20,7 @@ little-endian, as are the hosts the framework runs on.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -27,8 +28,9 @@ from typing import Any, NamedTuple, Union
 
 import numpy as np
 import xxhash
+import zstandard
 
-from dvla.config import ENCODINGS, ReplicationConfig
+from dvla.config import COMPRESSIONS, ENCODINGS, ReplicationConfig
 from dvla.replication.layout import LayoutMismatch, ParamLayout, ReplicationError
 
 BytesLike = Union[bytes, bytearray, memoryview]
@@ -153,6 +155,74 @@ def split_chunks(payload: BytesLike, chunk_bytes: int) -> list[memoryview]:
     view = memoryview(payload).cast("B")
     n = chunk_count(view.nbytes, chunk_bytes)
     return [view[slice(*chunk_span(i, n, view.nbytes))] for i in range(n)]
+
+
+# --------------------------------------------------------------------------------------------
+# Lossless compression of delta payloads
+
+#: suffix of a manifest's encoding whose payload is zstd-compressed ("delta-bf16+zstd")
+ZSTD = "zstd"
+
+
+def split_encoding(encoding: str) -> tuple[str, str]:
+    """("delta-bf16", "zstd") for "delta-bf16+zstd"; ("full", "") for "full"."""
+    base, _, comp = encoding.partition("+")
+    return base, comp
+
+
+def _planes(raw: np.ndarray, width: int) -> np.ndarray:
+    """Byte planes of an array of `width`-byte words: all first bytes, then all second bytes, ..."""
+    return np.ascontiguousarray(raw.view(np.uint8).reshape(-1, width).T)
+
+
+def _unplanes(planes: np.ndarray, width: int) -> np.ndarray:
+    return np.ascontiguousarray(planes.reshape(width, -1).T).reshape(-1)
+
+
+def deflate_delta(encoding: str, payload: memoryview, level: int = 1) -> bytes:
+    """Compress a delta payload losslessly. The words are split into byte planes first (the sign
+    and exponent bytes of small deltas are nearly constant), and top-k indices become gaps
+    (sorted indices differ by little): ~0.68x for bf16 deltas, ~0.5x for top-k payloads."""
+    if encoding == "delta-bf16":
+        words = np.frombuffer(payload, dtype=_U16)
+        planes = _planes(words, 2)
+    elif encoding == "delta-topk":
+        pay = np.frombuffer(payload, dtype=_U32)
+        k = pay.size // 2
+        tmp = pay.copy()
+        tmp[1:k] = pay[1:k] - pay[: k - 1]  # ascending: gaps never underflow
+        planes = _planes(tmp, 4)
+    else:
+        raise ValueError(f"no compression for encoding {encoding!r}")
+    return zstandard.ZstdCompressor(level=level).compress(planes.tobytes())
+
+
+def inflate_delta(encoding: str, data: memoryview, numel: int) -> memoryview:
+    """Inverse of :func:`deflate_delta`; never produces more than a raw payload of `numel` can be.
+
+    Raises :class:`CorruptPayload` for data that does not decompress, or to a wrong size.
+    """
+    limit = 2 * numel if encoding == "delta-bf16" else 4 * numel
+    try:
+        raw = zstandard.ZstdDecompressor().decompress(bytes(data), max_output_size=limit)
+    except zstandard.ZstdError as err:
+        raise CorruptPayload(f"{encoding}+zstd payload does not decompress: {err}") from None
+    if len(raw) > limit:
+        raise CorruptPayload(f"{encoding}+zstd payload inflates beyond {limit} bytes")
+    planes = np.frombuffer(raw, dtype=np.uint8)
+    if encoding == "delta-bf16":
+        if planes.size != 2 * numel:
+            raise CorruptPayload(f"delta-bf16+zstd payload inflates to {planes.size} bytes, expected {2 * numel}")
+        return memoryview(_unplanes(planes, 2)).cast("B")
+    if planes.size % 8 or planes.size == 0:
+        raise CorruptPayload(f"delta-topk+zstd payload inflates to {planes.size} bytes (not 8*k)")
+    pay = _unplanes(planes, 4).view(_U32)
+    k = pay.size // 2
+    idx = np.cumsum(pay[:k], dtype=np.uint64)
+    if idx[-1] >= numel:
+        raise CorruptPayload("delta-topk+zstd indices out of range")
+    pay[:k] = idx
+    return memoryview(pay).cast("B")
 
 
 # --------------------------------------------------------------------------------------------
@@ -313,7 +383,10 @@ class WeightEncoder:
         chunk_bytes: int = 1 << 20,
         *,
         start_version: int = 0,
+        compression: str = "none",
     ) -> None:
+        if compression not in COMPRESSIONS:
+            raise ValueError(f"compression must be one of {COMPRESSIONS}, got {compression!r}")
         if encoding not in ENCODINGS:
             raise ValueError(f"encoding must be one of {ENCODINGS}, got {encoding!r}")
         if not 0.0 < topk_fraction <= 1.0:
@@ -332,6 +405,9 @@ class WeightEncoder:
         self.topk_fraction = topk_fraction
         self.snapshot_every = snapshot_every
         self.chunk_bytes = chunk_bytes
+        #: "zstd": delta payloads travel compressed (when that is smaller); full ones never do
+        self.compression = compression
+        self._z = b""
         #: last version encoded (0 before the first encode, or ``start_version`` when resuming)
         self.version = start_version
         self._fresh = True
@@ -358,6 +434,7 @@ class WeightEncoder:
             snapshot_every=cfg.snapshot_every,
             chunk_bytes=cfg.chunk_bytes,
             start_version=start_version,
+            compression=cfg.compression,
         )
 
     @property
@@ -400,10 +477,14 @@ class WeightEncoder:
             encoding = "full"
             np.copyto(self._pub, true_flat)
             payload = memoryview(self._pub).cast("B")
+        base = -1 if encoding == "full" else version - 1
+        if encoding != "full" and self.compression == ZSTD:
+            z = deflate_delta(encoding, payload)
+            if len(z) < payload.nbytes:
+                self._z, payload, encoding = z, memoryview(z), f"{encoding}+{ZSTD}"
         self.version = version
         self._fresh = False
         self._checksum = checksum(self._pub)
-        base = -1 if encoding == "full" else version - 1
         return _encoded(version, base, encoding, self.layout.hash, self._checksum, payload, self.chunk_bytes)
 
     def _encode_bf16(self, true_flat: np.ndarray) -> memoryview | None:
@@ -529,6 +610,11 @@ class WeightDecoder:
         m = _as_manifest(manifest)
         view = _byte_view(payload)
         self._check(m, view.nbytes)
+        base, comp = split_encoding(m.encoding)
+        if comp:
+            view = inflate_delta(base, view, self.layout.numel)
+            m = dataclasses.replace(m, encoding=base, total_bytes=view.nbytes)
+            self._check_size(m, view.nbytes)
         self.swap()  # promote a pending result: it is the base of this version
         if m.version <= self.version:
             raise StaleVersion(f"version {m.version} is not newer than held version {self.version}")
@@ -559,15 +645,23 @@ class WeightDecoder:
     def _check(self, m: Manifest, nbytes: int) -> None:
         if m.layout_hash != self.layout.hash:
             raise LayoutMismatch(f"sender layout {m.layout_hash} != local layout {self.layout.hash}")
-        if m.encoding not in ENCODINGS:
+        base, comp = split_encoding(m.encoding)
+        if base not in ENCODINGS or comp not in ("", ZSTD) or (comp and base == "full"):
             raise CorruptPayload(f"unknown encoding {m.encoding!r}")
         if m.version < 1:
             raise CorruptPayload(f"version must be >= 1, got {m.version}")
-        want_base = -1 if m.encoding == "full" else m.version - 1
+        want_base = -1 if base == "full" else m.version - 1
         if m.base_version != want_base:
             raise CorruptPayload(f"{m.encoding} version {m.version} must have base {want_base}, got {m.base_version}")
         if nbytes != m.total_bytes or not _spans_valid(m.n_chunks, m.total_bytes):
             raise CorruptPayload(f"payload of {nbytes} bytes does not match manifest ({m.n_chunks}, {m.total_bytes})")
+        if comp:
+            if nbytes > 4 * self.layout.numel:
+                raise CorruptPayload(f"{m.encoding} payload of {nbytes} bytes is larger than a full one")
+            return  # sizes of the inflated payload are checked after inflating
+        self._check_size(m, nbytes)
+
+    def _check_size(self, m: Manifest, nbytes: int) -> None:
         n = self.layout.numel
         if m.encoding == "full" and nbytes != 4 * n:
             raise CorruptPayload(f"full payload must be {4 * n} bytes, got {nbytes}")

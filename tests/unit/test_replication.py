@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+import zstandard
 
 from dvla.config import ENCODINGS, ReplicationConfig
 from dvla.replication import (
@@ -27,6 +28,7 @@ from dvla.replication import (
     checksum,
     chunk_count,
     split_chunks,
+    split_encoding,
     flatten,
     unflatten_into,
 )
@@ -217,14 +219,23 @@ def _step(true: np.ndarray, version: int, rng: np.random.Generator) -> None:
 
 
 @pytest.mark.parametrize(
-    "encoding, snapshot_every",
-    [(e, s) for e in ENCODINGS for s in (10, 10**9) if not (e == "full" and s > 10)],  # full ignores cadence
+    "encoding, snapshot_every, compression",
+    [
+        (e, s, c)
+        for e in ENCODINGS
+        for s in (10, 10**9)
+        for c in ("none", "zstd")
+        if not (e == "full" and (s > 10 or c != "none"))  # full ignores cadence and compression
+    ],
     ids=lambda v: v if isinstance(v, str) else ("snap10" if v == 10 else "nosnap"),
 )
-def test_replicas_are_bit_exact_and_gap_is_bounded(layout: ParamLayout, encoding: str, snapshot_every: int) -> None:
+def test_replicas_are_bit_exact_and_gap_is_bounded(
+    layout: ParamLayout, encoding: str, snapshot_every: int, compression: str
+) -> None:
     rng = np.random.default_rng(11)
     enc = WeightEncoder(
-        layout, encoding, topk_fraction=TOPK_FRACTION, snapshot_every=snapshot_every, chunk_bytes=CHUNK_BYTES
+        layout, encoding, topk_fraction=TOPK_FRACTION, snapshot_every=snapshot_every, chunk_bytes=CHUNK_BYTES,
+        compression=compression,
     )
     replicas = [(WeightDecoder(layout), ChunkAssembler(1, 1, layout.nbytes)) for _ in range(2)]
     true = flatten(_mlp(), layout)
@@ -238,7 +249,9 @@ def test_replicas_are_bit_exact_and_gap_is_bounded(layout: ParamLayout, encoding
         assert (ev.version, ev.layout_hash, ev.checksum) == (version, layout.hash, checksum(enc.published))
         assert all(c.nbytes <= CHUNK_BYTES for c in ev.chunks) and sum(c.nbytes for c in ev.chunks) == ev.total_bytes
         expect_full = encoding == "full" or (version - 1) % snapshot_every == 0
-        assert ev.encoding == ("full" if expect_full else encoding)
+        base, comp = split_encoding(ev.encoding)
+        assert base == ("full" if expect_full else encoding)
+        assert comp == ("zstd" if compression == "zstd" and not expect_full else "")
         assert ev.base_version == (-1 if expect_full else version - 1)
         for dec, asm in replicas:
             out = dec.apply(ev.manifest().to_dict(), _deliver(ev, asm, rng), swap=True)
@@ -246,10 +259,10 @@ def test_replicas_are_bit_exact_and_gap_is_bounded(layout: ParamLayout, encoding
             assert np.array_equal(dec.active, enc.published) and dec.checksum == ev.checksum
         gap = float(np.linalg.norm(true - enc.published))
         gaps.append(gap)
-        if ev.encoding == "delta-bf16":
+        if base == "delta-bf16":
             # Each element is off by at most half a bfloat16 ulp of its delta (2**-9 relative).
             assert gap <= 2.0**-8 * before
-        if ev.encoding != "full":
+        if base != "full":
             delta_ratios.append(ev.total_bytes / layout.nbytes)
         else:
             assert gap == 0.0
@@ -328,6 +341,34 @@ def test_corrupted_chunk_is_rejected_and_active_kept(layout: ParamLayout, encodi
     assert np.array_equal(dec.active, kept)
     dec.apply(ev, ev.payload, swap=True)  # the intact payload still applies
     assert np.array_equal(dec.active, enc.published)
+
+
+@pytest.mark.parametrize("encoding", ["delta-bf16", "delta-topk"])
+def test_compressed_deltas_shrink_and_damage_is_rejected(layout: ParamLayout, encoding: str) -> None:
+    rng = np.random.default_rng(3)
+    enc = WeightEncoder(layout, encoding, snapshot_every=1000, chunk_bytes=CHUNK_BYTES, compression="zstd")
+    raw = WeightEncoder(layout, encoding, snapshot_every=1000, chunk_bytes=CHUNK_BYTES)
+    dec = WeightDecoder(layout)
+    true = flatten(_mlp(), layout)
+    dec.apply(enc.encode(true), enc.snapshot().payload, swap=True)
+    raw.encode(true)
+    true += (1e-3 * rng.standard_normal(true.size)).astype(np.float32)  # an optimiser-sized step
+    ev, ev_raw = enc.encode(true), raw.encode(true)
+    assert ev.encoding == f"{encoding}+zstd" and ev.total_bytes < 0.8 * ev_raw.total_bytes
+    kept = dec.active.copy()
+    for pos in (5, ev.total_bytes // 2, ev.total_bytes - 3):
+        bad = bytearray(ev.payload)
+        bad[pos] ^= 0x41
+        with pytest.raises((CorruptPayload, ChecksumMismatch)):
+            dec.apply(ev.manifest(), bytes(bad), swap=True)
+        assert np.array_equal(dec.active, kept) and dec.pending_version is None
+    # A payload that inflates beyond any real delta of this layout is refused before it grows.
+    bomb = zstandard.ZstdCompressor().compress(bytes(8 * layout.numel))
+    manifest = {**ev.manifest().to_dict(), "total_bytes": len(bomb), "n_chunks": 1}
+    with pytest.raises(CorruptPayload, match="inflate|decompress"):
+        dec.apply(manifest, bomb, swap=True)
+    dec.apply(ev, ev.payload, swap=True)
+    assert np.array_equal(dec.active, enc.published) and np.array_equal(enc.published, raw.published)
 
 
 def test_corrupted_topk_index_is_rejected(layout: ParamLayout) -> None:
