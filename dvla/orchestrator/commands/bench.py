@@ -112,6 +112,7 @@ def replication(
     uplink_gbit: Annotated[float, typer.Option(help="rack uplink rate, Gbit/s")] = 0.2,
     training_steps: Annotated[int, typer.Option(help="env steps of each encoding's training run (0: skip that part)")] = 40000,
     train_topology: Annotated[Path, typer.Option(help="topology of the training runs")] = Path("topologies/local.yaml"),
+    transfer: Annotated[bool, typer.Option(help="run the tree/star/bound transfer part")] = True,
 ) -> None:
     """Weight tree vs star broadcast vs link bound on the emulated cluster; bytes per version of each
     encoding in real training, with each run's eval success."""
@@ -122,7 +123,7 @@ def replication(
     t0 = time.monotonic()
     try:
         doc = run_bench(topology, train_topology, size_mib=size_mib, versions=versions, node_gbit=node_gbit,
-                        uplink_gbit=uplink_gbit, training_steps=training_steps,
+                        uplink_gbit=uplink_gbit, training_steps=training_steps, transfer=transfer,
                         progress=lambda m: typer.echo(f"[bench] {m}", err=True))
     except (RuntimeError, TimeoutError, OSError, ValueError) as err:
         raise fail(f"bench replication: {err}", code=1)
@@ -130,5 +131,26 @@ def replication(
     doc["elapsed_s"] = time.monotonic() - t0
     json_path.parent.mkdir(parents=True, exist_ok=True)
     json_path.write_text(json.dumps(doc, indent=1, default=str))
+    typer.echo(format_table(doc))
+    typer.echo(f"wrote {json_path}  ({doc['elapsed_s']:.0f} s)")
+
+
+@app.command("vla")
+def vla(
+    json_path: Annotated[Path, typer.Option("--json", help="write the results (JSON) here")],
+    quick: Annotated[bool, typer.Option("--quick", help="tiny counts: checks the machinery, not the speed")] = False,
+) -> None:
+    """The rgb + language path: rollout env steps/s and inference p50/p99 of tiny-vla at three sizes
+    on rendered ManiSkill3 envs, and image-trajectory bytes/s on the data plane with Zenoh shared
+    memory on and off."""
+    from ...bench.vla import format_table, run_bench
+
+    try:
+        doc = run_bench(quick=quick, progress=lambda m: typer.echo(f"[bench] {m}", err=True))
+    except (RuntimeError, TimeoutError, OSError) as err:
+        raise fail(f"bench vla: {err}", code=1)
+    doc["command"] = "dvla bench vla --json " + str(json_path) + (" --quick" if quick else "")
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps(doc, indent=1))
     typer.echo(format_table(doc))
     typer.echo(f"wrote {json_path}  ({doc['elapsed_s']:.0f} s)")
