@@ -107,6 +107,6 @@ def test_grpo_end_to_end(tmp_path: Path) -> None:
     summaries = {p.stem: json.loads(p.read_text()) for p in (run_dir / "summaries").glob("*.json")}
     actor = summaries["actor-node0-0"]
     assert actor["error"] is None and actor["extra"]["published_version"] >= 4
-    assert actor["extra"]["learn"]["v_loss"] < 1e-3  # no critic targets: GRPO trains the value head to 0
+    assert actor["extra"]["learn"]["v_loss"] < 5e-3  # no critic targets: GRPO trains the value head to 0
     for name in ROLLOUTS:
         assert summaries[name]["policy_version"] >= 3
