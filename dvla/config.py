@@ -211,6 +211,24 @@ class LinkConfig:
 
 
 @dataclass(frozen=True, kw_only=True)
+class TlsConfig:
+    """TLS on the Zenoh links of the planes (docs/cluster.md, "TLS"). Every process of the run uses
+    the same files, so they must exist at the same paths on every host."""
+
+    #: CA certificate (PEM) that signed every process's certificate; peers are checked against it
+    root_ca: str
+    #: certificate (PEM) a process presents: listeners always, connecting sides with `mtls`;
+    #: it must name the addresses processes connect to (subjectAltName IP or DNS)
+    cert: str
+    #: private key (PEM) of `cert`
+    key: str
+    #: mutual TLS: listeners also refuse a connecting side without a certificate signed by `root_ca`
+    mtls: bool = True
+    #: planes whose links use TLS ("ctrl", "data"); the others stay plain TCP
+    planes: tuple[Literal["ctrl", "data"], ...] = ("ctrl", "data")
+
+
+@dataclass(frozen=True, kw_only=True)
 class RolePlacement:
     """A role placed on a node, possibly several processes of it."""
 
@@ -301,6 +319,8 @@ class Topology:
     links: LinkConfig = field(default_factory=LinkConfig)
     #: SSH settings of every remote node that does not set its own `ssh`
     ssh: SshConfig = field(default_factory=SshConfig)
+    #: TLS on the planes' links (None: plain TCP)
+    tls: TlsConfig | None = None
     #: racks of nodes
     racks: tuple[RackConfig, ...] = ()
 
@@ -323,6 +343,8 @@ class PlaneEndpoints:
     connect: tuple[str, ...] = ()
     #: zenoh mode: "peer", "client" or "router"
     mode: str = "peer"
+    #: TLS files when this plane's endpoints are "tls/..." locators (None: plain TCP)
+    tls: TlsConfig | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -379,8 +401,8 @@ class RoleConfig:
         return RoleConfig(
             **{
                 **raw,
-                "data": PlaneEndpoints(**_tuples(raw["data"])),
-                "ctrl": PlaneEndpoints(**_tuples(raw["ctrl"])),
+                "data": _plane_from_dict(raw["data"]),
+                "ctrl": _plane_from_dict(raw["ctrl"]),
                 "ancestors": tuple(raw["ancestors"]),
                 "children": tuple(raw["children"]),
                 "actors": tuple(raw["actors"]),
@@ -390,6 +412,11 @@ class RoleConfig:
                 "replication": ReplicationConfig(**raw["replication"]),
             }
         )
+
+
+def _plane_from_dict(raw: dict[str, Any]) -> PlaneEndpoints:
+    tls = raw.get("tls")
+    return PlaneEndpoints(**{**_tuples(raw), "tls": TlsConfig(**_tuples(tls)) if tls is not None else None})
 
 
 def _tuples(d: dict[str, Any]) -> dict[str, Any]:

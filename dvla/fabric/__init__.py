@@ -26,11 +26,11 @@ from .messages import (
     WeightManifest,
 )
 from .signing import Signer, Verifier, load_secret, new_secret
-from .zconfig import plane_config
+from .zconfig import TlsFiles, plane_config
 
 __all__ = [
     "Accounting", "CTRL", "CodecError", "Command", "DATA", "EvalResult", "Fabric", "FabricError", "Inbox",
     "KeySpace", "Limits", "RoleStatus", "SecretError", "SignatureError", "Signer", "SnapshotRequest",
-    "TrajectoryChunk", "Verifier", "WeightChunk", "WeightManifest", "decode", "encode", "load_secret",
+    "TlsFiles", "TrajectoryChunk", "Verifier", "WeightChunk", "WeightManifest", "decode", "encode", "load_secret",
     "new_secret", "plane_config",
 ]

@@ -11,7 +11,9 @@ See docs/architecture.md ("Zenoh settings") for why each value is what it is:
 from __future__ import annotations
 
 import json
-from typing import Iterable
+import os
+from dataclasses import dataclass
+from typing import Any, Iterable
 
 import zenoh
 
@@ -21,6 +23,22 @@ BLOCK_WAIT_BEFORE_CLOSE_US = 30_000_000
 RETRY_PERIOD_MS = (100, 1000)
 
 
+@dataclass(frozen=True, kw_only=True)
+class TlsFiles:
+    """TLS for one plane session: PEM files and whether both sides must show a certificate."""
+
+    #: CA certificate that signed the peers' certificates (what this side trusts)
+    root_ca: str
+    #: this side's certificate: presented when listening, and when connecting with `mtls`
+    cert: str
+    #: private key of `cert`
+    key: str
+    #: mutual TLS: a listener refuses connections without a certificate signed by `root_ca`
+    mtls: bool = True
+    #: check that the certificate of what we connect to names the address we dialled
+    verify_name: bool = True
+
+
 def plane_config(
     *,
     mode: str = "peer",
@@ -28,18 +46,26 @@ def plane_config(
     connect: Iterable[str] = (),
     shared_memory: bool = False,
     lease_ms: int | None = None,
+    tls: Any = None,
 ) -> zenoh.Config:
     """A Zenoh config for one plane session (data or ctrl) of a dvla process.
 
     `mode` is "peer", "client" or "router". A client tries `connect` endpoints in order and
     falls back to the next one when its router goes away (how rollouts re-attach to an ancestor).
+    `tls` (a :class:`TlsFiles`, or any object with `root_ca`, `cert`, `key` and `mtls`
+    attributes such as dvla's `TlsConfig`) makes the session speak TLS: every endpoint must then
+    be a ``tls/host:port`` locator, and without it none may be.
     """
     if mode not in ("peer", "client", "router"):
         raise ValueError(f"zenoh mode must be peer, client or router, got {mode!r}")
+    listen, connect = list(listen), list(connect)
+    _check_schemes(listen + connect, tls is not None)
     conf = zenoh.Config()
     _set(conf, "mode", mode)
-    _set(conf, "listen/endpoints", list(listen))
-    _set(conf, "connect/endpoints", list(connect))
+    _set(conf, "listen/endpoints", listen)
+    _set(conf, "connect/endpoints", connect)
+    if tls is not None:
+        _set_tls(conf, tls)
     _set(conf, "scouting/multicast/enabled", False)
     _set(conf, "scouting/gossip/enabled", False)
     _set(conf, "transport/shared_memory/enabled", bool(shared_memory))
@@ -60,3 +86,32 @@ def plane_config(
 
 def _set(conf: zenoh.Config, key: str, value: object) -> None:
     conf.insert_json5(key, json.dumps(value))
+
+
+def _check_schemes(endpoints: list[str], tls: bool) -> None:
+    for endpoint in endpoints:
+        scheme = endpoint.split("/", 1)[0]
+        if tls and scheme != "tls":
+            raise ValueError(f"endpoint {endpoint!r}: a TLS plane needs tls/host:port endpoints only")
+        if not tls and scheme == "tls":
+            raise ValueError(f"endpoint {endpoint!r}: a tls/ endpoint needs tls= (root_ca, cert, key)")
+
+
+def _set_tls(conf: zenoh.Config, tls: Any) -> None:
+    """Zenoh's `transport/link/tls/*` keys from the PEM files (checked to exist first)."""
+    files = {}
+    for attr in ("root_ca", "cert", "key"):
+        path = getattr(tls, attr, None)
+        if not isinstance(path, str) or not os.path.isfile(path):
+            raise ValueError(f"tls.{attr}: file not found: {path!r}")
+        files[attr] = os.path.abspath(path)
+    mtls = bool(getattr(tls, "mtls", True))
+    _set(conf, "transport/link/tls/root_ca_certificate", files["root_ca"])
+    _set(conf, "transport/link/tls/listen_certificate", files["cert"])
+    _set(conf, "transport/link/tls/listen_private_key", files["key"])
+    _set(conf, "transport/link/tls/enable_mtls", mtls)
+    _set(conf, "transport/link/tls/verify_name_on_connect", bool(getattr(tls, "verify_name", True)))
+    if mtls:
+        # The same certificate identifies this process when it is the connecting side.
+        _set(conf, "transport/link/tls/connect_certificate", files["cert"])
+        _set(conf, "transport/link/tls/connect_private_key", files["key"])

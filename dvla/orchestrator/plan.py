@@ -143,9 +143,12 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
             s.ctrl_port = port
             port += 1
 
+    tls_planes = topo.tls.planes if topo.tls is not None else ()
+
     def ep(s: _Slot, which: str) -> str:
         p = s.ctrl_port if which == "ctrl" else s.data_port
-        return f"tcp/{addresses[s.node.name]}:{p}"
+        scheme = "tls" if which in tls_planes else "tcp"
+        return f"{scheme}/{addresses[s.node.name]}:{p}"
 
     def ancestors(s: _Slot) -> list[_Slot]:
         out, cur = [], s
@@ -171,6 +174,10 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
                 if s.kind == "rollout"
                 else PlaneEndpoints(mode="peer")
             )
+        if "ctrl" in tls_planes:
+            ctrl = dataclasses.replace(ctrl, tls=topo.tls)
+        if "data" in tls_planes:
+            data = dataclasses.replace(data, tls=topo.tls)
         cfg = RoleConfig(
             name=s.name,
             kind=s.kind,  # type: ignore[arg-type]

@@ -113,9 +113,20 @@ def resolve_secret(topo: Topology, run_dir: Path) -> tuple[str, str]:
     return secret, str(path)
 
 
-def tool_fabric(run: str, entry: tuple[str, ...], secret: bytes, name: str = "orchestrator") -> Fabric:
-    """A client-only fabric for tools (orchestrator, `dvla status`) on the ctrl plane."""
-    conf = plane_config(mode="client", connect=entry)
+def ctrl_tls(topo: Topology) -> Any:
+    """The TLS files a tool needs to reach the ctrl plane (None when it is plain TCP)."""
+    return topo.tls if topo.tls is not None and "ctrl" in topo.tls.planes else None
+
+
+def ctrl_tls_dict(topo: Topology) -> dict[str, Any] | None:
+    tls = ctrl_tls(topo)
+    return None if tls is None else {"root_ca": tls.root_ca, "cert": tls.cert, "key": tls.key, "mtls": tls.mtls}
+
+
+def tool_fabric(run: str, entry: tuple[str, ...], secret: bytes, name: str = "orchestrator", tls: Any = None) -> Fabric:
+    """A client-only fabric for tools (orchestrator, `dvla status`) on the ctrl plane (`tls`: the
+    topology's TLS files when the ctrl plane uses TLS)."""
+    conf = plane_config(mode="client", connect=entry, tls=tls)
     return Fabric(run=run, name=name, ctrl_conf=conf, data_conf=None, secret=secret, open_timeout_s=20.0)
 
 
@@ -148,6 +159,7 @@ class Up:
             "run": self.topo.run,
             "pid": os.getpid(),
             "ctrl_entry": list(self.plan.ctrl_entry),
+            "ctrl_tls": ctrl_tls_dict(self.topo),
             "secret_file": self.secret_source if self.secret_source != "DVLA_SECRET" else None,
             "children": self.launcher.pids(),
             "restarts": {n: c.restarts for n, c in self.launcher.children.items()},
@@ -180,7 +192,8 @@ class Up:
                 self.launcher.add(p)
             self.launcher.start_all()
             self._write_state()
-            fabric = tool_fabric(self.topo.run, self.plan.ctrl_entry, bytes.fromhex(self.secret))
+            fabric = tool_fabric(self.topo.run, self.plan.ctrl_entry, bytes.fromhex(self.secret),
+                                 tls=ctrl_tls(self.topo))
             try:
                 self.monitor = Monitor(fabric, self.run_dir, self.topo.task.budget)
                 code = self._watch(fabric)

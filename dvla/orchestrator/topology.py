@@ -41,6 +41,7 @@ from dvla.config import (
     ReplicationConfig,
     RolePlacement,
     SshConfig,
+    TlsConfig,
     TaskConfig,
     Topology,
     grpo_layout_problems,
@@ -832,11 +833,41 @@ def _resolve_ssh_paths(topo: _Partial, base_dir: str, ctx: _Context) -> None:
                 ctx.report(ssh.where(name), f"identity file not found: {resolved}")
 
 
+def _check_tls(p: _Partial, ctx: _Context) -> None:
+    planes = p.get("planes")
+    if isinstance(planes, tuple):
+        if not planes:
+            ctx.report(p.where("planes"), "empty planes (expected ctrl, data or both; or drop the tls section)")
+        else:
+            named = [x for x in planes if isinstance(x, str)]
+            if len(set(named)) != len(named):
+                ctx.report(p.where("planes"), f"repeated plane in {named}")
+
+
+def _resolve_tls_paths(topo: _Partial, base_dir: str, ctx: _Context) -> None:
+    """Make the TLS file paths absolute (relative to the topology file); each must exist."""
+    tls = topo.get("tls")
+    if not isinstance(tls, _Partial):
+        return
+    for name in ("root_ca", "cert", "key"):
+        value = tls.get(name)
+        if not isinstance(value, str):
+            continue
+        if not value.strip():
+            ctx.report(tls.where(name), f"empty {name} (expected a PEM file path)")
+            continue
+        resolved = os.path.abspath(os.path.join(base_dir, os.path.expanduser(value)))
+        tls.values[name] = resolved
+        if not os.path.isfile(resolved):
+            ctx.report(tls.where(name), f"TLS file not found: {resolved}")
+
+
 _CHECKS: dict[type, list[Callable[[_Partial, _Context], None]]] = {
     Topology: [
         _check_run_id, _check_has_racks, _check_names, _check_required_roles, _check_netns_hosts, _check_remote_addresses,
     ],
     SshConfig: [_check_ssh],
+    TlsConfig: [_check_tls],
     TaskConfig: [_check_env, _check_obs_and_policy, _check_grpo],
     BudgetConfig: [_check_stop_condition],
     ReplicationConfig: [_check_encoding],
@@ -896,7 +927,7 @@ def _compose(text: str, ctx: _Context) -> Node | None:
 def parse_topology(text: str, source: str = "<memory>") -> Topology:
     """Parse and validate topology YAML ``text`` read from ``source`` (used in messages).
 
-    Relative paths in the file (``secret_file``) are resolved against the directory of
+    Relative paths in the file (``secret_file``, SSH keys, TLS files) are resolved against the directory of
     ``source``. Raises :class:`TopologyError` listing every problem found.
     """
     ctx = _Context(source)
@@ -910,6 +941,7 @@ def parse_topology(text: str, source: str = "<memory>") -> Topology:
         if isinstance(root, _Partial):
             _resolve_secret_file(root, _base_dir(source), ctx)
             _resolve_ssh_paths(root, _base_dir(source), ctx)
+            _resolve_tls_paths(root, _base_dir(source), ctx)
             _check_tree(root, ctx)
             root.values["source"] = source
             topo = _build(root, ctx)

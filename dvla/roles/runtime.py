@@ -49,10 +49,12 @@ class Role(Protocol):
 
 def open_fabric(cfg: RoleConfig) -> Fabric:
     """The role's two sessions, as the plan wired them."""
-    ctrl = plane_config(mode=cfg.ctrl.mode, listen=cfg.ctrl.listen, connect=cfg.ctrl.connect, shared_memory=cfg.shared_memory)
+    ctrl = plane_config(mode=cfg.ctrl.mode, listen=cfg.ctrl.listen, connect=cfg.ctrl.connect, shared_memory=cfg.shared_memory,
+                        tls=cfg.ctrl.tls)
     data = None
     if cfg.data.listen or cfg.data.connect:
-        data = plane_config(mode=cfg.data.mode, listen=cfg.data.listen, connect=cfg.data.connect, shared_memory=cfg.shared_memory)
+        data = plane_config(mode=cfg.data.mode, listen=cfg.data.listen, connect=cfg.data.connect,
+                            shared_memory=cfg.shared_memory, tls=cfg.data.tls)
     return Fabric(run=cfg.run, name=cfg.name, ctrl_conf=ctrl, data_conf=data, secret=load_secret(None, cfg.secret_env))
 
 

@@ -12,6 +12,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from ...fabric import TlsFiles
 from ...fabric.messages import RoleStatus
 from ..run import tool_fabric
 from ..view import render_json, render_table
@@ -33,8 +34,10 @@ def status(
     run_id, state = find_run(run, runs)
     secret = secret_for(state)
     try:
-        fabric = tool_fabric(run_id, tuple(state["ctrl_entry"]), secret, name="status-cli")
-    except ConnectionError as err:
+        tls = state.get("ctrl_tls")
+        fabric = tool_fabric(run_id, tuple(state["ctrl_entry"]), secret, name="status-cli",
+                             tls=TlsFiles(**tls) if tls else None)
+    except (ConnectionError, ValueError) as err:
         raise fail(f"run {run_id}: control plane unreachable: {err}")
     try:
         replies = fabric.query(fabric.keys.status_all(), expect=RoleStatus, timeout=timeout)
