@@ -30,6 +30,7 @@ import math
 import os
 import platform
 import shutil
+import socket
 import statistics
 import sys
 import tempfile
@@ -147,6 +148,29 @@ def placement_of(topo: Topology) -> list[dict[str, Any]]:
 # --------------------------------------------------------------------------------------------
 
 
+def free_port_block(n: int = 8) -> int:
+    """A base port whose next ``n`` ports are free right now (other runs may share the machine)."""
+    for _ in range(100):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            base = s.getsockname()[1]
+        if base + n >= 65000:
+            continue
+        socks: list[socket.socket] = []
+        try:
+            for p in range(base, base + n):
+                t = socket.socket()
+                socks.append(t)
+                t.bind(("127.0.0.1", p))
+            return base
+        except OSError:
+            continue
+        finally:
+            for t in socks:
+                t.close()
+    raise RuntimeError("no block of free TCP ports on 127.0.0.1")
+
+
 def rss_kib(pid: int) -> int | None:
     """Resident set size of a process (KiB), or None once it is gone."""
     try:
@@ -180,10 +204,13 @@ def _all_answered(statuses: dict[str, RoleStatus], expected: list[str]) -> bool:
 
 
 def measure_run(
-    topo: Topology, mode: str, warmup_s: float, window_s: float, runs_root: Path, base_port: int,
+    topo: Topology, mode: str, warmup_s: float, window_s: float, runs_root: Path, base_port: int | None,
     progress: Callable[[str], None],
 ) -> dict[str, Any]:
-    """Start `topo` in `mode`, measure one window after warm-up, stop it; figures as a dict."""
+    """Start `topo` in `mode`, measure one window after warm-up, stop it; figures as a dict.
+
+    ``base_port`` None: a block of ports free at this moment.
+    """
     from ..orchestrator.run import Up, UpOptions
 
     topo = dataclasses.replace(topo, mode=mode)  # type: ignore[arg-type]
@@ -224,7 +251,8 @@ def measure_run(
             w.closed = dict(statuses)
             u.interrupt()
 
-    opts = UpOptions(runs_root=runs_root, base_port=base_port, max_restarts=0)
+    port = base_port if base_port is not None else free_port_block()
+    opts = UpOptions(runs_root=runs_root, base_port=port, max_restarts=0)
     u = Up(topo, opts, on_tick=tick)
     code = u.run()
     result = json.loads((u.run_dir / "result.json").read_text()) if (u.run_dir / "result.json").exists() else {}
@@ -241,7 +269,9 @@ def measure_run(
         return out
     out.update(window_figures(w.opened, w.closed, topo))  # type: ignore[arg-type]
     out["rss"] = rss_figures(w.rss)
-    out["sps_intervals"] = interval_rates(w.ticks, 10.0, "consumed" if mode != "sim_only" else "produced")
+    # Produced, not consumed: the learner consumes in whole batches, which makes short intervals
+    # of consumed steps jump between 0 and several batches.
+    out["produced_sps_intervals"] = interval_rates(w.ticks, 15.0, "produced")
     return out
 
 
@@ -395,7 +425,7 @@ def _ratio(x: float | None, y: float | None) -> float | None:
 
 
 def run_bench(
-    topology: Path, profile: Profile, *, base_port: int = 19600, runs_root: Path | None = None,
+    topology: Path, profile: Profile, *, base_port: int | None = None, runs_root: Path | None = None,
     workloads: tuple[str, ...] = ("default", "balanced"),
     progress: Callable[[str], None] = lambda _m: None,
 ) -> dict[str, Any]:
@@ -436,7 +466,7 @@ def run_bench(
 
 def _pairs(
     first: tuple[str, Topology, float], second: tuple[str, Topology, float], profile: Profile,
-    runs_root: Path, base_port: int, progress: Callable[[str], None],
+    runs_root: Path, base_port: int | None, progress: Callable[[str], None],
 ) -> list[dict[str, dict[str, Any]]]:
     out = []
     for i in range(profile.repeats):
@@ -455,7 +485,7 @@ def _median(xs: list[float | None]) -> float | None:
     return statistics.median(vals) if vals else None
 
 
-def _default(base: Topology, profile: Profile, runs_root: Path, port: int, progress: Callable[[str], None]) -> dict[str, Any]:
+def _default(base: Topology, profile: Profile, runs_root: Path, port: int | None, progress: Callable[[str], None]) -> dict[str, Any]:
     topo = default_workload(base, profile)
     steady = max(profile.window_s, profile.rss_window_s)
     pairs = _pairs(("sim_only", topo, profile.window_s), ("async", topo, steady), profile, runs_root, port, progress)
@@ -468,7 +498,7 @@ def _default(base: Topology, profile: Profile, runs_root: Path, port: int, progr
     }
 
 
-def _balanced(base: Topology, profile: Profile, runs_root: Path, port: int, progress: Callable[[str], None]) -> dict[str, Any]:
+def _balanced(base: Topology, profile: Profile, runs_root: Path, port: int | None, progress: Callable[[str], None]) -> dict[str, Any]:
     epochs = profile.balanced_epochs
     w = profile.window_s
     rejected: list[dict[str, Any]] = []

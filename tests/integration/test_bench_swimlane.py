@@ -37,7 +37,7 @@ def test_bench_swimlane_quick_writes_every_figure(tmp_path: Path) -> None:
     runs = tmp_path / "runs"
     proc = subprocess.run(
         [sys.executable, "-m", "dvla", "bench", "swimlane", "--json", str(out), "--quick", "--runs", str(runs),
-         "--base-port", "19640"],
+],
         cwd=ROOT, capture_output=True, text=True, timeout=840,
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr
