@@ -36,8 +36,7 @@ def test_bench_swimlane_quick_writes_every_figure(tmp_path: Path) -> None:
     out = tmp_path / "bench" / "swimlane.json"
     runs = tmp_path / "runs"
     proc = subprocess.run(
-        [sys.executable, "-m", "dvla", "bench", "swimlane", "--json", str(out), "--quick", "--runs", str(runs),
-],
+        [sys.executable, "-m", "dvla", "bench", "swimlane", "--json", str(out), "--quick", "--runs", str(runs)],
         cwd=ROOT, capture_output=True, text=True, timeout=840,
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr

@@ -74,7 +74,7 @@ def swimlane(
     balanced_epochs: Annotated[Optional[int], typer.Option(help="PPO epochs of the balanced workload")] = None,
     repeats: Annotated[int, typer.Option(help="runs of each workload's pair (alternating), for the spread")] = 1,
     workload: Annotated[Optional[list[str]], typer.Option(help="default and/or balanced (repeatable; default: both)")] = None,
-    base_port: Annotated[int, typer.Option(help="first TCP port")] = 19600,
+    base_port: Annotated[Optional[int], typer.Option(help="first TCP port (default: a free block for each run)")] = None,
     runs: Annotated[Optional[Path], typer.Option(help="keep the runs' directories here (default: a temporary directory)")] = None,
 ) -> None:
     """Lane overlap on real runs: training vs simulation alone (default workload), async vs lock-step
