@@ -151,7 +151,7 @@ def run_training(
     encodings: tuple[str, ...] = ("full", "delta-bf16", "delta-topk"),
     max_env_steps: int = 40000,
     seed: int = 1,
-    base_port: int = 19600,
+    base_port: int = 19800,
     progress: Callable[[str], None] = lambda m: None,
 ) -> dict[str, Any]:
     """`dvla up` once per encoding (same seed and budget); bytes per version and eval success."""
@@ -163,7 +163,7 @@ def run_training(
             path = Path(tmp) / f"{enc}.yaml"
             path.write_text(dump_topology_yaml(topo))
             cmd = [sys.executable, "-m", "dvla", "up", str(path), "--seed", str(seed), "--quiet", "--runs", tmp,
-                   "--base-port", str(base_port), "--max-env-steps", str(max_env_steps), "--until-success", "2"]
+                   "--base-port", str(base_port), "--max-env-steps", str(max_env_steps), "--until-success", "1.0"]
             progress(f"training with {enc}: {max_env_steps} env steps")
             t0 = time.monotonic()
             proc = subprocess.run(cmd, capture_output=True, text=True)
@@ -217,6 +217,7 @@ def run_bench(
     uplink_gbit: float,
     training_steps: int,
     progress: Callable[[str], None],
+    transfer: bool = True,
 ) -> dict[str, Any]:
     doc: dict[str, Any] = {
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},
@@ -224,8 +225,9 @@ def run_bench(
         "node_gbit": node_gbit,
         "rack_uplink_gbit": uplink_gbit,
     }
-    doc.update(run_transfer(topology, size_mib=size_mib, versions=versions, node_gbit=node_gbit,
-                            uplink_gbit=uplink_gbit, progress=progress))
+    if transfer:
+        doc.update(run_transfer(topology, size_mib=size_mib, versions=versions, node_gbit=node_gbit,
+                                uplink_gbit=uplink_gbit, progress=progress))
     if training_steps > 0:
         train = run_training(train_topology, max_env_steps=training_steps, progress=progress)
         doc["training"] = train
@@ -239,7 +241,9 @@ def format_table(doc: dict[str, Any]) -> str:
     def f(x: Any, nd: int = 2) -> str:
         return "-" if x is None else (f"{x:.{nd}f}" if isinstance(x, float) else str(x))
 
-    lines = [
+    lines = []
+    if "tree_s" in doc:
+        lines += [
         f"version size          {doc['size_bytes'] / MIB:.0f} MiB  (links: node {doc['node_gbit']} Gbit/s, rack uplink {doc['rack_uplink_gbit']} Gbit/s)",
         f"bound_s               {f(doc['bound_s'])}",
         f"tree_s                {f(doc['tree_s'])}   (min {f(doc['tree']['min_s'])}, max {f(doc['tree']['max_s'])})",
@@ -247,7 +251,7 @@ def format_table(doc: dict[str, Any]) -> str:
         f"tree_over_bound       {f(doc['tree_over_bound'])}   (goal <= 1.3)",
         f"star_over_tree        {f(doc['star_over_tree'])}   (goal >= 3)",
         f"actor_uplink_bytes/S  {f(doc['actor_uplink_bytes_over_s'])}   (goal <= fanout {doc['fanout']}; star: {f(doc['star_actor_uplink_bytes_over_s'])})",
-    ]
+        ]
     for k in ("bytes_ratio_delta_bf16", "bytes_ratio_delta_topk"):
         if k in doc:
             lines.append(f"{k:<22}{f(doc[k], 3)}")
