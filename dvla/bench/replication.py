@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ..config import LinkConfig, ReplicationConfig, Topology
+from ..orchestrator.estimate import delivery_estimate
 from ..orchestrator.topology import dump_topology_yaml, load_topology
 from .repcluster import RepCluster, without_roles
 
@@ -118,6 +119,8 @@ def run_transfer(
             netns = tree.netns
             tree._own_netns = False  # the star reuses the same namespaces and links
             try:
+                est = delivery_estimate(tree.topo, tree.plan, size_bytes)
+                out["predicted_tree_s"], out["predicted_star_s"] = est["tree_s"], est["star_s"]
                 out["fanout"] = base.replication.fanout
                 out["tree_children"] = {n: tree.children_of(n) for n in [tree.source, *tree.relays]}
                 out["tree"] = measure(tree, versions, timeout_s, lambda m: progress("tree " + m))
@@ -246,8 +249,8 @@ def format_table(doc: dict[str, Any]) -> str:
         lines += [
         f"version size          {doc['size_bytes'] / MIB:.0f} MiB  (links: node {doc['node_gbit']} Gbit/s, rack uplink {doc['rack_uplink_gbit']} Gbit/s)",
         f"bound_s               {f(doc['bound_s'])}",
-        f"tree_s                {f(doc['tree_s'])}   (min {f(doc['tree']['min_s'])}, max {f(doc['tree']['max_s'])})",
-        f"star_s                {f(doc['star_s'])}   (min {f(doc['star']['min_s'])}, max {f(doc['star']['max_s'])})",
+        f"tree_s                {f(doc['tree_s'])}   (min {f(doc['tree']['min_s'])}, max {f(doc['tree']['max_s'])}; predicted {f(doc['predicted_tree_s'])})",
+        f"star_s                {f(doc['star_s'])}   (min {f(doc['star']['min_s'])}, max {f(doc['star']['max_s'])}; predicted {f(doc['predicted_star_s'])})",
         f"tree_over_bound       {f(doc['tree_over_bound'])}   (goal <= 1.3)",
         f"star_over_tree        {f(doc['star_over_tree'])}   (goal >= 3)",
         f"actor_uplink_bytes/S  {f(doc['actor_uplink_bytes_over_s'])}   (goal <= fanout {doc['fanout']}; star: {f(doc['star_actor_uplink_bytes_over_s'])})",

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
-from dvla.config import RoleConfig
+import pytest
+
+from dvla.config import LinkConfig, RoleConfig
 from dvla.orchestrator.plan import make_plan
 from dvla.orchestrator.topology import load_topology, parse_topology
 
@@ -81,3 +84,27 @@ def test_ports_are_unique() -> None:
     plan = make_plan(parse_topology(TWO_RACKS, "two.yaml"), "/tmp/run", base_port=30000)
     eps = [e for p in plan.processes for e in p.config.ctrl.listen + p.config.data.listen]
     assert len(eps) == len(set(eps)) == 2 + 2  # actor ctrl+data, two replicator ctrl
+
+
+def test_delivery_estimate_follows_the_busiest_link() -> None:
+    from dvla.orchestrator.estimate import delivery_estimate
+
+    topo = load_topology(ROOT / "topologies" / "8node.yaml")
+    topo = dataclasses.replace(topo, links=LinkConfig(node_gbit=1.0, rack_uplink_gbit=0.2))
+    plan = make_plan(topo, "runs/x")
+    size = 64 << 20
+    est = delivery_estimate(topo, plan, size)
+    cross_s = size * 8 / 0.2e9
+    # Tree: one copy crosses the rack uplink; the pipeline adds one 1 MiB chunk per extra level.
+    assert est["tree_bottleneck"] in ("r0 uplink out", "r1 uplink in")
+    assert est["tree_s"] == pytest.approx(cross_s + (1 << 20) * 8 / 0.2e9)
+    assert est["tree_root_copies"] == 2  # one per rack replicator
+    # Star: the four rollouts of rack r1 each take their own copy across the uplink.
+    assert est["star_s"] == pytest.approx(4 * cross_s)
+    assert est["star_root_copies"] == 9  # 8 rollouts + the evaluator
+    assert est["bound_s"] == pytest.approx(cross_s)
+    # Faster uplinks move the bottleneck to a replicator's NIC (4 remote copies from r0n1).
+    fast = dataclasses.replace(topo, links=LinkConfig(node_gbit=1.0, rack_uplink_gbit=10.0))
+    est = delivery_estimate(fast, make_plan(fast, "runs/x"), size)
+    assert est["tree_bottleneck"] == "r0n1 NIC out"
+    assert est["tree_s"] == pytest.approx(4 * size * 8 / 1e9 + (1 << 20) * 8 / 1e9)

@@ -5,13 +5,18 @@ from __future__ import annotations
 import json
 from enum import Enum
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Any, Optional
 
 import typer
 
+from ..estimate import delivery_estimate
 from ..plan import make_plan
 from ..topology import topology_to_dict
 from .common import topology_or_exit
+
+
+#: weights size assumed without --param-mb: about the default MLP policy's (1.1 MB)
+DEFAULT_PARAM_MB = 1.1
 
 
 class Format(str, Enum):
@@ -48,8 +53,10 @@ def plan(
     typer.echo("weight tree:")
     _tree(typer.echo, procs, p.root_actor, "  ")
     typer.echo(
-        f"broadcast of {estimate['param_mb']:.1f} MB ({topo.replication.encoding}): "
-        f"~{estimate['tree_s']:.3f} s through the tree, ~{estimate['star_s']:.3f} s as a star"
+        f"one version of {estimate['param_mb']:.1f} MB{' (assumed: --param-mb sets it)' if estimate['param_mb_assumed'] else ''}"
+        f" as a full copy: ~{estimate['tree_s']:.3f} s through the tree (busiest link: {estimate['tree_bottleneck'] or 'none'}),"
+        f" ~{estimate['star_s']:.3f} s as a star (busiest link: {estimate['star_bottleneck'] or 'none'});"
+        f" link bound {estimate['bound_s']:.3f} s"
     )
     for w in p.warnings:
         typer.echo(f"warning: {w}", err=True)
@@ -62,20 +69,8 @@ def _tree(echo, procs: list[dict], name: str, indent: str) -> None:
             _tree(echo, procs, x["name"], indent + "  ")
 
 
-def broadcast_estimate(topo, p, param_mb: float | None) -> dict[str, float]:
-    """Store-and-forward per chunk, cut-through between levels: size / slowest link on the path
-    plus one chunk per extra hop; a star sends every copy through the actor's NIC."""
-    mb = param_mb if param_mb is not None else 1.1
-    bits = mb * 8e6
-    node_bps = topo.links.node_gbit * 1e9
-    uplink_bps = topo.links.rack_uplink_gbit * 1e9
-    chunk_bits = topo.replication.chunk_bytes * 8
-    leaves = [x for x in p.processes if x.config.kind in ("rollout", "evaluator")]
-    depth = max((len(x.config.ancestors) for x in leaves), default=1)
-    racks = len(topo.racks)
-    max_children = max((len(x.config.children) for x in p.processes), default=1)
-    # Each tree node sends a version once per child over its own NIC; cross-rack hops use uplinks.
-    per_link = bits * max_children / min(node_bps, uplink_bps if racks > 1 else node_bps)
-    tree_s = per_link + (depth - 1) * chunk_bits / min(node_bps, uplink_bps)
-    star_s = bits * len(leaves) / min(node_bps, uplink_bps if racks > 1 else node_bps)
-    return {"param_mb": mb, "tree_s": tree_s, "star_s": star_s, "depth": depth, "leaves": len(leaves)}
+def broadcast_estimate(topo, p, param_mb: float | None) -> dict[str, Any]:
+    """Predicted delivery of one version (see dvla/orchestrator/estimate.py), in MB of weights."""
+    mb = param_mb if param_mb is not None else DEFAULT_PARAM_MB
+    est = delivery_estimate(topo, p, int(mb * 1e6))
+    return {"param_mb": mb, "param_mb_assumed": param_mb is None, **est}
