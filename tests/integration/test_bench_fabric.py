@@ -42,15 +42,27 @@ def test_bench_fabric_quick_writes_every_figure(tmp_path: Path) -> None:
             assert positive(e[kind]["bytes_per_s"]) and positive(e[kind]["msgs_per_s"])
     assert 60_000 < doc["throughput"]["64k"]["payload_bytes"] < 70_000
     assert 1_000_000 < doc["throughput"]["1m"]["payload_bytes"] < 1_100_000
-    for phase in ("idle", "loaded", "loaded_shared"):
-        r = doc["ctrl_rtt"][phase]
-        assert positive(r["p50_ms"]) and positive(r["p99_ms"]) and r["p50_ms"] <= r["p99_ms"]
-        assert positive(r["samples"])
-    for phase in ("loaded", "loaded_shared"):
-        assert positive(doc["ctrl_rtt"][phase]["flood_bytes_per_s"]), "the data plane was not flooded"
+    layouts = doc["ctrl_rtt_layouts"]
+    # the links layout runs wherever it can be built (root + iproute2), loopback always
+    assert set(layouts) == ({"loopback", "links"} if doc["links_layout"] == "used" else {"loopback"})
+    assert doc["ctrl_rtt_layout"] == ("links" if "links" in layouts else "loopback")
+    assert doc["ctrl_rtt"] == layouts[doc["ctrl_rtt_layout"]]
+    for entry in layouts.values():
+        assert entry["layout"]
+        for phase in ("idle", "loaded", "loaded_shared"):
+            r = entry[phase]
+            assert positive(r["p50_ms"]) and positive(r["p99_ms"]) and r["p50_ms"] <= r["p99_ms"]
+            assert positive(r["samples"])
+        for phase in ("loaded", "loaded_shared"):
+            assert positive(entry[phase]["flood_bytes_per_s"]), "the data plane was not flooded"
+    for e in doc["throughput"].values():
+        assert e["raw"]["does"] and e["fabric"]["does"]  # what each side does, in words
     assert "ctrl RTT" in proc.stdout and "ratio" in proc.stdout
     alive = [pid for pid in doc["worker_pids"] if Path(f"/proc/{pid}").exists() and not _zombie(pid)]
-    assert len(doc["worker_pids"]) == 12 and alive == [], alive  # 2 sizes x 2 kinds x 2 + 2 x 2
+    # 2 sizes x 2 kinds x (publisher, subscriber) + per layout 2 x (sink, source, tool)
+    assert len(doc["worker_pids"]) == 8 + 6 * len(layouts) and alive == [], alive
+    if doc["netns"]:  # the namespaces of the links layout are gone again
+        assert all(not Path(f"/var/run/netns/{ns}").exists() for ns in doc["netns"]), doc["netns"]
 
 
 def _zombie(pid: int) -> bool:

@@ -600,6 +600,26 @@ def test_fuzz_insertions(buf, pos, junk):
     reasons_only(decode, buf[:pos] + junk + buf[pos:])
 
 
+@FUZZ
+@given(st.sampled_from(VALID), st.lists(st.tuples(st.integers(0, 2**16), st.sampled_from([0x00, 0x7F, 0xC6, 0xC9, 0xDD,
+                                                                                        0xDF, 0xFF])),
+                                        min_size=1, max_size=6))
+def test_fuzz_allocation_stays_bounded_by_the_input(buf, edits):
+    # Mutations biased to length prefixes (bin32, ext32, array32, map32, 0xff bytes): whatever a
+    # forged length claims, decoding allocates at most on the order of the input itself.
+    mutated = bytearray(buf)
+    for pos, byte in edits:
+        mutated[pos % len(mutated)] = byte
+    data = bytes(mutated)
+    tracemalloc.start()
+    try:
+        reasons_only(decode, data)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 64 * 1024 + 2 * len(data), (peak, len(data))
+
+
 msgpack_scalars = (st.none() | st.booleans() | st.integers(-(2**63), 2**64 - 1) | st.floats() | st.text(max_size=8)
                    | st.binary(max_size=8))
 # Flat containers only: recursive strategies are slow to generate and add no new decoder paths.

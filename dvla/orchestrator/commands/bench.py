@@ -47,13 +47,15 @@ def _f(x: float | None) -> str:
 def fabric(
     json_path: Annotated[Path, typer.Option("--json", help="write the results (JSON) here")],
     quick: Annotated[bool, typer.Option("--quick", help="tiny counts: checks the machinery, not the speed")] = False,
+    links: Annotated[bool, typer.Option("--links/--no-links",
+                                        help="also measure ctrl RTT over rate-limited per-plane links (needs root)")] = True,
 ) -> None:
     """Fabric chunk throughput against raw Zenoh (64 KiB, 1 MiB) and ctrl request/reply p99 RTT: idle,
     with the data plane flooded, and flooded with data and ctrl on one shared session."""
     from ...bench.fabric import format_table, run_bench
 
     try:
-        doc = run_bench(quick=quick, progress=lambda m: typer.echo(f"[bench] {m}", err=True))
+        doc = run_bench(quick=quick, links=links, progress=lambda m: typer.echo(f"[bench] {m}", err=True))
     except (RuntimeError, TimeoutError, OSError) as err:
         raise fail(f"bench fabric: {err}", code=1)
     doc["command"] = "dvla bench fabric --json " + str(json_path) + (" --quick" if quick else "")
