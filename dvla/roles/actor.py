@@ -120,11 +120,7 @@ class Actor:
             self.policy_version = self.published_version = highest
 
     def _make_encoder(self, start_version: int) -> WeightEncoder:
-        rep = self.cfg.replication
-        return WeightEncoder(
-            self.layout, rep.encoding, topk_fraction=rep.topk_fraction,
-            snapshot_every=rep.snapshot_every, chunk_bytes=rep.chunk_bytes, start_version=start_version,
-        )
+        return WeightEncoder.from_config(self.layout, self.cfg.replication, start_version=start_version)
 
     def _snapshot_version(self, module: torch.nn.Module) -> np.ndarray:
         flat = np.empty(self.layout.numel, np.float32)
