@@ -152,7 +152,8 @@ def run_training(
     topology: Path,
     *,
     encodings: tuple[str, ...] = ("full", "delta-bf16", "delta-topk"),
-    max_env_steps: int = 40000,
+    max_env_steps: int = 150000,
+    until_success: float = 0.8,
     seed: int = 1,
     base_port: int = 19800,
     progress: Callable[[str], None] = lambda m: None,
@@ -166,16 +167,16 @@ def run_training(
             path = Path(tmp) / f"{enc}.yaml"
             path.write_text(dump_topology_yaml(topo))
             cmd = [sys.executable, "-m", "dvla", "up", str(path), "--seed", str(seed), "--quiet", "--runs", tmp,
-                   "--base-port", str(base_port), "--max-env-steps", str(max_env_steps), "--until-success", "1.0"]
+                   "--base-port", str(base_port), "--max-env-steps", str(max_env_steps), "--until-success", str(until_success)]
             progress(f"training with {enc}: {max_env_steps} env steps")
             t0 = time.monotonic()
             proc = subprocess.run(cmd, capture_output=True, text=True)
             run_dir = Path(tmp) / topo.run
             runs[enc] = _training_figures(run_dir, proc.returncode, time.monotonic() - t0)
             progress(f"{enc}: {runs[enc]['bytes_per_version']:.0f} bytes/version over {runs[enc]['versions']} versions, "
-                     f"final eval success {runs[enc]['final_success']}")
+                     f"{runs[enc]['env_steps']} env steps, stopped by {runs[enc]['reason']}, final eval success {runs[enc]['final_success']}")
     full = runs.get("full", {}).get("bytes_per_version")
-    out: dict[str, Any] = {"max_env_steps": max_env_steps, "seed": seed, "runs": runs,
+    out: dict[str, Any] = {"max_env_steps": max_env_steps, "until_success": until_success, "seed": seed, "runs": runs,
                            "snapshot_every": base.replication.snapshot_every, "topk_fraction": base.replication.topk_fraction}
     for enc in encodings:
         if enc != "full" and full:
@@ -204,6 +205,8 @@ def _training_figures(run_dir: Path, exit_code: int, wall_s: float) -> dict[str,
         "delta_bytes_per_version": (pub.get("delta_bytes", 0) / pub["delta_versions"]) if pub.get("delta_versions") else None,
         "full_versions": pub.get("full_versions"),
         "env_steps": res.get("env_steps"),
+        "success_reached": bool(res.get("success_reached")),
+        "reason": res.get("reason"),
         "final_success": successes[-1] if successes else None,
         "best_success": max(successes) if successes else None,
         "evals": [(e.get("env_steps"), e.get("success_once")) for e in evals],
@@ -261,5 +264,5 @@ def format_table(doc: dict[str, Any]) -> str:
     if "training" in doc:
         for enc, r in doc["training"]["runs"].items():
             lines.append(f"  {enc:<11} {r['versions']:>4} versions  {r['bytes_per_version']:>10.0f} B/version  "
-                         f"final success {f(r['final_success'])}  best {f(r['best_success'])}")
+                         f"{r['env_steps']} env steps ({r['reason']})  final success {f(r['final_success'])}  best {f(r['best_success'])}")
     return "\n".join(lines)

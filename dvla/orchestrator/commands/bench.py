@@ -112,7 +112,7 @@ def replication(
     versions: Annotated[int, typer.Option(help="measured versions per scheme (after one warm-up version)")] = 3,
     node_gbit: Annotated[float, typer.Option(help="node NIC rate, Gbit/s")] = 1.0,
     uplink_gbit: Annotated[float, typer.Option(help="rack uplink rate, Gbit/s")] = 0.2,
-    training_steps: Annotated[int, typer.Option(help="env steps of each encoding's training run (0: skip that part)")] = 40000,
+    training_steps: Annotated[int, typer.Option(help="step budget of each encoding's training run, which stops at eval success 0.8 (0: skip that part)")] = 150000,
     train_topology: Annotated[Path, typer.Option(help="topology of the training runs")] = Path("topologies/local.yaml"),
     transfer: Annotated[bool, typer.Option(help="run the tree/star/bound transfer part")] = True,
 ) -> None:
