@@ -215,6 +215,18 @@ class RepCluster:
         sup.restarts += 1
         self.launcher.start(sup)
 
+    def cpu_seconds(self) -> float:
+        """User + system CPU seconds used so far by the cluster's live processes (from /proc)."""
+        tick = os.sysconf("SC_CLK_TCK")
+        total = 0.0
+        for pid in self.launcher.pids().values():
+            try:
+                fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            total += (int(fields[11]) + int(fields[12])) / tick  # utime, stime
+        return total
+
     def node_tx_bytes(self, name: str) -> int | None:
         """Bytes sent so far by the NIC (eth0) of the node `name` runs on; None without netns."""
         proc = self.plan.by_name(name)

@@ -62,8 +62,10 @@ def measure(cluster: RepCluster, versions: int, timeout_s: float, progress: Call
     for v in range(1, versions + 2):
         if v == 2:  # the warm-up version is done: count the actor node's bytes from here
             tx0 = cluster.node_tx_bytes(cluster.source)
+        cpu0 = cluster.cpu_seconds()
         cluster.publish(v)
         held = cluster.wait_held(v, timeout_s=timeout_s)
+        cpu_s = cluster.cpu_seconds() - cpu0
         pub = cluster.published()[str(v)]
         times = {n: (h["held"][str(v)]["held_ns"] - pub["t0_ns"]) / 1e9 for n, h in held.items()}
         bad = sorted(n for n, h in held.items() if h["held"][str(v)]["checksum"] != pub["checksum"])
@@ -77,6 +79,8 @@ def measure(cluster: RepCluster, versions: int, timeout_s: float, progress: Call
             "encode_s": (pub["encoded_ns"] - pub["t0_ns"]) / 1e9,
             "send_s": (pub["sent_ns"] - pub["t0_ns"]) / 1e9,
             "bytes_sent_by_source": pub["bytes"],
+            # CPU of every process of the cluster while this version moved (includes status polls)
+            "cluster_cpu_s": cpu_s,
             "per_sink_s": times,
         })
         progress(f"v{v}: all {len(times)} rollouts hold it after {max(times.values()):.2f} s"
@@ -89,6 +93,7 @@ def measure(cluster: RepCluster, versions: int, timeout_s: float, progress: Call
         "max_s": max(counted),
         "versions": per_version,
         "source_node_tx_bytes": None if tx0 is None or tx1 is None else tx1 - tx0,
+        "cluster_cpu_s_median": statistics.median(p["cluster_cpu_s"] for p in per_version if not p["warmup"]),
     }
 
 
@@ -254,6 +259,8 @@ def format_table(doc: dict[str, Any]) -> str:
         f"bound_s               {f(doc['bound_s'])}",
         f"tree_s                {f(doc['tree_s'])}   (min {f(doc['tree']['min_s'])}, max {f(doc['tree']['max_s'])}; predicted {f(doc['predicted_tree_s'])})",
         f"star_s                {f(doc['star_s'])}   (min {f(doc['star']['min_s'])}, max {f(doc['star']['max_s'])}; predicted {f(doc['predicted_star_s'])})",
+        f"cluster CPU/version   tree {f(doc['tree']['cluster_cpu_s_median'])} s, star {f(doc['star']['cluster_cpu_s_median'])} s"
+        f"   ({os.cpu_count()} cores: CPU alone takes >= {f(doc['tree']['cluster_cpu_s_median'] / (os.cpu_count() or 1))} s per tree version)",
         f"tree_over_bound       {f(doc['tree_over_bound'])}   (goal <= 1.3)",
         f"star_over_tree        {f(doc['star_over_tree'])}   (goal >= 3)",
         f"actor_uplink_bytes/S  {f(doc['actor_uplink_bytes_over_s'])}   (goal <= fanout {doc['fanout']}; star: {f(doc['star_actor_uplink_bytes_over_s'])})",
