@@ -255,6 +255,15 @@ class Up:
                 self.launcher.stop(left, timeout=5.0)
         self.launcher.poll(stopping=True)
 
+    def _accounting(self) -> dict[str, Any]:
+        """Exact across kills from the counter files when every role ran on this host (remote
+        roles write theirs on their own host); from the clean-exit summaries otherwise."""
+        if all(is_local_host(p.host) for p in self.plan.processes):
+            acct = accounting_from_counters(self.run_dir)
+            if acct is not None:
+                return acct
+        return accounting_from_summaries(self.run_dir)
+
     def _report(self, code: int) -> None:
         assert self.monitor is not None
         res = self.monitor.result()
@@ -264,7 +273,7 @@ class Up:
                 "reason": self.reason,
                 "exit_code": code,
                 "restarts": {n: s.restarts for n, s in self.launcher.children.items()},
-                "accounting": accounting_from_summaries(self.run_dir),
+                "accounting": self._accounting(),
             }
         )
         (self.run_dir / "result.json").write_text(json.dumps(res, indent=1, default=str))
@@ -295,6 +304,185 @@ def accounting_from_summaries(run_dir: Path) -> dict[str, Any]:
         "rejected": rejected,
         "unaccounted": produced - consumed - dropped - rejected,
     }
+
+
+#: bytes a killed sender's Zenoh may hold unsent: the data priority's tx queue (2 batches, Zenoh's
+#: default) plus the batch being filled, of at most 64 KiB each
+ZENOH_TX_BYTES = 3 * 65535
+
+
+def _tcp_buffer_max(name: str) -> int:
+    """The kernel's largest TCP buffer of one direction (net.ipv4.tcp_rmem / tcp_wmem, third field)."""
+    try:
+        return int(Path(f"/proc/sys/net/ipv4/{name}").read_text().split()[2])
+    except (OSError, ValueError, IndexError):
+        return 6 << 20
+
+
+def accounting_from_counters(run_dir: Path) -> dict[str, Any] | None:
+    """produced = consumed + dropped + rejected + lost, exactly, across kills (None without counter files).
+
+    Every rollout and actor incarnation leaves a counter file (dvla/roles/counters.py) even when
+    killed. `lost` lists, per killed incarnation, the chunks that died with it and the bound its
+    in-flight window puts on them: for a rollout its ship queue (+ the chunk being shipped and the
+    one being queued) and what its Zenoh had not sent yet; for the actor its slots and inbox, plus
+    what was in the live rollouts' Zenoh queues and the TCP buffers of their links when it died.
+    A missing chunk that no kill explains is `unaccounted`.
+    """
+    from ..roles.counters import read_counters
+
+    docs = read_counters(run_dir)
+    rollouts = [d for d in docs if d.get("kind") == "rollout"]
+    actors = [d for d in docs if d.get("kind") == "actor"]
+    if not rollouts and not actors:
+        return None
+    consumed = 0
+    dropped: dict[str, int] = {}
+    rejected: dict[str, int] = {}
+    got: dict[str, int] = {}  # rollout incarnation -> chunks that left some actor's inbox
+    fabric_bp: dict[str, int] = {}  # rollout name -> the fabric's backpressure drops
+    fabric_rej: dict[str, int] = {}  # rollout name -> chunks the fabric could not decode
+    lost: list[dict[str, Any]] = []
+    ranges: dict[str, list[tuple[int, int, int, int]]] = {}  # rollout incarnation -> (actor inc, first, last, got)
+    killed_actors: dict[int, dict[str, Any]] = {}
+    notes: list[str] = []
+    unaccounted = 0
+
+    def bump(d: dict[str, int], k: str, n: int) -> None:
+        if n:
+            d[k] = d.get(k, 0) + n
+
+    for a in actors:
+        held = 0
+        own_rej: dict[str, int] = {}
+        for src, c in a.get("sources", {}).items():
+            got[src] = got.get(src, 0) + c["got"]
+            ranges.setdefault(src, []).append((a["incarnation"], c["first"], c["last"], c["got"]))
+            settled = 0
+            for k, v in c.items():
+                if k == "consumed":
+                    consumed += v
+                elif k.startswith("dropped."):
+                    bump(dropped, k[len("dropped."):], v)
+                elif k.startswith("rejected."):
+                    bump(rejected, k[len("rejected."):], v)
+                    bump(own_rej, src.rsplit("#", 1)[0], v)
+                else:
+                    continue
+                settled += v
+            held += c["got"] - settled
+        for peer, f in a.get("fabric", {}).items():
+            bump(fabric_bp, peer, f.get("backpressure", 0))
+            bump(fabric_rej, peer, f.get("rejected", 0) - own_rej.get(peer, 0))
+        if a.get("clean"):
+            if held:
+                unaccounted += held
+                notes.append(f"{a['file']}: {held} chunks held at a clean exit")
+        else:
+            killed_actors[a["incarnation"]] = {
+                "role": a["role"], "incarnation": a["incarnation"], "pid": a["pid"], "where": "actor",
+                "died_ns": a["updated_ns"], "lost": held, "in_actor": held, "in_transit": 0,
+                "lost_bound": a["slots"] + 2 + a["inbox_cap"], "_transit_bound": 0}
+            lost.append(killed_actors[a["incarnation"]])
+
+    produced = sum(r.get("produced", 0) for r in rollouts)
+    foreign = 0
+    window = ZENOH_TX_BYTES + _tcp_buffer_max("tcp_wmem") + _tcp_buffer_max("tcp_rmem")
+    by_name: dict[str, list[dict[str, Any]]] = {}
+    for r in rollouts:
+        by_name.setdefault(r["role"], []).append(r)
+    shipped_all = sum(r.get("shipped", 0) for r in rollouts)
+    # a rollout killed before it shipped anything: size its window with the run's mean chunk
+    mean_bytes = sum(r.get("bytes", 0) for r in rollouts) / shipped_all if shipped_all else 1.0
+    for name, incs in sorted(by_name.items()):
+        # Where each incarnation's missing chunks are, from the seq ranges every actor
+        # incarnation received: inside one actor's range (the fabric dropped or could not decode
+        # them), between two actor incarnations (died with the first), or after the last one
+        # received (died with the rollout, or with the actor at the end).
+        parts = {r["incarnation"]: _missing_parts(r, ranges.get(f"{name}#{r['incarnation']}", [])) for r in incs}
+        bp, rej = fabric_bp.get(name, 0), fabric_rej.get(name, 0)
+        inner = sum(max(0, pt["inner"]) for pt in parts.values())
+        use_bp = min(bp, inner)
+        use_rej = min(rej, inner - use_bp)
+        bump(dropped, "backpressure", use_bp)
+        bump(rejected, "undecodable", use_rej)
+        foreign += bp + rej - use_bp - use_rej  # rejects beyond what is missing were never produced: forged
+        explain = use_bp + use_rej
+        for r in incs:
+            pt = parts[r["incarnation"]]
+            take = max(0, min(explain, pt["inner"]))
+            pt["inner"] -= take
+            explain -= take
+            chunk_bytes = r.get("bytes", 0) / r["shipped"] if r.get("shipped") else mean_bytes
+            if pt["inner"]:
+                unaccounted += pt["inner"]
+                notes.append(f"{r['file']}: {pt['inner']} chunks missing mid-stream")
+            for a, n in pt["between"]:  # died with actor incarnation `a` (or in its absence)
+                if n and a in killed_actors:
+                    k = killed_actors[a]
+                    k["lost"] += n
+                    k["in_transit"] += n
+                    k["_transit_bound"] += -(-window // max(1, int(chunk_bytes))) + 1
+                elif n:
+                    unaccounted += n
+                    notes.append(f"{r['file']}: {n} chunks missing across a clean actor restart")
+            tail, last_actor = pt["tail"], pt["last_actor"]
+            if not r.get("clean"):
+                in_queue = r.get("produced", 0) - r.get("shipped", 0)
+                lost.append({"role": name, "incarnation": r["incarnation"], "pid": r["pid"], "where": "rollout",
+                             "died_ns": r["updated_ns"], "lost": tail, "in_queue": in_queue, "in_transit": tail - in_queue,
+                             "lost_bound": r.get("queue_cap", 0) + 2 + -(-ZENOH_TX_BYTES // max(1, int(chunk_bytes))) + 1})
+            elif tail and last_actor in killed_actors and killed_actors[last_actor]["died_ns"] >= r["updated_ns"] - 10**9:
+                k = killed_actors[last_actor]
+                k["lost"] += tail
+                k["in_transit"] += tail
+            elif tail:
+                unaccounted += tail
+                notes.append(f"{r['file']}: {tail} chunks missing at the end of a clean incarnation")
+    for a in lost:
+        if a["where"] == "actor":
+            a["lost_bound"] += a.pop("_transit_bound")
+    total_lost = sum(x["lost"] for x in lost)
+    total_dropped = sum(dropped.values())
+    total_rejected = sum(rejected.values())
+    residual = produced - consumed - total_dropped - total_rejected - total_lost
+    if residual != unaccounted:  # the two ways of counting must agree; say so if they do not
+        notes.append(f"identity residual {residual} != {unaccounted} chunks found missing or held")
+    return {
+        "produced": produced,
+        "consumed": consumed,
+        "dropped": total_dropped,
+        "dropped_by_reason": dropped,
+        "rejected": total_rejected,
+        "rejected_by_reason": rejected,
+        "lost": total_lost,
+        "lost_by_incarnation": sorted(lost, key=lambda x: x["died_ns"]),
+        "lost_within_bounds": all(0 <= x["lost"] <= x["lost_bound"] for x in lost),
+        "foreign_rejected": foreign,
+        "unaccounted": residual,
+        "notes": notes,
+        "incarnations": {"rollout": len(rollouts), "actor": len(actors)},
+    }
+
+
+def _missing_parts(r: dict[str, Any], ranges: list[tuple[int, int, int, int]]) -> dict[str, Any]:
+    """Split a rollout incarnation's missing chunks (produced - received) by where they went
+    missing, from the seq ranges (actor incarnation, first, last, got) the actors received."""
+    produced = r.get("produced", 0)
+    ranges = sorted(ranges)
+    if not ranges:
+        return {"inner": 0, "between": [], "tail": produced, "last_actor": None}
+    inner = sum(last - first + 1 - n for _a, first, last, n in ranges)
+    # chunks before the first receipt went missing in the absence of an actor: count them with
+    # the first actor incarnation's predecessor (the one that died), else as mid-stream
+    between = []
+    head = ranges[0][1]
+    if head:
+        between.append((ranges[0][0] - 1, head))
+    for (a, _f, last, _n), (_b, first, _l, _m) in zip(ranges, ranges[1:]):
+        between.append((a, first - last - 1))
+    tail = produced - 1 - ranges[-1][2]
+    return {"inner": inner, "between": between, "tail": tail, "last_actor": ranges[-1][0]}
 
 
 def _tail(path: Path, n: int) -> str:

@@ -30,6 +30,7 @@ from ..learn.dims import probe_spec
 from ..learn.grpo import group_advantages
 from ..replication import ParamLayout, WeightEncoder, flatten, unflatten_into
 from .checkpoint import load_checkpoint, save_checkpoint
+from .counters import CounterFile, source_key, split_seq
 from .runtime import main
 from .slots import SlotPool
 from .swimlane import LaneContext, Swimlane
@@ -78,11 +79,12 @@ class Actor:
         self.publish_bytes = {"full_versions": 0, "full_bytes": 0, "delta_versions": 0, "delta_bytes": 0}
         self._snapshot: bytes | None = None
         self._snapshot_lock = threading.Lock()
+        self.receipts = Receipts(CounterFile(cfg.run_dir, cfg.name), fabric, self.slots.n_slots)
 
     # -- wiring -------------------------------------------------------------------------------
     def build(self, sl: Swimlane) -> None:
         f, keys, ppo = self.fabric, self.fabric.keys, self.cfg.task.ppo
-        self.inbox = f.subscribe_traj(maxsize=64, expect=TrajectoryChunk)  # rollouts -> ingest
+        self.inbox = f.subscribe_traj(maxsize=INBOX, expect=TrajectoryChunk)  # rollouts -> ingest
         self.filled = sl.queue("filled", self.slots.n_slots)  # ingest -> batch: slot ids
         self.batches = sl.queue("batches", 1)  # batch -> learn: one stacked batch
         self.versions = sl.queue("versions", 2)  # learn -> publish: flat weights per version
@@ -135,28 +137,35 @@ class Actor:
             with ctx.waiting():
                 chunk = self.inbox.get(timeout=0.1)
             if chunk is None:
+                self.receipts.tick()  # the fabric's own drops reach the counter file too
                 continue
             with ctx.busy():
+                src = self.receipts.got(chunk)
                 lag = self.published_version - chunk.policy_version
                 self.ingest_lag_counts[lag] = self.ingest_lag_counts.get(lag, 0) + 1
                 if lag > self.max_lag:
                     self.fabric.accounting.dropped(DATA, "stale", chunk.rollout)
+                    self.receipts.count(src, "dropped.stale")
                     continue
                 slot = self.slots.acquire(ctx.stop)
                 if slot is None:
+                    self.receipts.count(src, "dropped.shutdown")
                     return
                 err = self.slots.fill(slot, chunk)
                 if err is not None:
                     self.slots.release(slot)
                     self.fabric.accounting.rejected(DATA, "shape", chunk.rollout)
+                    self.receipts.count(src, "rejected.shape")
                     log.warning("chunk %d from %s rejected: %s", chunk.seq, chunk.rollout, err)
                     continue
+                self.receipts.hold(slot, src)
             self.filled.put(slot, ctx.stop, stats=ctx.stats)
             ctx.count()
         # Shutdown: chunks still arriving or queued are counted, never silently lost. Rollouts
         # are stopped first, so a short quiet period catches their last chunks.
         while (chunk := self.inbox.get(timeout=0.5)) is not None:
             self.fabric.accounting.dropped(DATA, "shutdown", chunk.rollout)
+            self.receipts.count(self.receipts.got(chunk), "dropped.shutdown")
 
     def _batch(self, ctx: LaneContext) -> None:
         target = self.cfg.task.ppo.batch_steps
@@ -176,6 +185,7 @@ class Actor:
                     # Re-check lag: a chunk may have aged while waiting for its batch.
                     if self.published_version - self.slots.version(s) > self.max_lag:
                         self.fabric.accounting.dropped(DATA, "stale", self.slots.rollout(s))
+                        self.receipts.release(s, "dropped.stale")
                         self.slots.release(s)
                     else:
                         keep.append(s)
@@ -185,6 +195,7 @@ class Actor:
                 batch = self.slots.stack(keep, self.device)
                 for s in keep:
                     self.fabric.accounting.add(DATA, "consumed", self.slots.rollout(s))
+                    self.receipts.release(s, "consumed")
                     self.lags.append(self.published_version - self.slots.version(s))
                     self.slots.release(s)
                 del self.lags[:-4096]
@@ -194,6 +205,7 @@ class Actor:
             held.append(slot)
         for s in held:  # never-learned slots at shutdown are counted, not lost
             self.fabric.accounting.dropped(DATA, "shutdown", self.slots.rollout(s))
+            self.receipts.release(s, "dropped.shutdown")
             self.slots.release(s)
 
     def _learn(self, ctx: LaneContext) -> None:
@@ -333,11 +345,85 @@ class Actor:
             "policy_lag_counts": {str(k): v for k, v in sorted(dict(self.ingest_lag_counts).items())},
             "bytes_published": self.bytes_published,
             "publish_bytes": dict(self.publish_bytes),
+            "published_checksum": self._published_checksum(),
             "learn": self.learn_stats,
         }
 
+    def _published_checksum(self) -> str:
+        with self._snapshot_lock:
+            return self.encoder.checksum
+
     def close(self) -> None:
-        pass
+        self.receipts.close()
+
+
+#: decoded chunks the data-plane inbox holds before backpressure
+INBOX = 64
+
+
+class Receipts:
+    """What this actor incarnation did with each rollout incarnation's chunks, in a counter file
+    that survives a kill (counters.py): got (out of the inbox), then exactly one of consumed,
+    dropped.<reason> or rejected.<reason>; a chunk got but not yet settled is in a slot (or
+    between lanes) and dies with the process. The fabric's own per-rollout drops and rejects
+    (backpressure, undecodable) are copied along, so the orchestrator can reconcile exactly."""
+
+    def __init__(self, file: CounterFile, fabric: Fabric, n_slots: int) -> None:
+        self.file = file
+        self.fabric = fabric
+        self.n_slots = n_slots
+        self._lock = threading.Lock()
+        self._src: dict[str, dict[str, int]] = {}
+        self._slot: dict[int, str] = {}
+        self._last_tick = 0.0
+        self._write(clean=False)
+
+    def got(self, chunk: TrajectoryChunk) -> str:
+        src = source_key(chunk.rollout, chunk.seq)
+        index = split_seq(chunk.seq)[1]
+        with self._lock:
+            c = self._src.setdefault(src, {"got": 0, "first": index, "last": index})
+            c["got"] += 1
+            c["first"] = min(c["first"], index)
+            c["last"] = max(c["last"], index)
+        return src
+
+    def hold(self, slot: int, src: str) -> None:
+        with self._lock:
+            self._slot[slot] = src
+        self._write()
+
+    def count(self, src: str, what: str) -> None:
+        with self._lock:
+            c = self._src[src]
+            c[what] = c.get(what, 0) + 1
+        self._write()
+
+    def release(self, slot: int, what: str) -> None:
+        with self._lock:
+            src = self._slot.pop(slot)
+            c = self._src[src]
+            c[what] = c.get(what, 0) + 1
+        self._write()
+
+    def tick(self) -> None:
+        now = time.monotonic()
+        if now - self._last_tick >= 0.5:
+            self._last_tick = now
+            self._write()
+
+    def _write(self, clean: bool = False) -> None:
+        with self._lock:  # snapshot and write together: a newer record is never overwritten by an older one
+            peers = self.fabric.accounting.snapshot().get(DATA, {}).get("peers", {})
+            fabric = {p: {"received": c.get("received", 0), "rejected": c.get("rejected", 0),
+                          "backpressure": c.get("dropped.backpressure", 0)} for p, c in peers.items()}
+            sources = {k: dict(v) for k, v in self._src.items()}
+            self.file.write({"kind": "actor", "sources": sources, "fabric": fabric, "inbox_cap": INBOX,
+                             "slots": self.n_slots, "clean": clean})
+
+    def close(self) -> None:
+        self._write(clean=True)
+        self.file.close()
 
 
 def _policy_obs(obs: dict[str, torch.Tensor], lead: int) -> Any:

@@ -49,6 +49,8 @@ class Replicator:
         self._snapshot: bytes | None = None
         self._snap_version = -1
         self._flat: np.ndarray | None = None
+        #: checksum of the newest verified weights (status: replicas compared with the actor's)
+        self.held_checksum = ""
 
     def build(self, sl: Swimlane) -> None:
         f, keys = self.fabric, self.fabric.keys
@@ -70,6 +72,7 @@ class Replicator:
             self._flat = flat
             self._snap_version = version
             self._snapshot = None
+            self.held_checksum = self.weights.decoder.checksum
         self.policy_version = version
 
     def _recv(self, ctx: LaneContext) -> None:
@@ -110,6 +113,8 @@ class Replicator:
             "bytes_forwarded": self.bytes_forwarded,
             "forward_depth": self.outbox.depth,
             "weights": self.weights.status(),
+            "held_version": self.policy_version,
+            "held_checksum": self.held_checksum,
         }
 
     def close(self) -> None:

@@ -32,11 +32,16 @@ from ..learn import EnvGroup, make_policy
 from ..learn.envs import obs_as_dict, obs_to_torch
 from ..learn.grpo import grpo_envs
 from ..replication import ParamLayout, unflatten_into
+from .counters import INCARNATION_SHIFT, CounterFile
 from .runtime import main
 from .swimlane import LaneContext, LatencyHistogram, Swimlane
 from .weightsync import WeightSync
 
 log = logging.getLogger("dvla.rollout")
+
+#: finished chunks waiting for the ship lane (with the one being shipped and the one being
+#: queued, what a killed rollout can take with it)
+SHIP_QUEUE = 8
 
 
 @dataclass
@@ -122,7 +127,10 @@ class Rollout:
         self.T = task.chunk_steps
         for g in self.groups:
             g.buf = self._alloc(g.envs.n)
-        self.seq = 0
+        # Counters that survive a kill -9 (counters.py); the incarnation goes in seq's high bits.
+        self.counters = CounterFile(cfg.run_dir, cfg.name)
+        self.seq = self.counters.incarnation << INCARNATION_SHIFT
+        self.chunks_produced = 0
         self.env_steps = 0
         self.chunks_shipped = 0
         self.bytes_shipped = 0
@@ -137,6 +145,8 @@ class Rollout:
         self._lockstep_version = -1  # sync mode: actions of older versions are recomputed
         self._since_version = 0
         self._ready = threading.Event()
+        #: (version, checksum) of the newest verified weights
+        self.held: tuple[int, str] = (-1, "")
 
     @property
     def policy_version(self) -> int:
@@ -160,7 +170,8 @@ class Rollout:
     def build(self, sl: Swimlane) -> None:
         self.to_infer = sl.queue("obs", len(self.groups))  # group ids whose obs await actions
         self.to_sim = sl.queue("actions", len(self.groups))  # (group id, actions, logprobs)
-        self.to_ship = sl.queue("chunks", 8)  # finished TrajectoryChunks
+        self.to_ship = sl.queue("chunks", SHIP_QUEUE)  # finished TrajectoryChunks
+        self._count()
         self.weights = WeightSync(  # verified versions from the parent (ancestors as fallback)
             self.fabric, self.pool.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version
         )
@@ -170,6 +181,7 @@ class Rollout:
         sl.lane("sync", self._sync)
 
     def _on_version(self, version: int, flat: np.ndarray) -> None:
+        self.held = (version, self.weights.decoder.checksum)  # what status reports as held
         self.pool.stage(version, flat)
         self._ready.set()
 
@@ -283,6 +295,8 @@ class Rollout:
             created_ns=time.time_ns(),
         )
         self.seq += 1
+        self.chunks_produced += 1
+        self._count()
         g.t = 0
         g.versions = []
         g.buf = self._alloc(g.envs.n)  # the shipped arrays belong to the chunk until encoded
@@ -310,14 +324,35 @@ class Rollout:
             chunk = self.to_ship.get(ctx.stop, stats=ctx.stats)
             if chunk is None:
                 break
+            # While no learner subscribes (the actor is restarting), a put would go nowhere:
+            # hold the chunk instead, and let the full ship queue pause the simulators.
+            with ctx.waiting():
+                while ctx.running and not self._learner_listening():
+                    ctx.sleep(0.05)
             with ctx.busy():
-                self.bytes_shipped += self.fabric.publish_traj(chunk)
-                self.chunks_shipped += 1
+                self._publish(chunk)
             ctx.count()
         # Flush what is already finished so that the accounting identity holds at shutdown.
         while (chunk := self.to_ship.get_nowait()) is not None:
-            self.bytes_shipped += self.fabric.publish_traj(chunk)
-            self.chunks_shipped += 1
+            self._publish(chunk)
+
+    def _publish(self, chunk: TrajectoryChunk) -> None:
+        self.bytes_shipped += self.fabric.publish_traj(chunk)
+        self.chunks_shipped += 1
+        self._count()
+
+    def _learner_listening(self) -> bool:
+        pub = self.fabric._publisher("data", self.fabric.keys.traj(self.cfg.name))
+        try:
+            return bool(pub.matching_status.matching)
+        except Exception:  # matching status unavailable: ship as before
+            return True
+
+    def _count(self, clean: bool = False) -> None:
+        self.counters.write({
+            "kind": "rollout", "produced": self.chunks_produced, "shipped": self.chunks_shipped,
+            "bytes": self.bytes_shipped, "queue_cap": SHIP_QUEUE, "clean": clean,
+        })
 
     # -- status -------------------------------------------------------------------------------
     def status_extra(self) -> dict[str, Any]:
@@ -334,9 +369,13 @@ class Rollout:
             "swaps": self.pool.swaps,
             "versions_overwritten": self.pool.overwritten,
             "weights": self.weights.status(),
+            "held_version": self.held[0],
+            "held_checksum": self.held[1],
         }
 
     def close(self) -> None:
+        self._count(clean=True)
+        self.counters.close()
         for g in self.groups:
             g.envs.close()
 
