@@ -149,7 +149,7 @@ def _fabric(name: str, shm: bool, listen: list[str], connect: list[str]) -> Any:
     return Fabric(run=RUN, name=name, ctrl_conf=plane_config(), data_conf=data, secret=b"bench-vla-secret")
 
 
-def _subscriber(shm: bool, port: int, total: int, ready: Any, out: Any) -> None:
+def _subscriber(shm: bool, port: int, total: int, ready: Any, done: Any, out: Any) -> None:
     from ..fabric import TrajectoryChunk
 
     fabric = _fabric("sink", shm, [f"tcp/127.0.0.1:{port}"], [])
@@ -167,10 +167,11 @@ def _subscriber(shm: bool, port: int, total: int, ready: Any, out: Any) -> None:
                 int(msg.obs["rgb"][-1, -1, 0, 0, 0])  # touch the decoded image
         out.put((got, first, time.monotonic()))
     finally:
+        done.set()
         fabric.close()
 
 
-def _publisher(shm: bool, port: int, chunk_obs: dict[str, np.ndarray], n: int, out: Any) -> None:
+def _publisher(shm: bool, port: int, chunk_obs: dict[str, np.ndarray], n: int, done: Any, out: Any) -> None:
     fabric = _fabric("src", shm, [], [f"tcp/127.0.0.1:{port}"])
     try:
         chunk = _chunk(chunk_obs)
@@ -180,19 +181,22 @@ def _publisher(shm: bool, port: int, chunk_obs: dict[str, np.ndarray], n: int, o
         for _ in range(n):
             sent += fabric.publish_traj(chunk)
         out.put((sent // n, t0, time.monotonic()))
+        # Closing the session while chunks are in flight loses them (with shared memory on,
+        # their buffers go with it): stay until the subscriber has them all.
+        done.wait(120)
     finally:
         fabric.close()
 
 
 def _round(ctx: Any, shm: bool, chunk_obs: dict[str, np.ndarray], n: int) -> dict[str, float]:
     port = _free_port()
-    ready, sub_out, pub_out = ctx.Event(), ctx.Queue(), ctx.Queue()
-    sub = ctx.Process(target=_subscriber, args=(shm, port, n, ready, sub_out))
+    ready, done, sub_out, pub_out = ctx.Event(), ctx.Event(), ctx.Queue(), ctx.Queue()
+    sub = ctx.Process(target=_subscriber, args=(shm, port, n, ready, done, sub_out))
     sub.start()
     try:
         if not ready.wait(60):
             raise RuntimeError("bench vla: the subscriber did not start within 60 s")
-        pub = ctx.Process(target=_publisher, args=(shm, port, chunk_obs, n, pub_out))
+        pub = ctx.Process(target=_publisher, args=(shm, port, chunk_obs, n, done, pub_out))
         pub.start()
         chunk_bytes, t_pub, _ = pub_out.get(timeout=180)
         got, first, last = sub_out.get(timeout=180)
