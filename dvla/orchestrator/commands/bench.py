@@ -156,3 +156,30 @@ def vla(
     json_path.write_text(json.dumps(doc, indent=1))
     typer.echo(format_table(doc))
     typer.echo(f"wrote {json_path}  ({doc['elapsed_s']:.0f} s)")
+
+
+@app.command("chaos")
+def chaos(
+    json_path: Annotated[Path, typer.Option("--json", help="write the results (JSON) here")],
+    quick: Annotated[bool, typer.Option("--quick", help="one fault of each kind (~3 min) instead of the 5-minute schedule")] = False,
+    topology: Annotated[Path, typer.Argument(help="topology YAML (emulate: netns)")] = Path("topologies/8node.yaml"),
+    runs: Annotated[Optional[Path], typer.Option(help="keep the run directory here (default: a temporary directory)")] = None,
+    base_port: Annotated[Optional[int], typer.Option(help="first TCP port")] = None,
+) -> None:
+    """kill -9 rollouts (every 30 s), a replicator and the actor during training with 5% packet loss on
+    a rack uplink; time to detection, restart and latest weights per role kind; replicas bit-identical,
+    versions monotonic, chunk accounting exact with every loss within its bound (needs root)."""
+    from ...bench.chaos import FULL, QUICK, format_table, run_chaos
+
+    try:
+        doc = run_chaos(topology, QUICK if quick else FULL, runs, base_port,
+                        progress=lambda m: typer.echo(f"[chaos] {m}", err=True))
+    except (RuntimeError, OSError, ValueError) as err:
+        raise fail(f"bench chaos: {err}", code=1)
+    doc["command"] = "dvla " + " ".join(sys.argv[1:])
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps(doc, indent=1, default=str))
+    typer.echo(format_table(doc))
+    typer.echo(f"wrote {json_path}  ({doc['elapsed_s']:.0f} s)")
+    if not doc["ok"]:
+        raise typer.Exit(1)

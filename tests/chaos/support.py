@@ -1,0 +1,85 @@
+"""What the chaos and hostile-traffic tests share: a free port block, `dvla up` in the background,
+and a signed view of the run's status (the test harness holds the run's secret; attackers do not)."""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def free_port_block(n: int = 8) -> int:
+    """A base port whose next `n` ports are free right now."""
+    for _ in range(50):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            base = s.getsockname()[1]
+        if base + n >= 65000:
+            continue
+        socks = []
+        try:
+            for p in range(base, base + n):
+                t = socket.socket()
+                socks.append(t)
+                t.bind(("127.0.0.1", p))
+            return base
+        except OSError:
+            continue
+        finally:
+            for t in socks:
+                t.close()
+    raise RuntimeError("no free port block")
+
+
+def start_up(topology: str, runs: Path, *extra: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "dvla", "up", topology, "--runs", str(runs), "--quiet", *extra],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+
+
+def state(run_dir: Path) -> dict[str, Any]:
+    try:
+        return json.loads((run_dir / "state.json").read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def wait_for(pred: Callable[[], Any], timeout: float, what: str, up: subprocess.Popen | None = None) -> Any:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if up is not None and up.poll() is not None:
+            raise AssertionError(f"dvla up exited early ({up.returncode}) while waiting for {what}")
+        got = pred()
+        if got:
+            return got
+        time.sleep(0.5)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+def harness_fabric(run_dir: Path) -> Any:
+    """A ctrl-plane client signed with the run's secret (the harness, not an attacker)."""
+    from dvla.fabric import load_secret
+    from dvla.orchestrator.run import tool_fabric
+
+    st = state(run_dir)
+    return tool_fabric(st["run"], tuple(st["ctrl_entry"]), load_secret(st.get("secret_file")), name="test-harness")
+
+
+def statuses(fabric: Any, timeout: float = 2.0) -> dict[str, Any]:
+    from dvla.fabric.messages import RoleStatus
+
+    return {m.name: m for _s, m in fabric.query(fabric.keys.status_all(), expect=RoleStatus, timeout=timeout)}
+
+
+def pids_of_run(run_dir: Path) -> list[str]:
+    import os
+
+    out = subprocess.run(["pgrep", "-f", str(run_dir)], capture_output=True, text=True).stdout.split()
+    return [p for p in out if p != str(os.getpid())]
