@@ -197,10 +197,15 @@ class _Window:
     pids: dict[str, int] = field(default_factory=dict)
     ticks: list[tuple[float, int, int]] = field(default_factory=list)  # (t, consumed, produced)
     error: str | None = None
+    last_consumed: int = -1
 
 
 def _all_answered(statuses: dict[str, RoleStatus], expected: list[str]) -> bool:
     return all(n in statuses for n in expected)
+
+
+def _consumed(statuses: dict[str, RoleStatus]) -> int:
+    return sum(s.env_steps for s in statuses.values() if s.kind == "actor")
 
 
 def measure_run(
@@ -232,8 +237,12 @@ def measure_run(
                 w.error = f"no env step within {STARTUP_LIMIT_S:.0f} s"
                 u.interrupt()
             return
+        # The learner consumes whole batches: a window that opens and closes right after a batch
+        # was learned holds a whole number of batches, so its rate is not quantised by them.
+        batch_done = mode == "sim_only" or _consumed(statuses) != w.last_consumed
+        w.last_consumed = _consumed(statuses)
         if w.opened is None:
-            if now - w.first_step >= warmup_s and _all_answered(statuses, expected):
+            if now - w.first_step >= warmup_s and batch_done and _all_answered(statuses, expected):
                 w.opened, w.opened_at = dict(statuses), now
                 w.pids = u.launcher.pids()
                 progress(f"{topo.run}/{mode}: window open for {window_s:.0f} s")
@@ -244,10 +253,12 @@ def measure_run(
             r = rss_kib(pid)
             if r is not None:
                 w.rss.setdefault(name, []).append((now - w.opened_at, r))  # type: ignore[operator]
-        consumed = sum(s.env_steps for s in statuses.values() if s.kind == "actor")
+        consumed = _consumed(statuses)
         produced = sum(s.env_steps for s in statuses.values() if s.kind == "rollout")
         w.ticks.append((now - w.opened_at, consumed, produced))  # type: ignore[operator]
-        if now - w.opened_at >= window_s and _all_answered(statuses, expected):  # type: ignore[operator]
+        elapsed = now - w.opened_at  # type: ignore[operator]
+        overdue = elapsed >= 2 * window_s + 120  # a stalled learner must not hold the bench forever
+        if elapsed >= window_s and (batch_done or overdue) and _all_answered(statuses, expected):
             w.closed = dict(statuses)
             u.interrupt()
 
