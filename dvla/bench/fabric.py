@@ -13,7 +13,9 @@ its own process (multiprocessing, spawn) so that the cores are used as in a real
   from a tool process, through the sink's ctrl router, to a source process: idle; while the
   source floods its data session with 1 MiB chunks to the sink (the real layout of a rollout
   feeding an actor, with the reply crossing the flooded direction); and, as the baseline, the
-  same flood with data and ctrl forced onto one shared session and link. Measured in two
+  same flood with data and ctrl forced onto one shared session and link. Idle and flooded
+  samples are taken in alternating blocks (the flood drained before each idle block), so that
+  background load changes hit both alike; percentiles are over the pooled samples. Measured in two
   layouts (:class:`Layout`): `loopback`, where the data link's capacity is the CPU, and, where
   root can build it, `links`: two network namespaces with one rate-limited veth link per plane,
   so that the flood fills the data link while the CPU still has room, as between real hosts.
@@ -29,6 +31,7 @@ import math
 import multiprocessing as mp
 import os
 import queue
+import resource
 import shutil
 import socket
 import statistics
@@ -59,6 +62,9 @@ class BenchConfig:
     rounds: int = 5
     #: RTT samples per phase
     rtt_samples: int = 1000
+    #: idle and loaded samples are taken in this many alternating blocks, so that a change of
+    #: background load between the two phases hits both alike
+    rtt_blocks: int = 4
     #: wall-clock cap of one throughput round or one RTT phase, seconds
     phase_timeout_s: float = 20.0
     #: flood the data plane this long before sampling loaded RTTs, seconds
@@ -66,7 +72,8 @@ class BenchConfig:
 
     @staticmethod
     def quick() -> "BenchConfig":
-        return BenchConfig(n_64k=40, n_1m=8, rounds=1, rtt_samples=20, phase_timeout_s=15.0, warmup_s=0.3)
+        return BenchConfig(n_64k=40, n_1m=8, rounds=1, rtt_samples=20, rtt_blocks=2, phase_timeout_s=15.0,
+                           warmup_s=0.3)
 
 
 # --------------------------------------------------------------------------------------------
@@ -99,6 +106,23 @@ def make_chunk(name: str, target_bytes: int) -> Any:
         terminated=np.zeros((T, N), bool), truncated=np.zeros((T, N), bool), success=np.zeros((T, N), bool),
         next_obs={"state": obs[-1].copy()}, final_obs={"state": np.zeros_like(obs)},
     )
+
+
+def _raw_payload(size: int) -> bytes:
+    """The encoded chunk of exactly `size` bytes that the fabric side sends for this size."""
+    from ..fabric import encode
+
+    for target in (64 * KIB, MIB):
+        payload = encode(make_chunk(SOURCE, target))
+        if len(payload) == size:
+            return payload
+    return os.urandom(size)
+
+
+def _cpu_s() -> float:
+    """CPU seconds used so far by this whole process (every thread, Zenoh's included)."""
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    return ru.ru_utime + ru.ru_stime
 
 
 def _direct(callback: Callable[[Any], None]) -> Any:
@@ -168,10 +192,11 @@ def _throughput_sub(kind: str, port: int, n: int, rounds: int, secret: bytes, re
 
         sub = session.declare_subscriber(f"dvla/{RUN}/data/traj/{SOURCE}", _direct(on_sample))
         probe = _probe_subscriber(session, routed)
+        out.put(("sub_ready", 0, 0.0, _cpu_s()))
         ready.set()
         try:
             for r in range(rounds):
-                out.put(("sub", r, ends.get(timeout=_between_rounds_s(timeout_s))))
+                out.put(("sub", r, ends.get(timeout=_between_rounds_s(timeout_s)), _cpu_s()))
         except queue.Empty:
             out.put(("error", f"raw subscriber got {count[0]} of {rounds * n} messages"))
         finally:
@@ -183,6 +208,7 @@ def _throughput_sub(kind: str, port: int, n: int, rounds: int, secret: bytes, re
     try:
         inbox = fabric.subscribe_traj(maxsize=64, expect=TrajectoryChunk)
         probe = _probe_subscriber(fabric.data, routed)
+        out.put(("sub_ready", 0, 0.0, _cpu_s()))
         ready.set()
         got = 0
         for r in range(rounds):
@@ -193,7 +219,7 @@ def _throughput_sub(kind: str, port: int, n: int, rounds: int, secret: bytes, re
             if got < (r + 1) * n:
                 out.put(("error", f"fabric subscriber got {got} of {rounds * n} messages: {fabric.accounting.snapshot()}"))
                 return
-            out.put(("sub", r, time.monotonic()))
+            out.put(("sub", r, time.monotonic(), _cpu_s()))
         probe.undeclare()
     finally:
         fabric.close()
@@ -213,7 +239,9 @@ def _throughput_pub(kind: str, port: int, n: int, rounds: int, size: int, secret
             f"dvla/{RUN}/data/traj/{SOURCE}", congestion_control=zenoh.CongestionControl.BLOCK,
             priority=zenoh.Priority.DATA,
         )
-        payload = bytes(size)
+        # The very bytes the fabric side sends (real data, not a zero-filled buffer whose pages
+        # all map the kernel's one zero page), from a prebuilt object: no encoding per message.
+        payload = _raw_payload(size)
 
         def send() -> None:
             pub.put(payload)
@@ -232,18 +260,18 @@ def _throughput_pub(kind: str, port: int, n: int, rounds: int, size: int, secret
         for r in range(rounds):
             if go.get(timeout=_between_rounds_s(timeout_s)) is None:
                 return
-            t0 = time.monotonic()
+            t0, c0 = time.monotonic(), _cpu_s()
             for _ in range(n):
                 send()
-            out.put(("pub", r, t0))
+            out.put(("pub", r, t0, _cpu_s() - c0))
     finally:
         close()
 
 
 #: what each side of a throughput round does per message (also written into the JSON)
 DOES = {
-    "raw": ("publisher: Publisher.put of one prebuilt bytes payload of the same size, BLOCK congestion control, "
-            "no encoding; subscriber: callback on Zenoh's receive thread copies the payload out as Python bytes "
+    "raw": ("publisher: Publisher.put of one prebuilt bytes payload (the fabric side's encoded chunk), BLOCK "
+            "congestion control, no encoding; subscriber: callback on Zenoh's receive thread copies the payload out as Python bytes "
             "(ZBytes.to_bytes) and counts it"),
     "fabric": ("publisher: Fabric.publish_traj (validate and encode the TrajectoryChunk into the publisher's reused "
                "buffer, BLOCK put, accounting); subscriber: Fabric.subscribe_traj callback on Zenoh's receive thread "
@@ -267,15 +295,22 @@ class _Pair:
         self.sub.start()
         pids.append(self.sub.pid)
         _wait_event(self.ready, self.sub, f"{self.kind} subscriber")
+        self.sub_cpu_mark = _collect(self.out, {"sub_ready"}, 5)["sub_ready"][3]  # after its start-up
         self.pub.start()
         pids.append(self.pub.pid)
         _wait_event(self.routed, self.pub, f"{self.kind} publisher route")
 
-    def round(self, r: int) -> float:
-        """Bytes/s of round `r`: from the publisher's first put to the subscriber's last message."""
+    def round(self, r: int) -> tuple[float, float, float]:
+        """Round `r`: bytes/s from the publisher's first put to the subscriber's last message, and
+        the CPU time per message (µs, all threads, Zenoh's included) of publisher and subscriber."""
         self.go.put(r)
         got = _collect(self.out, {"sub", "pub"}, self.cfg.phase_timeout_s + 5)
-        return self.n * self.size / max(got["sub"][2] - got["pub"][2], 1e-9)
+        # The subscriber's CPU between the ends of two of its rounds: it idles (~0 CPU) while
+        # the other kind's round runs, so this is the CPU its round took.
+        sub_cpu = got["sub"][3] - self.sub_cpu_mark
+        self.sub_cpu_mark = got["sub"][3]
+        rate = self.n * self.size / max(got["sub"][2] - got["pub"][2], 1e-9)
+        return rate, got["pub"][3] / self.n * 1e6, sub_cpu / self.n * 1e6
 
     def stop(self) -> None:
         self.go.put(None)
@@ -290,17 +325,25 @@ def _measure_throughput(ctx: Any, n: int, size: int, cfg: BenchConfig, secret: b
         for pair in pairs.values():
             pair.start(pids)
         rates: dict[str, list[float]] = {"raw": [], "fabric": []}
+        cpu: dict[str, list[tuple[float, float]]] = {"raw": [], "fabric": []}
         for r in range(cfg.rounds):
             for kind in (("raw", "fabric") if r % 2 == 0 else ("fabric", "raw")):
-                rates[kind].append(pairs[kind].round(r))
+                rate, pub_us, sub_us = pairs[kind].round(r)
+                rates[kind].append(rate)
+                cpu[kind].append((pub_us, sub_us))
     finally:
         for pair in pairs.values():
             pair.stop()
     out: dict[str, Any] = {"payload_bytes": size, "messages": n}
     for kind, values in rates.items():
         bps = statistics.median(values)
-        out[kind] = {"bytes_per_s": bps, "msgs_per_s": bps / size, "rounds_bytes_per_s": values, "does": DOES[kind]}
+        out[kind] = {"bytes_per_s": bps, "msgs_per_s": bps / size, "rounds_bytes_per_s": values, "does": DOES[kind],
+                     "pub_cpu_us_per_msg": statistics.median(c[0] for c in cpu[kind]),
+                     "sub_cpu_us_per_msg": statistics.median(c[1] for c in cpu[kind])}
     out["ratio"] = statistics.median(f / r for f, r in zip(rates["fabric"], rates["raw"]))
+    # CPU per message (publisher + subscriber), raw ÷ fabric: less sensitive than bytes/s to other
+    # load on the machine, it says how much more work a chunk costs through the fabric.
+    out["cpu_ratio"] = statistics.median(sum(r) / sum(f) for f, r in zip(cpu["fabric"], cpu["raw"]))
     return out
 
 
@@ -459,7 +502,7 @@ def _rtt_source(layout: Layout, shared: bool, ctrl_port: int, data_port: int, se
         fabric.close()
 
 
-def _rtt_tool(layout: Layout, shared: bool, ctrl_port: int, secret: bytes, cmds: Any, out: Any, samples: int,
+def _rtt_tool(layout: Layout, shared: bool, ctrl_port: int, secret: bytes, cmds: Any, out: Any,
               timeout_s: float) -> None:
     """`dvla status`'s side, next to the sink: samples RTTs of signed status queries on demand."""
     _enter_ns(layout.sink_ns)
@@ -476,19 +519,17 @@ def _rtt_tool(layout: Layout, shared: bool, ctrl_port: int, secret: bytes, cmds:
             return
         out.put(("reachable",))
         while True:
-            phase = cmds.get(timeout=START_TIMEOUT_S + 4 * timeout_s)
-            if phase is None:
+            cmd = cmds.get(timeout=START_TIMEOUT_S + 4 * timeout_s)
+            if cmd is None:
                 return
-            try:
-                out.put((phase, _sample_rtts(tool, key, samples, timeout_s)))
-            except RuntimeError as err:
-                out.put(("error", str(err)))
-                return
+            phase, n = cmd
+            out.put((phase, _sample_rtts(tool, key, n, timeout_s)))
     finally:
         tool.close()
 
 
-def _sample_rtts(tool: Any, key: str, n: int, timeout_s: float) -> dict[str, Any]:
+def _sample_rtts(tool: Any, key: str, n: int, timeout_s: float) -> tuple[list[float], int]:
+    """(RTTs in ms of answered queries, number of unanswered ones)."""
     rtts: list[float] = []
     misses = 0
     deadline = time.monotonic() + timeout_s
@@ -500,9 +541,13 @@ def _sample_rtts(tool: Any, key: str, n: int, timeout_s: float) -> dict[str, Any
             rtts.append(dt)
         else:
             misses += 1
+    return rtts, misses
+
+
+def _summary(rtts: list[float], misses: int, what: str) -> dict[str, Any]:
     if not rtts:
-        raise RuntimeError(f"no reply to any status query on {key}")
-    rtts.sort()
+        raise RuntimeError(f"no reply to any status query ({what})")
+    rtts = sorted(rtts)
     return {"samples": len(rtts), "timeouts": misses, "p50_ms": _pct(rtts, 0.50), "p99_ms": _pct(rtts, 0.99),
             "max_ms": rtts[-1]}
 
@@ -521,9 +566,12 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
                                                received_bytes, max_s))
     src = ctx.Process(target=_rtt_source, args=(layout, shared, ctrl_port, data_port, secret, ready_src, flood, stop,
                                                 max_s, 1_000_000))
-    tool = ctx.Process(target=_rtt_tool, args=(layout, shared, ctrl_port, secret, cmds, out, cfg.rtt_samples,
-                                               cfg.phase_timeout_s))
+    tool = ctx.Process(target=_rtt_tool, args=(layout, shared, ctrl_port, secret, cmds, out, cfg.phase_timeout_s))
     procs = [sink, src, tool]
+    phases = (["idle"] if idle else []) + ["loaded"]
+    rtts: dict[str, list[float]] = {p: [] for p in phases}
+    misses = dict.fromkeys(phases, 0)
+    flood_msgs = flood_bytes = flood_s = 0.0
     try:
         sink.start()
         pids.append(sink.pid)
@@ -534,26 +582,48 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
         tool.start()
         pids.append(tool.pid)
         _collect(out, {"reachable"}, START_TIMEOUT_S + 5)
-        result: dict[str, Any] = {}
-        if idle:
-            cmds.put("idle")
-            result["idle"] = _collect(out, {"idle"}, cfg.phase_timeout_s + 5)["idle"][1]
-        flood.set()
-        _wait_for(lambda: received.value > 0, START_TIMEOUT_S, "the flood never reached the sink")
-        c0, b0, t0 = received.value, received_bytes.value, time.monotonic()
-        time.sleep(cfg.warmup_s)
-        cmds.put("loaded")
-        loaded = _collect(out, {"loaded"}, cfg.phase_timeout_s + 5)["loaded"][1]
-        dt = time.monotonic() - t0
-        loaded["flood_msgs_per_s"] = (received.value - c0) / dt
-        loaded["flood_bytes_per_s"] = (received_bytes.value - b0) / dt
-        result["loaded"] = loaded
+        per_block = max(1, cfg.rtt_samples // cfg.rtt_blocks)
+        for _ in range(cfg.rtt_blocks):
+            for phase in phases:
+                if phase == "idle":
+                    flood.clear()
+                    _wait_drained(received)
+                else:
+                    flood.set()
+                    _wait_for(lambda: received.value > 0, START_TIMEOUT_S, "the flood never reached the sink")
+                    time.sleep(cfg.warmup_s)
+                    c0, b0, t0 = received.value, received_bytes.value, time.monotonic()
+                cmds.put((phase, per_block))
+                got = _collect(out, {phase}, cfg.phase_timeout_s + 5)[phase][1]
+                rtts[phase] += got[0]
+                misses[phase] += got[1]
+                if phase == "loaded":
+                    flood_msgs += received.value - c0
+                    flood_bytes += received_bytes.value - b0
+                    flood_s += time.monotonic() - t0
+        result = {p: _summary(rtts[p], misses[p], f"{layout.name}, {p}") for p in phases}
+        result["loaded"]["flood_msgs_per_s"] = flood_msgs / flood_s
+        result["loaded"]["flood_bytes_per_s"] = flood_bytes / flood_s
         return result
     finally:
         flood.clear()
         cmds.put(None)
         stop.set()
         _stop(procs)
+
+
+def _wait_drained(received: Any, quiet_s: float = 0.3, timeout_s: float = 10.0) -> None:
+    """After the flood stops: wait until the sink has received nothing for `quiet_s` (the
+    queues along the data path are empty), so that idle samples are idle."""
+    deadline = time.monotonic() + timeout_s
+    last, since = received.value, time.monotonic()
+    while time.monotonic() < deadline:
+        time.sleep(0.05)
+        if received.value != last:
+            last, since = received.value, time.monotonic()
+        elif time.monotonic() - since >= quiet_s:
+            return
+    raise RuntimeError("the data plane did not go quiet after the flood stopped")
 
 
 def _wait_for(pred: Callable[[], bool], timeout_s: float, failure: str) -> None:
@@ -634,6 +704,7 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
         entry = _measure_throughput(ctx, n, size, cfg, secret, pids)
         throughput[label] = entry
         doc[f"throughput_ratio_{label}"] = entry["ratio"]
+        doc[f"cpu_ratio_{label}"] = entry["cpu_ratio"]
     layouts = [LOOPBACK]
     why_not = links_available() if links else "not asked for (--no-links)"
     doc["links_layout"] = "used" if why_not is None else f"skipped: {why_not}"
@@ -644,7 +715,7 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
         if links_cm is not None:
             doc["netns"] = [links_cm.sink_ns, links_cm.source_ns]
         with (links_cm if links_cm is not None else contextlib.nullcontext(layout)) as lay:
-            progress(f"ctrl RTT ({lay.name}): separate sessions, idle then data plane flooded")
+            progress(f"ctrl RTT ({lay.name}): separate sessions, idle and data plane flooded, alternating")
             separate = _measure_ctrl(ctx, lay, False, cfg, secret, pids, idle=True)
             progress(f"ctrl RTT ({lay.name}): one shared session, data plane flooded")
             shared = _measure_ctrl(ctx, lay, True, cfg, secret, pids, idle=False)
@@ -674,11 +745,14 @@ HEADLINE_KEYS = (
 
 def format_table(doc: dict[str, Any]) -> str:
     """A short human summary of `run_bench`'s document."""
-    lines = [f"{'throughput':<12}{'payload':>10}{'raw MB/s':>11}{'fabric MB/s':>13}{'msgs/s':>9}{'ratio':>8}"]
+    lines = [f"{'throughput':<12}{'payload':>10}{'raw MB/s':>11}{'fabric MB/s':>13}{'msgs/s':>9}{'ratio':>8}"
+             f"{'CPU us/msg pub+sub, raw':>26}{'fabric':>16}{'CPU ratio':>11}"]
     for label, e in doc["throughput"].items():
+        cpu = {k: f"{e[k]['pub_cpu_us_per_msg']:.0f}+{e[k]['sub_cpu_us_per_msg']:.0f}" for k in ("raw", "fabric")}
         lines.append(
             f"{label:<12}{e['payload_bytes']:>10}{e['raw']['bytes_per_s'] / 1e6:>11.0f}"
             f"{e['fabric']['bytes_per_s'] / 1e6:>13.0f}{e['fabric']['msgs_per_s']:>9.0f}{e['ratio']:>8.2f}"
+            f"{cpu['raw']:>26}{cpu['fabric']:>16}{e['cpu_ratio']:>11.2f}"
         )
     names = {"idle": "idle", "loaded": "flooded, own ctrl session", "loaded_shared": "flooded, shared session"}
     for layout, entry in doc["ctrl_rtt_layouts"].items():

@@ -6,9 +6,10 @@
   with the cluster secret and sent at a higher priority. It is a different session on a
   different link, so a flooded data plane cannot delay it.
 
-Zenoh callbacks never block for long and never decode: they move raw bytes into a bounded
-:class:`Inbox`; the reading lane decodes (zero-copy), verifies and counts. Usable without any dvla
-configuration: pass two plain `zenoh.Config` objects (see docs/embedding.md).
+Zenoh callbacks never block for long: they hand messages to a bounded :class:`Inbox`. The
+trajectory inbox decodes (zero-copy) on Zenoh's receive thread, so its lane gets ready chunks;
+ctrl inboxes queue raw bytes that the reading lane verifies and decodes. Everything is counted.
+Usable without any dvla configuration: pass two plain `zenoh.Config` objects (docs/embedding.md).
 """
 
 from __future__ import annotations

@@ -55,8 +55,11 @@ def test_bench_fabric_quick_writes_every_figure(tmp_path: Path) -> None:
             assert positive(r["samples"])
         for phase in ("loaded", "loaded_shared"):
             assert positive(entry[phase]["flood_bytes_per_s"]), "the data plane was not flooded"
-    for e in doc["throughput"].values():
+    for label, e in doc["throughput"].items():
         assert e["raw"]["does"] and e["fabric"]["does"]  # what each side does, in words
+        for kind in ("raw", "fabric"):
+            assert positive(e[kind]["pub_cpu_us_per_msg"]) and positive(e[kind]["sub_cpu_us_per_msg"])
+        assert positive(e["cpu_ratio"]) and doc[f"cpu_ratio_{label}"] == e["cpu_ratio"]
     assert "ctrl RTT" in proc.stdout and "ratio" in proc.stdout
     alive = [pid for pid in doc["worker_pids"] if Path(f"/proc/{pid}").exists() and not _zombie(pid)]
     # 2 sizes x 2 kinds x (publisher, subscriber) + per layout 2 x (sink, source, tool)
