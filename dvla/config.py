@@ -57,8 +57,6 @@ class PPOConfig:
     #: bootstrap from the final observation's value when an episode *terminates* (success), as
     #: for a time limit: ManiSkill resets on success for throughput, the task itself goes on
     terminal_bootstrap: bool = True
-    #: advantage estimator: "gae" (PPO) or "grpo" (group-relative, episodes sharing a seed)
-    advantage: Literal["gae", "grpo"] = "gae"
 
     def __post_init__(self) -> None:
         if not 0.0 < self.gamma <= 1.0:
