@@ -108,8 +108,8 @@ class Attacker:
         return sorted(n for n, k in self.roles.items() if k in kinds)
 
     # -- capture and replay -----------------------------------------------------------------
-    def start_capture(self, limit: int = 400) -> None:
-        """Record genuinely signed messages from the wire: weights, eval results, commands."""
+    def start_capture(self, limit: int = 400, evals: bool = True) -> None:
+        """Record genuinely signed messages from the wire: weights, commands (and eval results)."""
 
         def on_sample(sample: zenoh.Sample) -> None:
             with self._lock:
@@ -117,7 +117,8 @@ class Attacker:
                     self.captured.append((str(sample.key_expr), sample.payload.to_bytes()))
 
         root = self.keys.root
-        for pattern in (f"{root}/ctrl/weights/*", f"{root}/ctrl/eval/*", f"{root}/ctrl/cmd/*"):
+        patterns = [f"{root}/ctrl/weights/*", f"{root}/ctrl/cmd/*"] + ([f"{root}/ctrl/eval/*"] if evals else [])
+        for pattern in patterns:
             self._capture_subs.append(self.ctrl.declare_subscriber(pattern, on_sample))
 
     def captured_count(self) -> int:
@@ -159,14 +160,14 @@ class Attacker:
             cmd = Command(target=target, verb="stop", args={}, issued_ns=time.time_ns())
             self._put_ctrl(key, self._forge(key, cmd, "orchestrator"), "forged_commands")
 
-    def forged_status_and_evals(self) -> None:
-        """Status reports and eval results published under the roles' names."""
+    def forged_status_and_evals(self, evals: bool = True) -> None:
+        """Status reports (and eval results) published under the roles' names."""
         for name, kind in self.roles.items():
             st = RoleStatus(name=name, kind=kind, node="evil", rack="evil", pid=1, state="error",
                             policy_version=FORGED_VERSION, env_steps=0, steps_per_s=0.0)
             key = self.keys.status(name)
             self._put_ctrl(key, self._forge(key, st, name), "forged_status")
-        for name in self.names("evaluator"):
+        for name in self.names("evaluator") if evals else []:
             key = self.keys.eval(name)
             ev = EvalResult(sender=name, policy_version=FORGED_VERSION, episodes=1, success_once=1.0,
                             success_at_end=1.0, return_mean=1e9)
@@ -209,11 +210,12 @@ class Attacker:
         self._queryables.append(self.ctrl.declare_queryable(status_key, on_status))
         self._queryables.append(self.ctrl.declare_queryable(snap_key, on_snapshot))
 
-    def ctrl_garbage(self) -> None:
+    def ctrl_garbage(self, evals: bool = True) -> None:
         """Random bytes, a bare magic and a truncated envelope on every control key."""
         keys = [self.keys.cmd("all")]
         for name in self.roles:
-            keys += [self.keys.cmd(name), self.keys.status(name), self.keys.weights(name), self.keys.eval(name)]
+            keys += [self.keys.cmd(name), self.keys.status(name), self.keys.weights(name)]
+            keys += [self.keys.eval(name)] if evals else []
         for key in keys:
             self._put_ctrl(key, garbage(200), "ctrl_unsigned")
             self._put_ctrl(key, b"DVS1" + garbage(20), "ctrl_malformed")
@@ -228,16 +230,18 @@ class Attacker:
             self.data.put(key, big, congestion_control=zenoh.CongestionControl.BLOCK)
             self.sent.add("data_oversize")
 
-    def flood(self, seconds: float, rounds_per_s: float = 4.0) -> dict[str, int]:
-        """Every attack, repeatedly, for `seconds`; returns what was sent per attack."""
+    def flood(self, seconds: float, rounds_per_s: float = 4.0, evals: bool = True) -> dict[str, int]:
+        """Every attack, repeatedly, for `seconds`; returns what was sent per attack. `evals`
+        False spares the eval-result keys (see docs/reliability.md: a flood there starves the
+        orchestrator's eval inbox)."""
         self.rogue_queryables()
         deadline = time.monotonic() + seconds
         while time.monotonic() < deadline:
             t0 = time.monotonic()
             self.forged_weights()
             self.forged_commands()
-            self.forged_status_and_evals()
-            self.ctrl_garbage()
+            self.forged_status_and_evals(evals)
+            self.ctrl_garbage(evals)
             self.data_garbage()
             self.forged_queries()
             time.sleep(max(0.0, 1.0 / rounds_per_s - (time.monotonic() - t0)))

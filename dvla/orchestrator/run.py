@@ -324,8 +324,8 @@ def accounting_from_counters(run_dir: Path) -> dict[str, Any] | None:
 
     Every rollout and actor incarnation leaves a counter file (dvla/roles/counters.py) even when
     killed. `lost` lists, per killed incarnation, the chunks that died with it and the bound its
-    in-flight window puts on them: for a rollout its ship queue (+ the chunk being shipped and the
-    one being queued) and what its Zenoh had not sent yet; for the actor its slots and inbox, plus
+    in-flight window puts on them: for a rollout its ship queue (+ the chunk being shipped) and
+    what its Zenoh had not sent yet; for the actor its slots and inbox, plus
     what was in the live rollouts' Zenoh queues and the TCP buffers of their links when it died.
     A missing chunk that no kill explains is `unaccounted`.
     """
@@ -431,7 +431,7 @@ def accounting_from_counters(run_dir: Path) -> dict[str, Any] | None:
                 in_queue = r.get("produced", 0) - r.get("shipped", 0)
                 lost.append({"role": name, "incarnation": r["incarnation"], "pid": r["pid"], "where": "rollout",
                              "died_ns": r["updated_ns"], "lost": tail, "in_queue": in_queue, "in_transit": tail - in_queue,
-                             "lost_bound": r.get("queue_cap", 0) + 2 + -(-ZENOH_TX_BYTES // max(1, int(chunk_bytes))) + 1})
+                             "lost_bound": r.get("queue_cap", 0) + 1 + -(-ZENOH_TX_BYTES // max(1, int(chunk_bytes))) + 1})
             elif tail and last_actor in killed_actors and killed_actors[last_actor]["died_ns"] >= r["updated_ns"] - 10**9:
                 k = killed_actors[last_actor]
                 k["lost"] += tail

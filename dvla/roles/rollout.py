@@ -39,8 +39,8 @@ from .weightsync import WeightSync
 
 log = logging.getLogger("dvla.rollout")
 
-#: finished chunks waiting for the ship lane (with the one being shipped and the one being
-#: queued, what a killed rollout can take with it)
+#: finished chunks waiting for the ship lane (with the one being shipped, what a killed rollout
+#: can take with it)
 SHIP_QUEUE = 8
 
 
@@ -295,12 +295,13 @@ class Rollout:
             created_ns=time.time_ns(),
         )
         self.seq += 1
-        self.chunks_produced += 1
-        self._count()
         g.t = 0
         g.versions = []
         g.buf = self._alloc(g.envs.n)  # the shipped arrays belong to the chunk until encoded
-        self.to_ship.put(chunk, ctx.stop, stats=ctx.stats)
+        # Produced = handed to the ship lane; a chunk finished while stopping never is.
+        if self.to_ship.put(chunk, ctx.stop, stats=ctx.stats):
+            self.chunks_produced += 1
+            self._count()
         if self.sync_mode:
             self._lockstep_wait(g, ctx)
 
@@ -374,6 +375,10 @@ class Rollout:
         }
 
     def close(self) -> None:
+        # A chunk queued by sim just as the ship lane finished its flush: ship it now (the lanes
+        # are joined, the fabric is still open).
+        while hasattr(self, "to_ship") and (chunk := self.to_ship.get_nowait()) is not None:
+            self._publish(chunk)
         self._count(clean=True)
         self.counters.close()
         for g in self.groups:

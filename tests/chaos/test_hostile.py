@@ -53,17 +53,19 @@ def test_hostile_traffic_is_refused_counted_and_harmless(tmp_path: Path) -> None
         rss_before = {n: rss_kib(p) for n, p in pids.items()}
         v_before = before["actor-node0-0"].extra["published_version"]
 
+        # The eval-result keys are spared here: a flood there starves the orchestrator's eval inbox
+        # (test_inbox_drains_past_forged_messages below, expected to fail until that is fixed).
         with Attacker.for_run(run_dir) as atk:
-            atk.start_capture()
+            atk.start_capture(evals=False)
             # A genuinely signed command for the attacker to capture and replay (`checkpoint` is
             # not acted on by any role: sending it changes nothing by itself).
             time.sleep(1.0)
             fabric.publish_ctrl(fabric.keys.cmd("all"), Command(target="all", verb="checkpoint", args={},
                                                                 issued_ns=time.time_ns()))
             wait_for(lambda: atk.captured_count() >= 20, 60, "signed traffic to capture", up)
-            sent = atk.flood(seconds=8.0)
+            sent = atk.flood(seconds=8.0, evals=False)
             replayed = atk.replay()
-            sent.update(atk.flood(seconds=4.0))
+            sent.update(atk.flood(seconds=4.0, evals=False))
             replayed += atk.replay()
         assert replayed >= 20 and any(k.endswith("/cmd/all") for k, _ in atk.captured), "nothing signed was captured"
         assert sent["forged_commands"] > 0 and sent["data_oversize"] > 0
@@ -99,7 +101,7 @@ def test_hostile_traffic_is_refused_counted_and_harmless(tmp_path: Path) -> None
         fabric.close()
         fabric = None
         up.send_signal(signal.SIGINT)
-        out, _ = up.communicate(timeout=180)
+        out, _ = up.communicate(timeout=120)
     finally:
         if fabric is not None:
             fabric.close()
@@ -117,3 +119,34 @@ def test_hostile_traffic_is_refused_counted_and_harmless(tmp_path: Path) -> None
     with open(run_dir / "evals.csv") as f:
         assert all(int(r["version"]) < FORGED_VERSION for r in csv.DictReader(f))
     assert pids_of_run(run_dir) == []
+
+
+@pytest.mark.xfail(strict=True, reason="Inbox.get(timeout=0) returns None at the first invalid message, so a "
+                   "reader that drains with get_nowait (the orchestrator's eval inbox) takes one forged message "
+                   "per poll; the inbox stays full, genuine messages are dropped as backpressure and each queued "
+                   "forged sample holds Zenoh's hand-off thread for block_s")
+@pytest.mark.timeout(120)
+def test_inbox_drains_past_forged_messages() -> None:
+    import os
+
+    import zenoh
+
+    from dvla.fabric import Fabric, plane_config
+    from dvla.fabric.messages import EvalResult
+
+    port = free_port_block(1)
+    ep = (f"tcp/127.0.0.1:{port}",)
+    with Fabric(run="hostile", name="monitor", ctrl_conf=plane_config(mode="peer", listen=ep), data_conf=None,
+                secret=os.urandom(32)) as victim:
+        inbox = victim.subscribe_ctrl(victim.keys.eval_all(), 4, EvalResult, block_s=0.2)
+        attacker = zenoh.open(plane_config(mode="peer", connect=ep))
+        try:
+            wait_for(lambda: attacker.declare_publisher(victim.keys.eval("evaluator-x")).matching_status.matching,
+                     10, "the subscription to reach the attacker")
+            for _ in range(4):
+                attacker.put(victim.keys.eval("evaluator-x"), os.urandom(100))
+            wait_for(lambda: inbox.depth() == 4, 10, "the forged messages to arrive")
+            assert inbox.get_nowait() is None  # nothing valid
+            assert inbox.depth() == 0, "one get_nowait left forged messages queued"
+        finally:
+            attacker.close()
