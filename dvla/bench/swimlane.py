@@ -265,7 +265,10 @@ def measure_run(
     port = base_port if base_port is not None else free_port_block()
     opts = UpOptions(runs_root=runs_root, base_port=port, max_restarts=0)
     u = Up(topo, opts, on_tick=tick)
-    code = u.run()
+    try:
+        code: int | None = u.run()
+    except (ConnectionError, RuntimeError, OSError) as err:  # e.g. the ctrl plane never came up
+        code, w.error = None, f"{type(err).__name__}: {err}"
     result = json.loads((u.run_dir / "result.json").read_text()) if (u.run_dir / "result.json").exists() else {}
     if w.error is None and (w.opened is None or w.closed is None):
         w.error = f"run ended before the window closed ({u.reason}); events: {u.events[-3:]}"
