@@ -300,9 +300,12 @@ class ChaosRun:
                     return snap
         return {}
 
-    def actor_version(self, snap: dict[str, dict[str, Any]] | None = None) -> int:
-        snap = self.latest() if snap is None else snap
-        return max((int(s["published_version"] or 0) for s in snap.values() if s["kind"] == "actor"), default=-1)
+    def actor_version(self) -> int:
+        """The newest version the actor is known to have published (also while it restarts)."""
+        with self.obs.lock:
+            snaps = [snap for _t, snap in self.obs.samples]
+        return max((int(s["published_version"] or 0) for snap in snaps for s in snap.values() if s["kind"] == "actor"),
+                   default=-1)
 
     # -- phases -----------------------------------------------------------------------------
     def start(self) -> None:

@@ -439,6 +439,9 @@ def accounting_from_counters(run_dir: Path) -> dict[str, Any] | None:
             elif tail:
                 unaccounted += tail
                 notes.append(f"{r['file']}: {tail} chunks missing at the end of a clean incarnation")
+    for peer in set(fabric_bp) | set(fabric_rej):  # traffic under names no rollout ever had
+        if peer not in by_name:
+            foreign += fabric_bp.get(peer, 0) + fabric_rej.get(peer, 0)
     for a in lost:
         if a["where"] == "actor":
             a["lost_bound"] += a.pop("_transit_bound")
