@@ -177,7 +177,11 @@ def run_training(
             t0 = time.monotonic()
             proc = subprocess.run(cmd, capture_output=True, text=True)
             run_dir = Path(tmp) / topo.run
-            runs[enc] = _training_figures(run_dir, proc.returncode, time.monotonic() - t0)
+            try:
+                runs[enc] = _training_figures(run_dir, proc.returncode, time.monotonic() - t0)
+            except (OSError, KeyError, ValueError, RuntimeError) as err:
+                tail = "\n".join((proc.stdout + proc.stderr).splitlines()[-8:])
+                raise RuntimeError(f"{enc} training run failed ({err}); last output:\n{tail}") from None
             progress(f"{enc}: {runs[enc]['bytes_per_version']:.0f} bytes/version over {runs[enc]['versions']} versions, "
                      f"{runs[enc]['env_steps']} env steps, stopped by {runs[enc]['reason']}, final eval success {runs[enc]['final_success']}")
     full = runs.get("full", {}).get("bytes_per_version")
