@@ -186,8 +186,10 @@ class Watcher:
         from ..orchestrator.run import tool_fabric
 
         self.obs = obs
-        self.fabric = tool_fabric(run, tuple(state["ctrl_entry"]), load_secret(state.get("secret_file")),
-                                  name="chaos-watch")
+        # Through the relays first (the actor's router is the first entry): killing the actor then
+        # does not cut this observer off while it counts the other faults.
+        entry = tuple(state["ctrl_entry"][1:]) + tuple(state["ctrl_entry"][:1])
+        self.fabric = tool_fabric(run, entry, load_secret(state.get("secret_file")), name="chaos-watch")
         self.fabric.watch_alive(self._on_alive)
         self.fabric.on_ctrl(self.fabric.keys.eval_all(), EvalResult, self._on_eval)
         self._stop = threading.Event()
@@ -356,6 +358,9 @@ class ChaosRun:
         pid = children[role]
         k = Kill(kind=kind, role=role, pid=pid, at=time.time(), at_rel_s=time.time() - self.t0,
                  actor_version_before=self.actor_version())
+        seen = self.latest().get(role)
+        # a restarted incarnation killed before it was up has no liveliness token to lose
+        k.figures["was_running"] = seen is not None and seen["pid"] == pid
         os.kill(pid, signal.SIGKILL)
         self.kills.append(k)
         self.progress(f"t={k.at_rel_s:5.1f}s kill -9 {role} (pid {pid}), actor at v{k.actor_version_before}")
@@ -375,6 +380,9 @@ class ChaosRun:
                 k.figures["respawn_s"] = time.time() - k.at
             time.sleep(0.1)
         while time.time() < deadline:
+            if any(later.role == k.role and later.at > k.at for later in self.kills):
+                k.figures["superseded"] = True  # killed again before it recovered
+                return
             try:
                 st = self.watcher.role(k.role)
                 actor = self.watcher.role(self.actor_name()) if k.kind != "actor" else st
@@ -502,6 +510,10 @@ def version_monotonic(samples: list[tuple[float, dict[str, dict[str, Any]]]]) ->
     return {"monotonic": not regressions, "regressions": regressions[:20], "incarnations_seen": len(seen)}
 
 
+#: how long after a fault the actor must have published past its version at the fault
+RECOVERY_S = 90.0
+
+
 def learning(kills: list[Kill], evals: list[dict[str, Any]], samples: list[tuple[float, dict]], t0: float,
              t_end: float) -> dict[str, Any]:
     """Versions after each fault, and eval return before the faults, between them and after."""
@@ -512,9 +524,12 @@ def learning(kills: list[Kill], evals: list[dict[str, Any]], samples: list[tuple
 
     per_fault = []
     for i, k in enumerate(kills):
+        # by the next fault, or RECOVERY_S after this one when the next comes sooner (faults
+        # overlap: a restart takes tens of seconds on a loaded machine), or by the end
         nxt = kills[i + 1].at if i + 1 < len(kills) else t_end
-        per_fault.append({"role": k.role, "version_at_kill": k.actor_version_before, "version_before_next": actor_v(nxt),
-                          "learned_on": actor_v(nxt) > k.actor_version_before})
+        until = min(t_end, max(nxt, k.at + RECOVERY_S))
+        per_fault.append({"role": k.role, "version_at_kill": k.actor_version_before, "version_by": actor_v(until),
+                          "within_s": round(until - k.at, 1), "learned_on": actor_v(until) > k.actor_version_before})
     before = [e["return_mean"] for e in evals if e["time"] < t0]
     during = [e["return_mean"] for e in evals if t0 <= e["time"] < t_end]
     after_last = [e["return_mean"] for e in evals if kills and e["time"] >= kills[-1].at]
@@ -593,7 +608,7 @@ def run_chaos(topology: Path, profile: Profile, runs_root: Path | None = None, b
             identical.get("all_identical") and doc["versions"]["monotonic"] and acct.get("unaccounted") == 0
             and acct.get("lost_within_bounds") and doc["every_killed_rollout_accounted"]
             and doc["learning"]["learned_after_every_fault"] and dropped_packets > 0
-            and all(k.figures.get("latest_weights_s") is not None for k in cr.kills)
+            and all(k.figures.get("latest_weights_s") is not None or k.figures.get("superseded") for k in cr.kills)
         )
         return doc
     finally:
