@@ -488,6 +488,11 @@ def _pairs(
         for mode, topo, window in (first, second):
             progress(f"{topo.run}: {mode} run {i + 1}/{profile.repeats}")
             pair[mode] = measure_run(topo, mode, profile.warmup_s, window, runs_root, base_port, progress)
+            if str(pair[mode].get("error")).startswith("ConnectionError"):
+                # On a crowded machine the roles can take longer to open their planes than the
+                # orchestrator waits for them; that says nothing about the lanes: try once more.
+                progress(f"{topo.run}/{mode}: {pair[mode]['error'][:120]}; starting it again")
+                pair[mode] = measure_run(topo, mode, profile.warmup_s, window, runs_root, base_port, progress)
             if pair[mode].get("error"):
                 progress(f"{topo.run}/{mode}: {pair[mode]['error']}")
         out.append(pair)
