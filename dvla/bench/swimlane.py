@@ -241,8 +241,11 @@ def measure_run(
         # was learned holds a whole number of batches, so its rate is not quantised by them.
         batch_done = mode == "sim_only" or _consumed(statuses) != w.last_consumed
         w.last_consumed = _consumed(statuses)
+        # Warm-up lasts warmup_s and, when learning, at least two learner batches: on a slow
+        # machine one batch can take longer than the warm-up, and the first ones start cold.
+        warm = mode == "sim_only" or _consumed(statuses) >= 2 * topo.task.ppo.batch_steps
         if w.opened is None:
-            if now - w.first_step >= warmup_s and batch_done and _all_answered(statuses, expected):
+            if now - w.first_step >= warmup_s and warm and batch_done and _all_answered(statuses, expected):
                 w.opened, w.opened_at = dict(statuses), now
                 w.pids = u.launcher.pids()
                 progress(f"{topo.run}/{mode}: window open for {window_s:.0f} s")
