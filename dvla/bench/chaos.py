@@ -58,7 +58,8 @@ class Profile:
     loss_rack: int = 1
     #: the actor's published version that counts as warm (faults start then)
     warm_version: int = 3
-    #: seconds after the fault window for the last restarted roles to catch up
+    #: seconds after the fault window for the last restarted roles to catch up (a restart takes
+    #: 40-100 s on a loaded 2-core machine: imports, env creation, sessions)
     settle_s: float = 60.0
     #: seed of the choice of rollouts to kill
     seed: int = 1
@@ -66,7 +67,7 @@ class Profile:
 
 #: kill -9 a random rollout every 30 s for 5 minutes, one replicator once, the actor once
 FULL = Profile(name="full", faults_s=300.0, rollout_kills_s=tuple(float(t) for t in range(30, 301, 30)),
-               replicator_kill_s=45.0, actor_kill_s=135.0)
+               replicator_kill_s=45.0, actor_kill_s=135.0, settle_s=150.0)
 #: one fault of each kind, loss on (the default test suite's profile)
 QUICK = Profile(name="quick", faults_s=70.0, rollout_kills_s=(5.0,), replicator_kill_s=20.0, actor_kill_s=40.0,
                 settle_s=60.0)
@@ -530,8 +531,8 @@ def learning(kills: list[Kill], evals: list[dict[str, Any]], samples: list[tuple
         until = min(t_end, max(nxt, k.at + RECOVERY_S))
         per_fault.append({"role": k.role, "version_at_kill": k.actor_version_before, "version_by": actor_v(until),
                           "within_s": round(until - k.at, 1), "learned_on": actor_v(until) > k.actor_version_before})
-    before = [e["return_mean"] for e in evals if e["time"] < t0]
-    during = [e["return_mean"] for e in evals if t0 <= e["time"] < t_end]
+    first_kill = kills[0].at if kills else t0
+    before = [e["return_mean"] for e in evals if e["time"] < first_kill]
     after_last = [e["return_mean"] for e in evals if kills and e["time"] >= kills[-1].at]
     mean = (lambda xs: sum(xs) / len(xs) if xs else None)
     return {
@@ -539,8 +540,8 @@ def learning(kills: list[Kill], evals: list[dict[str, Any]], samples: list[tuple
         "learned_after_every_fault": all(f["learned_on"] for f in per_fault),
         "eval_return_before_faults": mean(before[-3:]),
         "eval_return_after_last_fault": mean(after_last[-3:]),
-        "eval_return_best_during": max(during, default=None),
-        "evals": len(evals),
+        "evals": [{"t_s": round(e["time"] - t0, 1), "version": e["version"], "return_mean": round(e["return_mean"], 2),
+                   "success_once": e["success_once"]} for e in evals],
     }
 
 
@@ -584,7 +585,13 @@ def run_chaos(topology: Path, profile: Profile, runs_root: Path | None = None, b
         for k in cr.kills:
             detection(k, cr.obs)
         acct = result.get("accounting", {})
-        killed_rollouts = {(k.role, k.pid) for k in cr.kills if k.kind == "rollout"}
+        from ..roles.counters import read_counters
+
+        # a killed rollout incarnation that produced anything must be listed with its loss (one
+        # killed while still starting has produced nothing, possibly not even its counter file)
+        produced = {(d["role"], d["pid"]): d.get("produced", 0) for d in read_counters(cr.run_dir)
+                    if d.get("kind") == "rollout"}
+        killed_rollouts = {(k.role, k.pid) for k in cr.kills if k.kind == "rollout" and produced.get((k.role, k.pid), 0)}
         lost_rollouts = {(x["role"], x["pid"]) for x in acct.get("lost_by_incarnation", []) if x["where"] == "rollout"}
         doc = {
             "profile": dataclasses.asdict(profile),
@@ -636,8 +643,8 @@ def format_table(doc: dict[str, Any]) -> str:
     r, v, lrn = doc["replicas"], doc["versions"], doc["learning"]
     lines.append(f"replicas identical to the actor's v{r.get('actor_version')}: {r.get('identical')}/{r.get('replicas')}; "
                  f"versions monotonic: {v['monotonic']}; learned on after every fault: {lrn['learned_after_every_fault']}")
-    lines.append(f"eval return: {lrn['eval_return_before_faults']} before the faults -> "
-                 f"{lrn['eval_return_after_last_fault']} after the last one ({lrn['evals']} evals)")
+    lines.append(f"eval return: {lrn['eval_return_before_faults']} before the first kill -> "
+                 f"{lrn['eval_return_after_last_fault']} after the last one ({len(lrn['evals'])} evals)")
     lines.append("OK" if doc["ok"] else "FAILED")
     return "\n".join(lines)
 

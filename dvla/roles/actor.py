@@ -80,6 +80,10 @@ class Actor:
         self._snapshot: bytes | None = None
         self._snapshot_lock = threading.Lock()
         self.receipts = Receipts(CounterFile(cfg.run_dir, cfg.name), fabric, self.slots.n_slots)
+        if self.resumed:
+            # Before the status queryable exists: status never shows the checkpoint's version
+            # below what was published before the restart.
+            self._skip_past_replicas()
 
     # -- wiring -------------------------------------------------------------------------------
     def build(self, sl: Swimlane) -> None:
@@ -94,8 +98,6 @@ class Actor:
         sl.lane("batch", self._batch)
         sl.lane("learn", self._learn)
         sl.lane("publish", self._publish)
-        if self.resumed:
-            self._skip_past_replicas()
         # The first version: the initial (or resumed) weights, so rollouts can act at once.
         self._snapshot_version(self.policy)
 
