@@ -105,7 +105,9 @@ def _task(topo: Topology, profile: Profile, epochs: int | None) -> Any:
     if profile.batch_steps is not None:
         ppo = dataclasses.replace(ppo, batch_steps=profile.batch_steps)
     if epochs is not None:
-        ppo = dataclasses.replace(ppo, update_epochs=epochs)
+        # Every epoch runs: with the KL early stop a learner batch takes anywhere from one epoch
+        # to all of them, and the learner's time per batch could not be set by the epochs.
+        ppo = dataclasses.replace(ppo, update_epochs=epochs, target_kl=None)
     # Runs end when the window does: no step or success budget may stop them first.
     budget = BudgetConfig(max_env_steps=None, until_success=None, max_wall_s=None)
     return dataclasses.replace(topo.task, ppo=ppo, budget=budget)
