@@ -98,8 +98,15 @@ class Inbox:
             self.high_watermark = depth
 
     def get(self, timeout: float | None = None) -> Any | None:
-        """Next valid message, or None after `timeout`. Invalid ones are counted and skipped."""
+        """Next valid message, or None after `timeout`. Invalid ones are counted and skipped.
+
+        Messages already queued are looked at even after the deadline (``get_nowait`` included),
+        so invalid ones cannot hide a valid one behind them or keep the inbox full (a forged
+        flood would otherwise starve a reader that polls); at most ``maxsize`` past the deadline,
+        so an endless flood still hands control back.
+        """
         deadline = None if timeout is None else time.monotonic() + timeout
+        late = 0
         while True:
             remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
             try:
@@ -113,7 +120,9 @@ class Inbox:
             if msg is not None:
                 return msg
             if deadline is not None and time.monotonic() >= deadline:
-                return None
+                late += 1
+                if late > self.maxsize:
+                    return None
 
     def get_nowait(self) -> Any | None:
         return self.get(timeout=0.0)
