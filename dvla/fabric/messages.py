@@ -72,7 +72,8 @@ class TrajectoryChunk(Message):
 
     #: name of the rollout role that produced the chunk
     rollout: str
-    #: per-rollout counter, starting at 0; gaps reveal lost chunks
+    #: ``incarnation << 32 | index``: index counts one rollout process's chunks from 0 (gaps
+    #: reveal lost chunks), incarnation its restarts (0 for the first process)
     seq: int
     #: version of the policy weights that chose the actions
     policy_version: int
