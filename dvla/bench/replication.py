@@ -66,7 +66,7 @@ def measure(cluster: RepCluster, versions: int, timeout_s: float, progress: Call
         cluster.publish(v)
         held = cluster.wait_held(v, timeout_s=timeout_s)
         cpu_s = cluster.cpu_seconds() - cpu0
-        pub = cluster.published()[str(v)]
+        pub = _wait_sent(cluster, v, timeout_s)
         times = {n: (h["held"][str(v)]["held_ns"] - pub["t0_ns"]) / 1e9 for n, h in held.items()}
         bad = sorted(n for n, h in held.items() if h["held"][str(v)]["checksum"] != pub["checksum"])
         if bad:
@@ -95,6 +95,18 @@ def measure(cluster: RepCluster, versions: int, timeout_s: float, progress: Call
         "source_node_tx_bytes": None if tx0 is None or tx1 is None else tx1 - tx0,
         "cluster_cpu_s_median": statistics.median(p["cluster_cpu_s"] for p in per_version if not p["warmup"]),
     }
+
+
+def _wait_sent(cluster: RepCluster, version: int, timeout_s: float) -> dict[str, Any]:
+    """The source's record of `version` once its last put returned."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        pub = cluster.published().get(str(version), {})
+        if "sent_ns" in pub or time.monotonic() > deadline:
+            if "sent_ns" not in pub:
+                raise TimeoutError(f"the source did not finish sending v{version} in {timeout_s:.0f} s")
+            return pub
+        time.sleep(0.05)
 
 
 def run_transfer(

@@ -122,14 +122,14 @@ class Source:
                     enc = self.encoder.encode(self.flat)
                     self._snapshot = None
                 t_enc = time.time_ns()
+                # Recorded before sending: a replica may hold the version before the last put returns.
+                entry = {"t0_ns": t0, "encoded_ns": t_enc, "payload_bytes": enc.total_bytes,
+                         "encoding": enc.encoding, "checksum": enc.checksum}
+                self.published = _trim({**self.published, str(enc.version): entry})
                 sent = send_version(self.fabric, key, self.cfg.name, enc)
                 t1 = time.time_ns()
                 self.policy_version = enc.version
-                self.published[str(enc.version)] = {
-                    "t0_ns": t0, "encoded_ns": t_enc, "sent_ns": t1, "bytes": sent,
-                    "payload_bytes": enc.total_bytes, "encoding": enc.encoding, "checksum": enc.checksum,
-                }
-                self.published = _trim(self.published)
+                self.published[str(enc.version)] = {**entry, "sent_ns": t1, "bytes": sent}
                 log.info("published v%d (%s, %d bytes) in %.3f s", enc.version, enc.encoding, sent, (t1 - t0) / 1e9)
                 # The next version's parameters: a random update, prepared outside the timed part.
                 self.flat += 1e-3 * self.rng.standard_normal(self.layout.numel, dtype=np.float32)
