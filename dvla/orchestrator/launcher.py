@@ -11,6 +11,7 @@ import ctypes
 import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -133,8 +134,23 @@ class Launcher:
         note = self.wrap.finished(sup, code) if self.wrap is not None else None
         return [note] if note else []
 
-    def start_all(self) -> None:
+    def start_all(self, ready_timeout_s: float = 30.0) -> None:
+        """Start every child in plan order (actors, replicators, leaves), each once its parent's
+        control-plane listener accepts connections.
+
+        A Zenoh client connects to the first of its endpoints that answers: a leaf started before
+        its replicator listens would attach to a further ancestor (its fallback) and stay there,
+        so that ancestor would carry the leaf's copy of every version and the tree would be a star.
+        """
+        by_name = {sup.name: sup for sup in self.children.values()}
+        ready: set[str] = set()
         for sup in self.children.values():
+            parent = by_name.get(sup.proc.config.parent or "")
+            if parent is not None and parent.name not in ready:
+                if not _wait_listening(parent, ready_timeout_s):
+                    log.warning("%s: parent %s not listening after %.0f s; starting anyway",
+                                sup.name, parent.name, ready_timeout_s)
+                ready.add(parent.name)
             self.start(sup)
 
     def poll(self, stopping: bool) -> list[str]:
@@ -222,6 +238,29 @@ def _close_stdin(sup: Supervised) -> None:
             sup.popen.stdin.close()
         except OSError:
             pass
+
+
+def _wait_listening(sup: Supervised, timeout_s: float) -> bool:
+    """True once a TCP connection to one of `sup`'s ctrl listen endpoints succeeds."""
+    addrs = []
+    for locator in sup.proc.config.ctrl.listen:
+        host, _, port = locator.split("/", 1)[-1].rpartition(":")
+        if port.isdigit():
+            addrs.append((host.strip("[]"), int(port)))
+    if not addrs:
+        return True
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if sup.popen is not None and sup.popen.poll() is not None:
+            return False  # it died; supervision will restart it
+        for addr in addrs:
+            try:
+                with socket.create_connection(addr, timeout=0.5):
+                    return True
+            except OSError:
+                pass
+        time.sleep(0.1)
+    return False
 
 
 def _signal(sup: Supervised, sig: int) -> None:
