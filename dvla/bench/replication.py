@@ -34,6 +34,7 @@ from typing import Any, Callable
 
 from ..config import LinkConfig, ReplicationConfig, Topology
 from ..orchestrator.estimate import delivery_estimate
+from ..orchestrator.ports import free_port_block
 from ..orchestrator.topology import dump_topology_yaml, load_topology
 from .repcluster import RepCluster, without_roles
 
@@ -172,11 +173,12 @@ def run_training(
     max_env_steps: int = 150000,
     until_success: float = 0.8,
     seed: int = 1,
-    base_port: int = 19800,
+    base_port: int | None = None,
     progress: Callable[[str], None] = lambda m: None,
 ) -> dict[str, Any]:
     """`dvla up` once per encoding (same seed and budget); bytes per version and eval success."""
     base = load_topology(topology)
+    port = base_port if base_port is not None else free_port_block()
     runs: dict[str, Any] = {}
     with tempfile.TemporaryDirectory(prefix="dvla-bench-rep-train-") as tmp:
         for enc in encodings:
@@ -184,7 +186,7 @@ def run_training(
             path = Path(tmp) / f"{enc}.yaml"
             path.write_text(dump_topology_yaml(topo))
             cmd = [sys.executable, "-m", "dvla", "up", str(path), "--seed", str(seed), "--quiet", "--runs", tmp,
-                   "--base-port", str(base_port), "--max-env-steps", str(max_env_steps), "--until-success", str(until_success)]
+                   "--base-port", str(port), "--max-env-steps", str(max_env_steps), "--until-success", str(until_success)]
             progress(f"training with {enc}: {max_env_steps} env steps")
             t0 = time.monotonic()
             proc = subprocess.run(cmd, capture_output=True, text=True)

@@ -30,7 +30,6 @@ import math
 import os
 import platform
 import shutil
-import socket
 import statistics
 import sys
 import tempfile
@@ -41,6 +40,7 @@ from typing import Any, Callable
 
 from ..config import BudgetConfig, NodeConfig, RackConfig, RolePlacement, Topology
 from ..fabric.messages import RoleStatus
+from ..orchestrator.ports import free_port_block
 from ..roles.swimlane import histogram_diff, histogram_percentile
 
 HEADLINE_KEYS = (
@@ -148,29 +148,6 @@ def placement_of(topo: Topology) -> list[dict[str, Any]]:
 # --------------------------------------------------------------------------------------------
 # One measured run
 # --------------------------------------------------------------------------------------------
-
-
-def free_port_block(n: int = 8) -> int:
-    """A base port whose next ``n`` ports are free right now (other runs may share the machine)."""
-    for _ in range(100):
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            base = s.getsockname()[1]
-        if base + n >= 65000:
-            continue
-        socks: list[socket.socket] = []
-        try:
-            for p in range(base, base + n):
-                t = socket.socket()
-                socks.append(t)
-                t.bind(("127.0.0.1", p))
-            return base
-        except OSError:
-            continue
-        finally:
-            for t in socks:
-                t.close()
-    raise RuntimeError("no block of free TCP ports on 127.0.0.1")
 
 
 def rss_kib(pid: int) -> int | None:

@@ -4,37 +4,15 @@ and a signed view of the run's status (the test harness holds the run's secret; 
 from __future__ import annotations
 
 import json
-import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 from typing import Any, Callable
 
+from dvla.orchestrator.ports import free_port_block  # noqa: F401  (tests import it from here)
+
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def free_port_block(n: int = 8) -> int:
-    """A base port whose next `n` ports are free right now."""
-    for _ in range(50):
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            base = s.getsockname()[1]
-        if base + n >= 65000:
-            continue
-        socks = []
-        try:
-            for p in range(base, base + n):
-                t = socket.socket()
-                socks.append(t)
-                t.bind(("127.0.0.1", p))
-            return base
-        except OSError:
-            continue
-        finally:
-            for t in socks:
-                t.close()
-    raise RuntimeError("no free port block")
 
 
 def start_up(topology: str, runs: Path, *extra: str) -> subprocess.Popen:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -18,31 +17,10 @@ from pathlib import Path
 
 import pytest
 
+from dvla.orchestrator.ports import free_port_block  # noqa: F401  (tests import it from here)
+
 ROOT = Path(__file__).resolve().parents[2]
 ROLES = {"actor-node0-0", "replicator-node0-0", "rollout-node0-0", "rollout-node0-1", "evaluator-node0-0"}
-
-
-def free_port_block(n: int = 8) -> int:
-    """A base port whose next `n` ports are free right now."""
-    for _ in range(50):
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            base = s.getsockname()[1]
-        if base + n >= 65000:
-            continue
-        try:
-            socks = []
-            for p in range(base, base + n):
-                t = socket.socket()
-                socks.append(t)
-                t.bind(("127.0.0.1", p))
-            return base
-        except OSError:
-            continue
-        finally:
-            for t in socks:
-                t.close()
-    raise RuntimeError("no free port block")
 
 
 def dvla(*args: str, **kw) -> subprocess.CompletedProcess:

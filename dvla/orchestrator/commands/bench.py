@@ -6,7 +6,7 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Callable, Optional
 
 import typer
 
@@ -39,6 +39,14 @@ def e2e(
         typer.echo(f"wrote {json_path}")
 
 
+def _save(doc: dict, json_path: Path, format_table: Callable[[dict], str]) -> None:
+    """Write a bench's JSON document, then print its table and where it went."""
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps(doc, indent=1, default=str))
+    typer.echo(format_table(doc))
+    typer.echo(f"wrote {json_path}  ({doc['elapsed_s']:.0f} s)")
+
+
 def _f(x: float | None) -> str:
     return "-" if x is None else f"{x:.1f}"
 
@@ -59,10 +67,7 @@ def fabric(
     except (RuntimeError, TimeoutError, OSError) as err:
         raise fail(f"bench fabric: {err}", code=1)
     doc["command"] = "dvla bench fabric --json " + str(json_path) + (" --quick" if quick else "")
-    json_path.parent.mkdir(parents=True, exist_ok=True)
-    json_path.write_text(json.dumps(doc, indent=1))
-    typer.echo(format_table(doc))
-    typer.echo(f"wrote {json_path}  ({doc['elapsed_s']:.0f} s)")
+    _save(doc, json_path, format_table)
 
 
 @app.command("swimlane")
@@ -98,10 +103,7 @@ def swimlane(
     except (RuntimeError, OSError, ValueError) as err:
         raise fail(f"bench swimlane: {err}", code=1)
     doc["command"] = "dvla " + " ".join(sys.argv[1:])
-    json_path.parent.mkdir(parents=True, exist_ok=True)
-    json_path.write_text(json.dumps(doc, indent=1, default=str))
-    typer.echo(format_table(doc))
-    typer.echo(f"wrote {json_path}  ({doc['elapsed_s']:.0f} s)")
+    _save(doc, json_path, format_table)
 
 
 @app.command("replication")
@@ -131,10 +133,7 @@ def replication(
         raise fail(f"bench replication: {err}", code=1)
     doc["command"] = "dvla " + " ".join(sys.argv[1:])
     doc["elapsed_s"] = time.monotonic() - t0
-    json_path.parent.mkdir(parents=True, exist_ok=True)
-    json_path.write_text(json.dumps(doc, indent=1, default=str))
-    typer.echo(format_table(doc))
-    typer.echo(f"wrote {json_path}  ({doc['elapsed_s']:.0f} s)")
+    _save(doc, json_path, format_table)
 
 
 @app.command("vla")
@@ -152,10 +151,7 @@ def vla(
     except (RuntimeError, TimeoutError, OSError) as err:
         raise fail(f"bench vla: {err}", code=1)
     doc["command"] = "dvla bench vla --json " + str(json_path) + (" --quick" if quick else "")
-    json_path.parent.mkdir(parents=True, exist_ok=True)
-    json_path.write_text(json.dumps(doc, indent=1))
-    typer.echo(format_table(doc))
-    typer.echo(f"wrote {json_path}  ({doc['elapsed_s']:.0f} s)")
+    _save(doc, json_path, format_table)
 
 
 @app.command("chaos")
@@ -177,9 +173,6 @@ def chaos(
     except (RuntimeError, OSError, ValueError) as err:
         raise fail(f"bench chaos: {err}", code=1)
     doc["command"] = "dvla " + " ".join(sys.argv[1:])
-    json_path.parent.mkdir(parents=True, exist_ok=True)
-    json_path.write_text(json.dumps(doc, indent=1, default=str))
-    typer.echo(format_table(doc))
-    typer.echo(f"wrote {json_path}  ({doc['elapsed_s']:.0f} s)")
+    _save(doc, json_path, format_table)
     if not doc["ok"]:
         raise typer.Exit(1)
