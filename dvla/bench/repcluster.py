@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ..config import RackConfig, Topology
+from ..config import Topology
 from ..fabric import Fabric, new_secret
 from ..fabric.messages import RoleStatus
 from ..orchestrator.launcher import Launcher, Supervised
@@ -189,8 +189,7 @@ class RepCluster:
             if len(done) == len(names):
                 return done
             time.sleep(poll_s)
-        late = {n: (self.status(n, 1.0) or RoleStatus.__new__(RoleStatus)) for n in names if n not in done}
-        versions = {n: getattr(s, "policy_version", None) for n, s in late.items()}
+        versions = {n: getattr(self.status(n, 1.0), "policy_version", None) for n in names if n not in done}
         raise TimeoutError(f"v{version} not held after {timeout_s:.0f} s by: {versions}")
 
     def published(self) -> dict[str, dict[str, Any]]:
@@ -242,10 +241,3 @@ def _tail(path: Path, n: int = 15) -> str:
         return "\n".join(path.read_text(errors="replace").splitlines()[-n:])
     except OSError:
         return "(no log)"
-
-
-def rack_of(topo: Topology, node: str) -> RackConfig:
-    for rack in topo.racks:
-        if any(n.name == node for n in rack.nodes):
-            return rack
-    raise KeyError(node)
