@@ -31,6 +31,8 @@ import msgpack
 import numpy as np
 
 from dvla.fabric.errors import CodecError
+from dvla.fabric.layout import LayoutCache
+from dvla.fabric.layout import learn as learn_layout
 from dvla.fabric.messages import MESSAGE_TYPES, Message
 
 __all__ = [
@@ -421,18 +423,47 @@ class _Writer:
             self.offset += nbytes
 
 
+LAYOUTS = LayoutCache()
+"""Layouts of recently decoded messages, by length (see :mod:`dvla.fabric.layout`): the
+decoder's fast path."""
+
+WRITERS = LayoutCache(max_lengths=16)
+"""Layouts of recently encoded messages, by class: the fast path of :func:`encode_into`."""
+
+LAYOUT_MIN_BYTES = 4096
+"""Smaller messages (commands, status, manifests) are rare: they always take the full codec."""
+
+
 def encode(msg: Message, limits: Limits = DEFAULT_LIMITS) -> bytes:
     """Encode a message. Raises :class:`CodecError` if it is not a valid, encodable message."""
     return _write(msg, limits).finish()
 
 
-def encode_into(msg: Message, out: bytearray, limits: Limits = DEFAULT_LIMITS) -> int:
+def encode_into(msg: Message, out: bytearray, limits: Limits = DEFAULT_LIMITS, *, layouts: bool = True) -> int:
     """Encode a message into ``out`` (resized to fit exactly); returns the encoded length.
 
     The same bytes as :func:`encode`, without a fresh allocation per message: meant for a
-    buffer that one publisher reuses (its content is overwritten by the next call).
+    buffer that one publisher reuses (its content is overwritten by the next call). A message
+    shaped like a recent one is written through its layout (:mod:`dvla.fabric.layout`);
+    ``layouts=False`` always walks the message (same bytes, more time).
     """
-    return _write(msg, limits).finish_into(out)
+    layouts = layouts and limits is DEFAULT_LIMITS
+    if layouts:
+        for layout in WRITERS.candidates(type(msg)):
+            try:
+                n = layout.write(msg, out)  # type: ignore[misc]
+            except CodecError:
+                raise
+            except Exception:  # anything unexpected: the full encoder decides, with its error
+                break
+            if n >= 0:
+                return n
+    n = _write(msg, limits).finish_into(out)
+    if n >= LAYOUT_MIN_BYTES and layouts:
+        layout = learn_layout(out, _SCHEMAS_BY_CLASS[type(msg)], _DTYPES_BY_WIRE_NAME)
+        if layout is not None and layout.write is not None:
+            WRITERS.add(type(msg), layout)
+    return n
 
 
 def _write(msg: Message, limits: Limits) -> "_Writer":
@@ -746,26 +777,51 @@ def _build(schema: _Schema, body: Any) -> Message:
     return msg
 
 
+
+
 def decode(
     buf: bytes | bytearray | memoryview,
     expect: type | tuple[type, ...] | None = None,
     limits: Limits = DEFAULT_LIMITS,
+    *,
+    layouts: bool = True,
 ) -> Message:
     """Decode one message whose arrays are views into ``buf`` (no copy).
 
     With ``bytes`` input the arrays are read-only; with a ``bytearray`` or writable memoryview
     they are writable and alias it, so don't reuse that buffer while the message is alive.
     ``expect`` restricts the accepted message classes. Any bad input raises
-    :class:`CodecError` (and nothing else).
+    :class:`CodecError` (and nothing else). ``layouts=False`` skips the fast path of
+    :mod:`dvla.fabric.layout` (same result, more time).
     """
     try:
         data = _as_byte_sequence(buf)
-        if len(data) > limits.max_message_bytes:
-            raise CodecError("oversize", f"message {len(data)} bytes > {limits.max_message_bytes}")
-        top = _read_top(data, limits)
-        return _build(_schema_for(top, expect), top["b"])
+        n = len(data)
+        if n > limits.max_message_bytes:
+            raise CodecError("oversize", f"message {n} bytes > {limits.max_message_bytes}")
+        if not layouts:
+            return _decode_full(data, expect, limits)[1]
+        cache_key = n if limits is DEFAULT_LIMITS else (n, limits)  # hashing Limits costs a microsecond
+        for layout in LAYOUTS.candidates(cache_key):
+            if expect is None or issubclass(layout.cls, expect):
+                msg = layout.build(data)
+                if msg is not None:
+                    return msg
+        schema, msg = _decode_full(data, expect, limits)
+        if n >= LAYOUT_MIN_BYTES:
+            layout = learn_layout(data, schema, _DTYPES_BY_WIRE_NAME)
+            if layout is not None:
+                LAYOUTS.add(cache_key, layout)
+        return msg
     except CodecError:
         raise
     except Exception as exc:
         # Safety net: whatever slipped past the explicit checks is still just a bad packet.
         raise CodecError("malformed", f"{type(exc).__name__}: {exc}") from exc
+
+
+def _decode_full(data: bytes | bytearray | memoryview, expect: type | tuple[type, ...] | None,
+                 limits: Limits) -> tuple[_Schema, Message]:
+    top = _read_top(data, limits)
+    schema = _schema_for(top, expect)
+    return schema, _build(schema, top["b"])
