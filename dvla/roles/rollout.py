@@ -75,6 +75,8 @@ class PolicyPool:
         self._lock = threading.Lock()
         self.swaps = 0
         self.overwritten = 0
+        #: swaps put off to the next batch because a staging write held the lock
+        self.swap_deferred = 0
         #: bumped when a staging write starts and when it ends: odd while one is in progress
         self.stage_seq = 0
 
@@ -88,16 +90,26 @@ class PolicyPool:
             self.stage_seq += 1
 
     def maybe_swap(self) -> bool:
-        """Called between batches (by infer; in sync mode also by sim while it waits)."""
+        """Called between batches (by infer; in sync mode also by sim while it waits).
+
+        Never waits: while the sync lane is writing a newer version into `staging` (holding the
+        lock for the whole copy), the pending one cannot be swapped in, and inference goes on
+        with `active` and tries again at the next batch.
+        """
         if self._pending is None:
             return False
-        with self._lock:
+        if not self._lock.acquire(blocking=False):
+            self.swap_deferred += 1
+            return False
+        try:
             if self._pending is None:  # another lane swapped first; swapping again would undo it
                 return False
             self.active, self.staging = self.staging, self.active
             self.active_version = self._pending
             self._pending = None
             self.swaps += 1
+        finally:
+            self._lock.release()
         return True
 
 
@@ -368,6 +380,7 @@ class Rollout:
             # cumulative bucket counts (dvla.roles.swimlane.LatencyHistogram): diff two readings
             "infer_latency_counts": self.infer_latency.counts(),
             "swaps": self.pool.swaps,
+            "swap_deferred": self.pool.swap_deferred,
             "versions_overwritten": self.pool.overwritten,
             "weights": self.weights.status(),
             "held_version": self.held[0],
