@@ -440,6 +440,8 @@ def run_eval_episodes(
 def _play_eval(policy: Any, group: EnvGroup, n_episodes: int, seed: int, device: Any) -> dict[str, float]:
     import torch
 
+    from .policies import sample_actions
+
     n = group.n
     obs = group.reset(seed=seed)
     episode = np.arange(n)  # index of the episode each env is playing
@@ -450,7 +452,7 @@ def _play_eval(policy: Any, group: EnvGroup, n_episodes: int, seed: int, device:
     started = time.perf_counter()
     while len(returns) < n_episodes:
         with torch.no_grad():
-            action, _, _ = policy.act(obs_to_torch(obs, device), deterministic=True)
+            action, _ = sample_actions(policy, obs_to_torch(obs, device), deterministic=True)
         res = group.step(action.cpu().numpy())
         active = episode < n_episodes
         env_steps += int(active.sum())

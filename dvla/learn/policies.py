@@ -23,6 +23,9 @@ output ``[B]``:
 * ``value(obs) -> value``: the critic, for bootstrapping.
 * optional ``observe(obs)``: called by the learner with every training batch's observations
   before it updates (e.g. to keep running normalisation statistics in buffers).
+* optional ``sample(obs, deterministic=False) -> (action, logprob)``: ``act`` without the value,
+  which rollouts and the evaluator discard; called instead of ``act`` when present. Worth having
+  when the critic is a separate network (the MLP policy's critic is ~40% of its ``act``).
 
 Register a class with ``@register_policy("name")`` to make it addressable by name.
 """
@@ -37,7 +40,8 @@ import torch
 from torch import Tensor, nn
 from torch.distributions import Normal
 
-__all__ = ["Policy", "MLPPolicy", "register_policy", "make_policy", "policy_obs_arg", "registered_policies"]
+__all__ = ["Policy", "MLPPolicy", "register_policy", "make_policy", "policy_obs_arg", "registered_policies",
+           "sample_actions"]
 
 
 @runtime_checkable
@@ -55,6 +59,15 @@ class Policy(Protocol):
     def state_dict(self, *args: Any, **kwargs: Any) -> Any: ...
 
     def load_state_dict(self, state_dict: Any, strict: bool = True, assign: bool = False) -> Any: ...
+
+
+def sample_actions(policy: Any, obs: Any, deterministic: bool = False) -> tuple[Tensor, Tensor]:
+    """(action, logprob) from the policy's optional ``sample``, else from ``act`` (value dropped)."""
+    sample = getattr(policy, "sample", None)
+    if sample is not None:
+        return sample(obs, deterministic)
+    action, logprob, _ = policy.act(obs, deterministic)
+    return action, logprob
 
 
 _REGISTRY: dict[str, type] = {}
@@ -211,9 +224,15 @@ class MLPPolicy(nn.Module):
 
     @torch.no_grad()
     def act(self, obs: Tensor, deterministic: bool = False) -> tuple[Tensor, Tensor, Tensor]:
+        action, logprob = self.sample(obs, deterministic)
+        return action, logprob, self.value(obs)
+
+    @torch.no_grad()
+    def sample(self, obs: Tensor, deterministic: bool = False) -> tuple[Tensor, Tensor]:
+        """``act`` without running the critic (what rollouts and the evaluator need)."""
         dist = self._dist(obs)
         action = dist.mean if deterministic else dist.sample()
-        return action, dist.log_prob(action).sum(-1), self.value(obs)
+        return action, dist.log_prob(action).sum(-1)
 
     def evaluate(self, obs: Tensor, action: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         dist = self._dist(obs)

@@ -29,6 +29,7 @@ from ..config import RoleConfig
 from ..fabric import Fabric
 from ..fabric.messages import TrajectoryChunk
 from ..learn import EnvGroup, make_policy
+from ..learn.policies import sample_actions
 from ..learn.envs import obs_as_dict, obs_to_torch
 from ..learn.grpo import grpo_envs
 from ..replication import ParamLayout, unflatten_into
@@ -220,7 +221,7 @@ class Rollout:
                 t0 = time.perf_counter()
                 with torch.no_grad():
                     obs = obs_to_torch(g.obs)
-                    action, logprob, _ = self.pool.active.act(obs)
+                    action, logprob = sample_actions(self.pool.active, obs)
                 ms = (time.perf_counter() - t0) * 1e3
                 seq1 = self.pool.stage_seq
                 touched = swapped or seq1 != seq0 or seq1 % 2 == 1

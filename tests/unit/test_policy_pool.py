@@ -53,3 +53,23 @@ def test_swap_does_not_wait_for_a_staging_write(monkeypatch):
     assert pool.maybe_swap() and pool.active_version == 2  # the newer version won
     assert pool.overwritten == 1
     np.testing.assert_array_equal(flatten(pool.active.state_dict(), pool.layout), np.ones(pool.layout.numel))
+
+
+def test_sample_is_act_without_the_value():
+    from dvla.learn.policies import MLPPolicy, sample_actions
+
+    policy = MLPPolicy(6, 2, hidden=(16, 16))
+    obs = torch.randn(5, 6)
+    torch.manual_seed(3)
+    a_act, lp_act, _ = policy.act(obs)
+    torch.manual_seed(3)
+    a_s, lp_s = sample_actions(policy, obs)
+    assert torch.equal(a_act, a_s) and torch.equal(lp_act, lp_s)
+    assert torch.equal(sample_actions(policy, obs, deterministic=True)[0], policy.act(obs, deterministic=True)[0])
+
+    class ActOnly(torch.nn.Module):  # a plug-in policy without `sample`
+        def act(self, obs, deterministic=False):
+            return obs[:, :2] * 2, obs[:, 0], obs[:, 1]
+
+    a, lp = sample_actions(ActOnly(), obs)
+    assert torch.equal(a, obs[:, :2] * 2) and torch.equal(lp, obs[:, 0])
