@@ -25,7 +25,7 @@ from typing import Any
 from ..config import Topology
 from ..fabric import Fabric, new_secret
 from ..fabric.messages import RoleStatus
-from ..orchestrator.launcher import Launcher, Supervised
+from ..orchestrator.launcher import Launcher, Supervised, log_tail
 from ..orchestrator.plan import Plan, make_plan
 from ..orchestrator.run import tool_fabric
 from .repnode import write_trigger
@@ -138,7 +138,7 @@ class RepCluster:
     def _check_running(self) -> None:
         for sup in self.launcher.children.values():
             if sup.popen is not None and sup.popen.poll() is not None:
-                tail = _tail(sup.log_path)
+                tail = log_tail(sup.log_path)
                 raise RuntimeError(f"{sup.name} exited with {sup.popen.returncode}; last log lines:\n{tail}")
 
     def close(self) -> None:
@@ -236,8 +236,3 @@ class RepCluster:
         return int(json.loads(out)[0]["stats64"]["tx"]["bytes"])
 
 
-def _tail(path: Path, n: int = 15) -> str:
-    try:
-        return "\n".join(path.read_text(errors="replace").splitlines()[-n:])
-    except OSError:
-        return "(no log)"

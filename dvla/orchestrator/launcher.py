@@ -232,6 +232,15 @@ class Launcher:
         return {n: s.popen.pid for n, s in self.children.items() if s.popen is not None and s.alive()}
 
 
+def log_tail(path: Path, n: int = 15, indent: str = "") -> str:
+    """The last `n` lines of a role's log, each prefixed with `indent` (for error reports)."""
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return f"{indent}(no log)"
+    return "\n".join(indent + line for line in lines[-n:])
+
+
 def _close_stdin(sup: Supervised) -> None:
     if sup.popen is not None and sup.popen.stdin is not None:
         try:

@@ -22,7 +22,7 @@ from typing import Any, Callable
 from ..config import BudgetConfig, Topology
 from ..fabric import Fabric, load_secret, new_secret, plane_config
 from ..fabric.messages import Command
-from .launcher import Launcher
+from .launcher import Launcher, log_tail
 from .monitor import Monitor
 from .plan import Plan, is_local_host, make_plan
 from .topology import dump_topology_yaml
@@ -123,11 +123,14 @@ def ctrl_tls_dict(topo: Topology) -> dict[str, Any] | None:
     return None if tls is None else {"root_ca": tls.root_ca, "cert": tls.cert, "key": tls.key, "mtls": tls.mtls}
 
 
-def tool_fabric(run: str, entry: tuple[str, ...], secret: bytes, name: str = "orchestrator", tls: Any = None) -> Fabric:
+def tool_fabric(run: str, entry: tuple[str, ...], secret: bytes, name: str = "orchestrator", tls: Any = None,
+                open_timeout_s: float = 60.0) -> Fabric:
     """A client-only fabric for tools (orchestrator, `dvla status`) on the ctrl plane (`tls`: the
-    topology's TLS files when the ctrl plane uses TLS)."""
+    topology's TLS files when the ctrl plane uses TLS). Opening retries until `open_timeout_s`:
+    the router's listener accepts connections by then (the launcher waited for it), but opening
+    a session on a machine loaded by every role's start-up can take many seconds."""
     conf = plane_config(mode="client", connect=entry, tls=tls)
-    return Fabric(run=run, name=name, ctrl_conf=conf, data_conf=None, secret=secret, open_timeout_s=20.0)
+    return Fabric(run=run, name=name, ctrl_conf=conf, data_conf=None, secret=secret, open_timeout_s=open_timeout_s)
 
 
 class Up:
@@ -224,7 +227,7 @@ class Up:
                 failed = [s for s in self.launcher.children.values() if s.failed]
                 self.reason = "role_failed:" + ",".join(s.name for s in failed)
                 for s in failed:
-                    self.events.append(f"{s.name} last log lines:\n" + _tail(s.log_path, 15))
+                    self.events.append(f"{s.name} last log lines:\n" + log_tail(s.log_path, 15, indent="  "))
                 return ExitCode.ROLE_FAILED
             if events:
                 self._write_state()
@@ -486,14 +489,6 @@ def _missing_parts(r: dict[str, Any], ranges: list[tuple[int, int, int, int]]) -
         between.append((a, first - last - 1))
     tail = produced - 1 - ranges[-1][2]
     return {"inner": inner, "between": between, "tail": tail, "last_actor": ranges[-1][0]}
-
-
-def _tail(path: Path, n: int) -> str:
-    try:
-        lines = path.read_text(errors="replace").splitlines()
-    except OSError:
-        return "  (no log)"
-    return "\n".join("  " + line for line in lines[-n:])
 
 
 def install_sigint(up: Up) -> None:

@@ -16,7 +16,7 @@ from .common import RUNS_ROOT, find_run
 def down(
     run: Annotated[Optional[str], typer.Argument(help="run id or topology file (default: the newest live run)")] = None,
     runs: Annotated[Path, typer.Option(help="directory of run directories")] = RUNS_ROOT,
-    timeout: Annotated[float, typer.Option(help="seconds to wait for a clean stop")] = 30.0,
+    timeout: Annotated[float, typer.Option(help="seconds to wait for the orchestrator's clean stop before killing")] = 60.0,
 ) -> None:
     """Ask the run's orchestrator to stop (as Ctrl-C would); kill and clean up after `timeout`."""
     run_id, state = find_run(run, runs)
