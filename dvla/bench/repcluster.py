@@ -216,15 +216,19 @@ class RepCluster:
 
     def cpu_seconds(self) -> float:
         """User + system CPU seconds used so far by the cluster's live processes (from /proc)."""
+        return sum(self.cpu_by_process().values())
+
+    def cpu_by_process(self) -> dict[str, float]:
+        """User + system CPU seconds used so far by each live process of the cluster (from /proc)."""
         tick = os.sysconf("SC_CLK_TCK")
-        total = 0.0
-        for pid in self.launcher.pids().values():
+        out = {}
+        for name, pid in self.launcher.pids().items():
             try:
                 fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
             except OSError:
                 continue
-            total += (int(fields[11]) + int(fields[12])) / tick  # utime, stime
-        return total
+            out[name] = (int(fields[11]) + int(fields[12])) / tick  # utime, stime
+        return out
 
     def node_tx_bytes(self, name: str) -> int | None:
         """Bytes sent so far by the NIC (eth0) of the node `name` runs on; None without netns."""

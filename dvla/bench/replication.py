@@ -63,13 +63,15 @@ def measure(cluster: RepCluster, versions: int, timeout_s: float, progress: Call
     for v in range(1, versions + 2):
         if v == 2:  # the warm-up version is done: count the actor node's bytes from here
             tx0 = cluster.node_tx_bytes(cluster.source)
-        cpu0 = cluster.cpu_seconds()
+        cpu0 = cluster.cpu_by_process()
         cluster.publish(v)
         # Sinks stamp the moment they hold a version themselves (held_ns), so polling slowly does
         # not change the figure; polling at 10 Hz cost the cluster ~8 status round trips per
         # 100 ms (signing, routing, replies) on the same two cores the transfer needs.
         held = cluster.wait_held(v, timeout_s=timeout_s, poll_s=0.5)
-        cpu_s = cluster.cpu_seconds() - cpu0
+        cpu1 = cluster.cpu_by_process()
+        cpu_by = {n: round(cpu1[n] - cpu0[n], 2) for n in cpu1 if n in cpu0}
+        cpu_s = sum(cpu_by.values())
         pub = _wait_sent(cluster, v, timeout_s)
         times = {n: (h["held"][str(v)]["held_ns"] - pub["t0_ns"]) / 1e9 for n, h in held.items()}
         bad = sorted(n for n, h in held.items() if h["held"][str(v)]["checksum"] != pub["checksum"])
@@ -85,7 +87,14 @@ def measure(cluster: RepCluster, versions: int, timeout_s: float, progress: Call
             "bytes_sent_by_source": pub["bytes"],
             # CPU of every process of the cluster while this version moved (includes status polls)
             "cluster_cpu_s": cpu_s,
+            "cpu_s_by_process": cpu_by,
             "per_sink_s": times,
+            # where the time went, per sink: when its lane got the last chunk, and how long the
+            # assembly's verification and swap took after that
+            "last_chunk_s": {n: (h["held"][str(v)]["last_chunk_ns"] - pub["t0_ns"]) / 1e9
+                             for n, h in held.items() if "last_chunk_ns" in h["held"][str(v)]},
+            "apply_s": {n: (h["held"][str(v)]["held_ns"] - h["held"][str(v)]["last_chunk_ns"]) / 1e9
+                        for n, h in held.items() if "last_chunk_ns" in h["held"][str(v)]},
         })
         progress(f"v{v}: all {len(times)} rollouts hold it after {max(times.values()):.2f} s"
                  f"{' (warm-up)' if v == 1 else ''}")

@@ -37,7 +37,7 @@ import numpy as np
 from ..config import RoleConfig
 from ..fabric import Fabric
 from ..fabric.codec import encode
-from ..fabric.messages import WeightChunk, WeightSnapshot
+from ..fabric.messages import WeightChunk, WeightManifest, WeightSnapshot
 from ..replication import ParamLayout, WeightEncoder
 from ..roles.replicator import Replicator
 from ..roles.runtime import ExitStatus, RoleHost, open_fabric, setup_logging
@@ -165,16 +165,31 @@ class Sink:
         self.policy_version = -1
         self.env_steps = 0
         self.held: dict[str, dict[str, Any]] = {}
+        self._arrivals: dict[int, dict[str, int]] = {}
 
     def build(self, sl: Swimlane) -> None:
-        self.weights = WeightSync(self.fabric, self.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version)
+        self.weights = WeightSync(self.fabric, self.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version,
+                                  on_message=self._on_message)
         sl.lane("sync", self._sync)
+
+    def _on_message(self, msg: Any) -> None:
+        # When the manifest and the first and last chunk of each version reached this lane: the
+        # delivery time split into waiting for the data and processing it.
+        now = time.time_ns()
+        if isinstance(msg, WeightManifest):
+            self._arrivals[msg.version] = {"manifest_ns": now}
+        elif isinstance(msg, WeightChunk):
+            seen = self._arrivals.setdefault(msg.version, {})
+            seen.setdefault("first_chunk_ns", now)
+            seen["last_chunk_ns"] = now
+        while len(self._arrivals) > 8:
+            self._arrivals.pop(min(self._arrivals))
 
     def _on_version(self, version: int, flat: np.ndarray) -> None:
         # Held from here on: verified against the manifest's checksum (recomputed over the
         # result by the decoder) and swapped in.
         self.held[str(version)] = {"held_ns": time.time_ns(), "checksum": self.weights.decoder.checksum,
-                                   "parent": self.weights.parent}
+                                   "parent": self.weights.parent, **self._arrivals.get(version, {})}
         self.held = _trim(self.held)
         self.policy_version = version
 

@@ -131,9 +131,13 @@ def _ip(*args: str, ns: str | None = None) -> str:
 def _tbf(ns: str | None, dev: str, gbit: float) -> None:
     """Limit the egress of `dev` to `gbit` with a token bucket."""
     rate_bit = int(gbit * 1e9)
-    # The bucket must hold at least one GSO super-packet (64 KiB) or large segments starve;
-    # beyond that ~2 ms of line rate keeps the shaper accurate at high rates.
-    burst = max(64 * 1024, rate_bit // 8 // 500)
+    # tbf passes a packet whole only if it fits the bucket; a GSO super-packet (up to 64 KiB of
+    # payload *plus* headers) that does not is cut into MTU-sized packets in software, so the
+    # receiver handles ~45 packets instead of one: on a 200 Mbit/s link with a 64 KiB bucket
+    # that made every byte across it cost its receiver about twice the CPU of a 1 Gbit/s link
+    # (real NICs segment and coalesce in hardware). 256 KiB holds any super-packet; beyond that
+    # ~2 ms of line rate keeps the shaper accurate at high rates.
+    burst = max(256 * 1024, rate_bit // 8 // 500)
     _run(["tc", *(["-n", ns] if ns else []), "qdisc", "replace", "dev", dev, "root", "tbf",
           "rate", f"{rate_bit}bit", "burst", str(burst), "latency", "25ms"])
 
