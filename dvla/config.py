@@ -140,6 +140,17 @@ class TaskConfig:
     reward: Literal["dense", "success"] = "dense"
     #: GRPO: episodes per group; the G episodes of a group start from the same seeded state
     group_size: int = 4
+    #: GRPO advantage of step t: "step" (the episode's discounted reward-to-go from t minus the
+    #: group's mean reward-to-go from t, over the group's std at t) or "episode" (the episode's
+    #: return minus the group's mean return, over the group's std, the same for every step)
+    grpo_baseline: Literal["episode", "step"] = "step"
+    #: GRPO: discount of the reward-to-go with grpo_baseline "step" (1: undiscounted; "episode"
+    #: always sums the rewards undiscounted)
+    grpo_gamma: float = 0.95
+    #: GRPO: the group std an advantage is divided by is at least this (reward units, after
+    #: ppo.reward_scale), so groups whose episodes barely differ do not turn noise into
+    #: full-size advantages; 0: no floor
+    grpo_std_floor: float = 1.0
 
 
 OBS_MODES = ("state", "rgb")

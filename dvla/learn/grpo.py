@@ -10,9 +10,18 @@ Layout, chosen so no episode ever has to be reassembled from pieces:
 
 A chunk's env column therefore is one whole episode and columns ``G*m .. G*m + G-1`` one group;
 this holds in the actor's stacked batch too, since every chunk's env count is a multiple of G.
-The advantage of every step of an episode is its group-normalised return
-(:func:`~dvla.learn.ppo.grpo_advantages`); no critic is used. With ``task.reward: success`` the
-return is 1 for a successful episode and 0 otherwise.
+No critic is used. Two advantages (``task.grpo_baseline``):
+
+* ``"step"`` (default): step t of an episode gets its discounted reward-to-go from t
+  (``task.grpo_gamma``) minus the mean reward-to-go from t of the G episodes of its group, over
+  their std at t. Still group-relative and critic-free, but an action is no longer credited
+  with the rewards collected before it, which only add noise.
+* ``"episode"``: every step gets the episode's group-normalised return
+  (:func:`~dvla.learn.ppo.grpo_advantages`).
+
+Either way the std is floored at ``task.grpo_std_floor`` so groups whose episodes barely differ
+do not turn noise into full-size advantages. With ``task.reward: success`` the return is 1 for
+a successful episode and 0 otherwise (reward-to-go: discounted 1 from the first success on).
 """
 
 from __future__ import annotations
@@ -27,7 +36,8 @@ from ..config import TaskConfig, env_group_sizes, grpo_layout_problems
 from .ppo import grpo_advantages
 
 __all__ = [
-    "grpo_envs", "grpo_layout_problems", "episode_steps", "group_advantages", "group_stats", "env_group_sizes",
+    "grpo_envs", "grpo_layout_problems", "episode_steps", "group_advantages", "task_advantages", "group_stats",
+    "env_group_sizes",
 ]
 
 
@@ -43,8 +53,30 @@ def grpo_envs(task: TaskConfig) -> dict[str, Any]:
     return {"group_size": task.group_size, "ignore_terminations": True}
 
 
-def group_advantages(rewards: torch.Tensor, terminated: torch.Tensor, truncated: torch.Tensor, group_size: int) -> torch.Tensor:
+def task_advantages(task: TaskConfig, rewards: torch.Tensor, terminated: torch.Tensor, truncated: torch.Tensor) -> torch.Tensor:
+    """:func:`group_advantages` with the GRPO settings of ``task`` (rewards already scaled)."""
+    return group_advantages(
+        rewards, terminated, truncated, task.group_size,
+        baseline=task.grpo_baseline, gamma=task.grpo_gamma, std_floor=task.grpo_std_floor,
+    )
+
+
+def group_advantages(
+    rewards: torch.Tensor,
+    terminated: torch.Tensor,
+    truncated: torch.Tensor,
+    group_size: int,
+    *,
+    baseline: str = "episode",
+    gamma: float = 1.0,
+    std_floor: float = 0.0,
+) -> torch.Tensor:
     """Advantages ``[T, N]`` of a batch where each column is one whole episode.
+
+    Columns ``G*m .. G*m + G-1`` (``G = group_size``) are one group. ``baseline`` "episode":
+    every step of a column gets ``(R - mean_g R) / max(std_g R, std_floor)`` with R the column's
+    undiscounted return. "step": step t gets ``(G_t - mean_g G_t) / max(std_g G_t, std_floor)``
+    with ``G_t = sum_k>=t gamma^(k-t) r_k`` the column's reward-to-go; std is the population std.
 
     Raises ValueError when a column is not exactly one episode (ends only at its last step) or
     N is not a multiple of ``group_size``: the rollout broke the layout above.
@@ -55,9 +87,23 @@ def group_advantages(rewards: torch.Tensor, terminated: torch.Tensor, truncated:
     ended = (terminated | truncated).cpu().numpy()
     if not ended[-1].all() or ended[:-1].any():
         raise ValueError("GRPO batch columns are not whole episodes (chunk_steps must cover exactly one episode)")
-    returns = rewards.sum(0)
-    adv = grpo_advantages(returns, torch.arange(n, device=rewards.device) // group_size)
-    return adv.to(rewards.dtype).unsqueeze(0).expand(steps, n).contiguous()
+    if baseline == "episode":
+        returns = rewards.sum(0)
+        adv = grpo_advantages(returns, torch.arange(n, device=rewards.device) // group_size, std_floor)
+        return adv.to(rewards.dtype).unsqueeze(0).expand(steps, n).contiguous()
+    if baseline != "step":
+        raise ValueError(f"unknown GRPO baseline {baseline!r} (expected 'episode' or 'step')")
+    r = rewards.detach().to(torch.float64)
+    to_go = torch.empty_like(r)
+    running = torch.zeros_like(r[0])
+    for t in range(steps - 1, -1, -1):
+        running = r[t] + gamma * running
+        to_go[t] = running
+    groups = to_go.reshape(steps, n // group_size, group_size)
+    mean = groups.mean(2, keepdim=True)
+    std = groups.std(2, unbiased=False, keepdim=True).clamp(min=std_floor)
+    adv = (groups - mean) / (std + 1e-8)
+    return adv.reshape(steps, n).to(rewards.dtype)
 
 
 def group_stats(rewards: np.ndarray, group_size: int) -> dict[str, float]:

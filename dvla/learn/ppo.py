@@ -60,12 +60,13 @@ def compute_gae(rewards, values, next_values, terminated, episode_end, gamma: fl
     return advantages, advantages + values
 
 
-def grpo_advantages(episode_returns, group_ids):
-    """Group-relative advantages: ``(R - mean_g) / (std_g + 1e-8)`` within each group.
+def grpo_advantages(episode_returns, group_ids, std_floor: float = 0.0):
+    """Group-relative advantages: ``(R - mean_g) / (max(std_g, std_floor) + 1e-8)`` within each group.
 
     ``episode_returns`` and ``group_ids`` are 1-D (numpy or torch); episodes sharing a group id
     started from the same initial state. A group of one gets advantage 0. The population std is
-    used, so the result does not depend on an arbitrary degrees-of-freedom choice.
+    used, so the result does not depend on an arbitrary degrees-of-freedom choice. ``std_floor``
+    keeps groups whose returns barely differ from getting full-size advantages out of noise.
     """
     is_torch = isinstance(episode_returns, Tensor)
     r = episode_returns.detach().cpu().numpy() if is_torch else np.asarray(episode_returns)
@@ -77,7 +78,7 @@ def grpo_advantages(episode_returns, group_ids):
     counts = np.bincount(inverse)
     mean = np.bincount(inverse, weights=r) / counts
     var = np.bincount(inverse, weights=(r - mean[inverse]) ** 2) / counts
-    adv = (r - mean[inverse]) / (np.sqrt(var[inverse]) + 1e-8)
+    adv = (r - mean[inverse]) / (np.maximum(np.sqrt(var[inverse]), std_floor) + 1e-8)
     if is_torch:
         return torch.as_tensor(adv, dtype=episode_returns.dtype, device=episode_returns.device)
     return adv.astype(np.float32)

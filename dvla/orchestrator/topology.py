@@ -540,6 +540,7 @@ _RANGES: dict[type, dict[str, _Range]] = {
         # vision-language observations and GRPO
         "image_size": _Range(low=8, high=1024), "instruction_tokens": _Range(low=1, high=512),
         "action_chunk": _AT_LEAST_1, "group_size": _AT_LEAST_1,
+        "grpo_gamma": _Range(low=0, high=1, low_open=True), "grpo_std_floor": _AT_LEAST_0,
     },
     PPOConfig: {
         "gae_lambda": _Range(low=0, high=1),

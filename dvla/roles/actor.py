@@ -27,7 +27,7 @@ from ..fabric.fabric import DATA
 from ..fabric.messages import RoleStatus, TrajectoryChunk, WeightSnapshot
 from ..learn import PPOLearner, compute_gae, make_policy
 from ..learn.dims import probe_spec
-from ..learn.grpo import group_advantages
+from ..learn.grpo import task_advantages
 from ..replication import ParamLayout, WeightEncoder, flatten, unflatten_into
 from .checkpoint import load_checkpoint, save_checkpoint
 from .counters import CounterFile, source_key, split_seq
@@ -271,7 +271,7 @@ class Actor:
         the batch format of PPO.
         """
         T, N = b["rewards"].shape
-        adv = group_advantages(b["rewards"] * ppo.reward_scale, b["terminated"], b["truncated"], self.cfg.task.group_size)
+        adv = task_advantages(self.cfg.task, b["rewards"] * ppo.reward_scale, b["terminated"], b["truncated"])
         zeros = torch.zeros(T * N, device=adv.device)
         return {
             "obs": obs,

@@ -10,7 +10,7 @@ import torch
 
 from dvla.config import TaskConfig, grpo_layout_problems
 from dvla.learn.envs import EnvGroup
-from dvla.learn.grpo import episode_steps, group_advantages, group_stats, grpo_envs
+from dvla.learn.grpo import episode_steps, group_advantages, group_stats, grpo_envs, task_advantages
 from dvla.orchestrator.topology import TopologyError, parse_topology
 
 
@@ -59,6 +59,83 @@ def test_group_advantages_normalise_within_groups_and_broadcast_over_steps():
     assert group_stats(rewards.numpy(), 2) == {"groups_informative": 0.5, "episode_return_mean": 2.0}
 
 
+def _whole_episodes(T: int, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    term = torch.zeros(T, n, dtype=torch.bool)
+    trunc = torch.zeros(T, n, dtype=torch.bool)
+    trunc[-1] = True
+    return term, trunc
+
+
+def test_episode_baseline_is_the_default_of_group_advantages_and_the_step_one_of_tasks():
+    # equal returns (2, 2); reward-to-go: column 0 (2, 2, 1), column 1 (2, 0, 0)
+    rewards = torch.tensor([[0.0, 2.0], [1.0, 0.0], [1.0, 0.0]])
+    term, trunc = _whole_episodes(3, 2)
+    assert (group_advantages(rewards, term, trunc, 2) == 0).all()
+    task = TaskConfig(algorithm="grpo", group_size=2, grpo_gamma=1.0, grpo_std_floor=0.0)
+    assert task.grpo_baseline == "step"
+    want = torch.tensor([[0.0, 0.0], [1.0, -1.0], [1.0, -1.0]])
+    torch.testing.assert_close(task_advantages(task, rewards, term, trunc), want)
+
+
+def test_step_baseline_uses_the_groups_reward_to_go_at_each_step():
+    T, G = 4, 3
+    rng = np.random.default_rng(0)
+    rewards = torch.tensor(rng.uniform(0, 1, (T, 2 * G)), dtype=torch.float32)
+    term, trunc = _whole_episodes(T, 2 * G)
+    gamma = 0.9
+    adv = group_advantages(rewards, term, trunc, G, baseline="step", gamma=gamma)
+    r = rewards.numpy().astype(np.float64)
+    for t in range(T):
+        to_go = sum(gamma ** (k - t) * r[k] for k in range(t, T))
+        for g in range(2):
+            cols = slice(g * G, (g + 1) * G)
+            x = to_go[cols]
+            np.testing.assert_allclose(adv[t, cols].numpy(), (x - x.mean()) / x.std(), rtol=1e-5, atol=1e-6)
+    # group-relative: zero mean in every group at every step, and adding a constant to one
+    # group's rewards (or any per-step offset shared by a group) changes nothing
+    np.testing.assert_allclose(adv.reshape(T, 2, G).sum(2).numpy(), 0.0, atol=1e-5)
+    shifted = rewards.clone()
+    shifted[:, :G] += torch.arange(T, dtype=torch.float32).unsqueeze(1) * 5.0
+    torch.testing.assert_close(group_advantages(shifted, term, trunc, G, baseline="step", gamma=gamma), adv, atol=1e-5, rtol=1e-4)
+    # the step baseline differs from the episode one once rewards before t differ
+    assert not torch.allclose(adv, group_advantages(rewards, term, trunc, G))
+
+
+def test_step_baseline_does_not_credit_later_actions_with_earlier_rewards():
+    # episode 0 collects a reward at t=0 only, episode 1 at t=2 only: with the episode baseline
+    # every step of episode 0 looks as good as every step of episode 1; with the step baseline
+    # the steps after episode 0's reward are worse than episode 1's
+    rewards = torch.tensor([[1.0, 0.0], [0.0, 0.0], [0.0, 1.0]])
+    term, trunc = _whole_episodes(3, 2)
+    episode = group_advantages(rewards, term, trunc, 2, baseline="episode")
+    assert (episode == 0).all()
+    step = group_advantages(rewards, term, trunc, 2, baseline="step", gamma=1.0)
+    torch.testing.assert_close(step, torch.tensor([[0.0, 0.0], [-1.0, 1.0], [-1.0, 1.0]]))
+
+
+def test_std_floor_keeps_near_identical_groups_small():
+    rewards = torch.tensor([[1.0, 1.001, 0.0, 1.0]])
+    term, trunc = _whole_episodes(1, 4)
+    for baseline in ("episode", "step"):
+        raw = group_advantages(rewards, term, trunc, 2, baseline=baseline)
+        floored = group_advantages(rewards, term, trunc, 2, baseline=baseline, std_floor=0.1)
+        # without a floor a 0.001 difference becomes a full +-1 advantage
+        torch.testing.assert_close(raw[0], torch.tensor([-1.0, 1.0, -1.0, 1.0]), atol=1e-4, rtol=0)
+        # with it the tiny difference stays tiny (0.0005 / 0.1), a real one is untouched (std 0.5)
+        torch.testing.assert_close(floored[0], torch.tensor([-0.005, 0.005, -1.0, 1.0]), atol=1e-5, rtol=0)
+
+
+def test_success_reward_with_the_step_baseline():
+    # binary success reward, groups of two: only the episode that succeeds (at t=1) gains
+    rewards = torch.tensor([[0.0, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    term, trunc = _whole_episodes(3, 4)
+    adv = group_advantages(rewards, term, trunc, 2, baseline="step", gamma=0.5)
+    torch.testing.assert_close(adv[:2, :2], torch.tensor([[1.0, -1.0], [1.0, -1.0]]))
+    assert (adv[2] == 0).all() and (adv[:, 2:] == 0).all()  # after the success, and failed groups
+    with pytest.raises(ValueError, match="baseline"):
+        group_advantages(rewards, term, trunc, 2, baseline="critic")
+
+
 def test_group_advantages_refuse_broken_layouts():
     r = torch.zeros(2, 4)
     done = torch.zeros(2, 4, dtype=torch.bool)
@@ -71,6 +148,9 @@ def test_group_advantages_refuse_broken_layouts():
         group_advantages(r, early, done, 2)
     with pytest.raises(ValueError, match="whole episodes"):
         group_advantages(r, torch.zeros_like(done), torch.zeros_like(done), 2)
+    # episodes of different lengths in one batch are refused with the step baseline too
+    with pytest.raises(ValueError, match="whole episodes"):
+        group_advantages(r, early, done, 2, baseline="step")
 
 
 def test_grouped_seeds_give_each_group_one_initial_state_per_round():
@@ -132,3 +212,12 @@ racks: [{name: r, nodes: [{name: n, roles: [{role: actor}, {role: rollout}]}]}]
     good = text.replace("chunk_steps: 10, envs_per_rollout: 4, reward: succes", "chunk_steps: 50, envs_per_rollout: 8, reward: success")
     topo = parse_topology(good, "g.yaml")
     assert (topo.task.algorithm, topo.task.group_size, topo.task.reward) == ("grpo", 4, "success")
+    knobs = good.replace("reward: success}", "reward: success, grpo_baseline: critic, grpo_gamma: 0, grpo_std_floor: -1}")
+    with pytest.raises(TopologyError) as err:
+        parse_topology(knobs, "g.yaml")
+    lines = str(err.value).splitlines()
+    for key, what in (("grpo_baseline", "critic"), ("grpo_gamma", "0 is out of range"), ("grpo_std_floor", "-1.0 is out of range")):
+        assert any(f"g.yaml" in line and f"task.{key}" in line and what in line for line in lines), (key, lines)
+    knobs = good.replace("reward: success}", "reward: success, grpo_baseline: episode, grpo_gamma: 0.9, grpo_std_floor: 0.5}")
+    task = parse_topology(knobs, "g.yaml").task
+    assert (task.grpo_baseline, task.grpo_gamma, task.grpo_std_floor) == ("episode", 0.9, 0.5)
