@@ -1,0 +1,112 @@
+"""docs/topology.md, generated from the schema in dvla/config.py and its `#:` field comments.
+
+    python -m dvla.orchestrator.topology_doc > docs/topology.md
+
+A unit test compares the file with :func:`render`, so the page cannot drift from the schema.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import re
+import sys
+import types
+import typing
+from typing import Any
+
+from .. import config
+
+HEADER = """# Topology files
+
+A topology YAML describes one run. `dvla plan FILE` validates it and shows the placement; every
+problem is reported at once as `file:line: key.path: message`, and unknown keys are rejected.
+The schema is `dvla/config.py` (this page is generated from its field comments by
+`python -m dvla.orchestrator.topology_doc`).
+
+```yaml
+run: local
+task: {env: PushCube-v1, budget: {until_success: 0.8}}
+racks:
+  - name: rack0
+    nodes:
+      - name: node0
+        roles: [{role: actor}, {role: replicator}, {role: rollout, count: 2}, {role: evaluator}]
+```
+"""
+
+FOOTER = """Roles: `actor` (exactly one publishes weights: the first), `rollout`, `replicator` (at most one per node; the first of a rack relays for the rack), `evaluator`.
+"""
+
+#: fields of the schema that are not keys of the file (filled in by the loader)
+INTERNAL = {(config.Topology, "source")}
+
+
+def field_comments(cls: type) -> dict[str, str]:
+    """name -> the `#:` comment lines right above the field's declaration, joined."""
+    out: dict[str, str] = {}
+    pending: list[str] = []
+    for line in inspect.getsource(cls).splitlines():
+        stripped = line.strip()
+        if stripped.startswith("#:"):
+            pending.append(stripped[2:].strip())
+            continue
+        m = re.match(r"^([A-Za-z_]\w*)\s*:", stripped)
+        if m and pending:
+            out[m.group(1)] = " ".join(pending)
+        pending = []
+    return out
+
+
+def _nested(hint: Any) -> tuple[type | None, str]:
+    """(dataclass type inside the hint, path suffix): X -> (X, ""), tuple[X, ...] -> (X, "[]"),
+    X | None -> (X, "")."""
+    origin = typing.get_origin(hint)
+    if dataclasses.is_dataclass(hint):
+        return hint, ""
+    if origin is tuple:
+        args = [a for a in typing.get_args(hint) if a is not Ellipsis]
+        if len(args) == 1 and dataclasses.is_dataclass(args[0]):
+            return args[0], "[]"
+    if origin in (typing.Union, types.UnionType):
+        inner = [a for a in typing.get_args(hint) if a is not type(None)]
+        if len(inner) == 1:
+            return _nested(inner[0])
+    return None, ""
+
+
+def _default(f: dataclasses.Field, nested: type | None) -> str:
+    if f.default is not dataclasses.MISSING:
+        return f"`{f.default!r}`"
+    if f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+        if nested is not None:
+            return "`(see below)`"
+        return f"`{f.default_factory()!r}`"  # type: ignore[misc]
+    return "`required`"
+
+
+def _sections(cls: type, path: str) -> list[str]:
+    hints = typing.get_type_hints(cls)
+    comments = field_comments(cls)
+    rows, below = [], []
+    for f in dataclasses.fields(cls):
+        if (cls, f.name) in INTERNAL:
+            continue
+        nested, suffix = _nested(hints[f.name])
+        meaning = comments.get(f.name, "")
+        rows.append(f"| `{f.name}` | {_default(f, nested)} | {meaning} |")
+        if nested is not None:
+            sub = f"{path}.{f.name}{suffix}" if path else f"{f.name}{suffix}"
+            below.extend(_sections(nested, sub))
+    title = path or "top level"
+    table = [f"## `{title}`", "", "| key | default | meaning |", "|---|---|---|", *rows, ""]
+    return table + below
+
+
+def render() -> str:
+    """The whole page."""
+    return HEADER + "\n" + "\n".join(_sections(config.Topology, "")) + "\n" + FOOTER
+
+
+if __name__ == "__main__":
+    sys.stdout.write(render())
