@@ -73,6 +73,14 @@ def measure(cluster: RepCluster, versions: int, timeout_s: float, progress: Call
         cpu_by = {n: round(cpu1[n] - cpu0[n], 2) for n in cpu1 if n in cpu0}
         cpu_s = sum(cpu_by.values())
         pub = _wait_sent(cluster, v, timeout_s)
+        relays = {}
+        for name in cluster.relays:
+            st = cluster.status(name, timeout=1.0)
+            t = (st.extra.get("forward_timing") or {}).get(str(v)) if st is not None else None
+            if t:
+                relays[name] = {"last_in_s": (t["last_in_ns"] - pub["t0_ns"]) / 1e9,
+                                "last_out_s": (t["last_out_ns"] - pub["t0_ns"]) / 1e9,
+                                "max_lag_ms": t["max_lag_ms"]}
         times = {n: (h["held"][str(v)]["held_ns"] - pub["t0_ns"]) / 1e9 for n, h in held.items()}
         bad = sorted(n for n, h in held.items() if h["held"][str(v)]["checksum"] != pub["checksum"])
         if bad:
@@ -88,6 +96,8 @@ def measure(cluster: RepCluster, versions: int, timeout_s: float, progress: Call
             # CPU of every process of the cluster while this version moved (includes status polls)
             "cluster_cpu_s": cpu_s,
             "cpu_s_by_process": cpu_by,
+            # per relay: its last chunk in and out, and the longest any chunk waited in it
+            "relays": relays,
             "per_sink_s": times,
             # where the time went, per sink: when its lane got the last chunk, and how long the
             # assembly's verification and swap took after that

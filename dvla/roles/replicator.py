@@ -51,6 +51,8 @@ class Replicator:
         self._flat: np.ndarray | None = None
         #: checksum of the newest verified weights (status: replicas compared with the actor's)
         self.held_checksum = ""
+        #: version -> forwarding times of its chunks (see _timing)
+        self.timing: dict[int, dict[str, Any]] = {}
 
     def build(self, sl: Swimlane) -> None:
         f, keys = self.fabric, self.fabric.keys
@@ -65,7 +67,7 @@ class Replicator:
 
     def _cut_through(self, msg: Any) -> None:
         if isinstance(msg, (WeightManifest, WeightChunk)):
-            self.outbox.put(msg, self._stop)
+            self.outbox.put((msg, time.time_ns()), self._stop)
 
     def _on_version(self, version: int, flat: np.ndarray) -> None:
         with self._snap_lock:
@@ -82,14 +84,27 @@ class Replicator:
     def _forward(self, ctx: LaneContext) -> None:
         key = self.fabric.keys.weights(self.cfg.name)
         while ctx.running:
-            msg = self.outbox.get(ctx.stop, stats=ctx.stats)
-            if msg is None:
+            item = self.outbox.get(ctx.stop, stats=ctx.stats)
+            if item is None:
                 return
+            msg, received_ns = item
             with ctx.busy():
                 out = _with_sender(msg, self.cfg.name)
                 self.bytes_forwarded += self.fabric.publish_ctrl(key, out, weights=True)
                 self.forwarded += 1
+                self._timing(msg, received_ns, time.time_ns())
             ctx.count()
+
+    def _timing(self, msg: Any, received_ns: int, sent_ns: int) -> None:
+        """Per version: when its last chunk came in and went out, and the longest a chunk
+        waited here (received -> put to the children returned)."""
+        t = self.timing.get(msg.version)
+        if t is None:
+            t = self.timing[msg.version] = {"first_in_ns": received_ns, "max_lag_ms": 0.0}
+            while len(self.timing) > 4:
+                self.timing.pop(min(self.timing))
+        t["last_in_ns"], t["last_out_ns"] = received_ns, sent_ns
+        t["max_lag_ms"] = max(t["max_lag_ms"], (sent_ns - received_ns) / 1e6)
 
     def _serve_snapshot(self, req: Any) -> Any:
         with self._snap_lock:
@@ -112,6 +127,7 @@ class Replicator:
             "forwarded": self.forwarded,
             "bytes_forwarded": self.bytes_forwarded,
             "forward_depth": self.outbox.depth,
+            "forward_timing": {str(v): t for v, t in self.timing.items()},
             "weights": self.weights.status(),
             "held_version": self.policy_version,
             "held_checksum": self.held_checksum,
