@@ -130,7 +130,9 @@ class WeightFollower:
         #: every version loaded: {"version", "manifest_checksum", "policy_checksum", "via"}
         self.loaded: list[dict[str, Any]] = []
         self.rejected = 0
-        self.inbox = fabric.subscribe_ctrl(fabric.keys.weights(actor), 64, (WeightManifest, WeightChunk))
+        # Weight envelopes are signed for keys.weights_signed(), whichever relay carries them.
+        self.inbox = fabric.subscribe_ctrl(fabric.keys.weights(actor), 64, (WeightManifest, WeightChunk),
+                                           sign_key=fabric.keys.weights_signed())
 
     @property
     def version(self) -> int:

@@ -172,7 +172,7 @@ class Sink:
                                   on_message=self._on_message)
         sl.lane("sync", self._sync)
 
-    def _on_message(self, msg: Any) -> None:
+    def _on_message(self, msg: Any, _envelope: bytes) -> None:
         # When the manifest and the first and last chunk of each version reached this lane: the
         # delivery time split into waiting for the data and processing it.
         now = time.time_ns()
@@ -218,19 +218,20 @@ class FaultyRelay(Replicator):
         self.faults = {(v, i): (kind, seconds) for kind, v, i, seconds in faults}
         self.injected = 0
 
-    def _cut_through(self, msg: Any) -> None:
+    def _cut_through(self, msg: Any, envelope: bytes) -> None:
         fault = self.faults.get((msg.version, msg.index)) if isinstance(msg, WeightChunk) else None
         if fault is None:
-            super()._cut_through(msg)
+            super()._cut_through(msg, envelope)
             return
         (kind, seconds), version, index = fault, msg.version, msg.index
         if kind == "corrupt":
             data = bytearray(msg.data)
             data[len(data) // 2] ^= 0xFF
             msg = dataclasses.replace(msg, data=bytes(data))
+            envelope = self.fabric.seal(self.fabric.keys.weights_signed(), msg)  # validly signed, wrong bytes
             self.injected += 1
             log.warning("fault injection: flipped a byte of chunk %d of v%d", index, version)
-        super()._cut_through(msg)
+        super()._cut_through(msg, envelope)
         if kind == "stall":
             self.injected += 1
             log.warning("fault injection: forwarding stalls %.1f s after chunk %d of v%d", seconds, index, version)

@@ -235,22 +235,32 @@ class Fabric:
             return None
         return sender, msg
 
-    def publish_ctrl(self, key: str, msg: Any, *, weights: bool = False) -> int:
-        """Sign and send a control message on `key` (built by `self.keys`)."""
-        payload = self.seal(key, msg)
+    def publish_ctrl(self, key: str, msg: Any, *, weights: bool = False, sign_key: str | None = None) -> int:
+        """Sign and send a control message on `key` (built by `self.keys`); the signature covers
+        `sign_key` when given (weights: ``keys.weights_signed()``), else `key`."""
+        return self.publish_sealed(key, self.seal(sign_key or key, msg), weights=weights)
+
+    def publish_sealed(self, key: str, envelope: bytes, *, weights: bool = False) -> int:
+        """Send an already signed envelope on `key` unchanged (a relay forwarding weights)."""
         kind = "weights" if weights else "ctrl"
         pub = self._publisher(CTRL, key, kind)
-        pub.put(payload)
-        self.accounting.sent(CTRL, len(payload), KeySpace.last(key))
-        return len(payload)
+        pub.put(envelope)
+        self.accounting.sent(CTRL, len(envelope), KeySpace.last(key))
+        return len(envelope)
 
     def subscribe_ctrl(
-        self, key: str, maxsize: int, expect: type | tuple[type, ...] | None, block_s: float = 1.0
+        self, key: str, maxsize: int, expect: type | tuple[type, ...] | None, block_s: float = 1.0, *,
+        sign_key: str | None = None, with_envelope: bool = False,
     ) -> Inbox:
-        """Bounded inbox of verified (sender, message) pairs from `key`."""
+        """Bounded inbox of verified (sender, message) pairs from `key`, checked against
+        `sign_key` when given (else `key`); with `with_envelope`, (sender, message, envelope
+        bytes) so the reader can forward the envelope unchanged."""
 
-        def _decode(k: str, raw: bytes) -> tuple[str, Any] | None:
-            return self.open_signed(k, raw, expect)
+        def _decode(k: str, raw: bytes) -> tuple[Any, ...] | None:
+            got = self.open_signed(sign_key or k, raw, expect)
+            if got is not None and with_envelope:
+                return (*got, raw)
+            return got
 
         inbox = Inbox(maxsize, _decode, self.accounting, CTRL, block_s)
         # Zenoh's default hand-off thread here (unlike the data plane): a full weights inbox

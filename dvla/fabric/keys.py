@@ -49,6 +49,12 @@ class KeySpace:
         """Weight manifests and chunks sent by `sender` to its children."""
         return f"{self.root}/ctrl/weights/{check_name('sender', sender)}"
 
+    def weights_signed(self) -> str:
+        """The key expression every weight manifest and chunk is *signed* for, whichever
+        `weights(sender)` key carries it: replicators forward the actor's envelopes unchanged.
+        Nothing is published on it."""
+        return f"{self.root}/ctrl/weights"
+
     def snapshot(self, sender: str) -> str:
         """Queryable serving `sender`'s latest full weights (catch-up)."""
         return f"{self.root}/ctrl/snapshot/{check_name('sender', sender)}"

@@ -4,7 +4,8 @@ Lanes (and what flows between them):
 - ``recv``:    weight messages from the parent (signature checked by the fabric); each one is
                queued for forwarding at once (cut-through, chunk by chunk), then assembled and
                verified (layout, base version, checksum) into the local dual pool.
-- ``forward``: re-signs each message under this replicator's key and sends it to the children.
+- ``forward``: sends each message's signed envelope, unchanged, to the children (the actor
+               signed it for every hop: ``keys.weights_signed()``).
 - ``serve``:   answers snapshot queries from the verified active pool (catch-up, repair), and
                keeps the last verified version's snapshot ready.
 """
@@ -56,7 +57,7 @@ class Replicator:
 
     def build(self, sl: Swimlane) -> None:
         f, keys = self.fabric, self.fabric.keys
-        self.outbox = sl.queue("forward", 256)  # recv -> forward: messages to re-sign and send
+        self.outbox = sl.queue("forward", 256)  # recv -> forward: envelopes to send on
         self.weights = WeightSync(  # parent -> recv (ancestors as fallback)
             f, self.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version, on_message=self._cut_through
         )
@@ -65,9 +66,11 @@ class Replicator:
         sl.lane("recv", self._recv)
         sl.lane("forward", self._forward)
 
-    def _cut_through(self, msg: Any) -> None:
+    def _cut_through(self, msg: Any, envelope: bytes) -> None:
+        # Forwarded as received: the actor signed it for every hop (keys.weights_signed()), so
+        # the relay neither re-encodes nor re-signs, and its children verify the actor's tag.
         if isinstance(msg, (WeightManifest, WeightChunk)):
-            self.outbox.put((msg, time.time_ns()), self._stop)
+            self.outbox.put((msg.version, envelope, time.time_ns()), self._stop)
 
     def _on_version(self, version: int, flat: np.ndarray) -> None:
         with self._snap_lock:
@@ -87,20 +90,19 @@ class Replicator:
             item = self.outbox.get(ctx.stop, stats=ctx.stats)
             if item is None:
                 return
-            msg, received_ns = item
+            version, envelope, received_ns = item
             with ctx.busy():
-                out = _with_sender(msg, self.cfg.name)
-                self.bytes_forwarded += self.fabric.publish_ctrl(key, out, weights=True)
+                self.bytes_forwarded += self.fabric.publish_sealed(key, envelope, weights=True)
                 self.forwarded += 1
-                self._timing(msg, received_ns, time.time_ns())
+                self._timing(version, received_ns, time.time_ns())
             ctx.count()
 
-    def _timing(self, msg: Any, received_ns: int, sent_ns: int) -> None:
+    def _timing(self, version: int, received_ns: int, sent_ns: int) -> None:
         """Per version: when its last chunk came in and went out, and the longest a chunk
         waited here (received -> put to the children returned)."""
-        t = self.timing.get(msg.version)
+        t = self.timing.get(version)
         if t is None:
-            t = self.timing[msg.version] = {"first_in_ns": received_ns, "max_lag_ms": 0.0}
+            t = self.timing[version] = {"first_in_ns": received_ns, "max_lag_ms": 0.0}
             while len(self.timing) > 4:
                 self.timing.pop(min(self.timing))
         t["last_in_ns"], t["last_out_ns"] = received_ns, sent_ns
@@ -135,12 +137,6 @@ class Replicator:
 
     def close(self) -> None:
         pass
-
-
-def _with_sender(msg: Any, sender: str) -> Any:
-    import dataclasses
-
-    return dataclasses.replace(msg, sender=sender)
 
 
 if __name__ == "__main__":

@@ -38,7 +38,11 @@ log = logging.getLogger("dvla.weights")
 
 
 class WeightSync:
-    """Follows one parent (with fallbacks) and yields verified weight versions."""
+    """Follows one parent (with fallbacks) and yields verified weight versions.
+
+    `on_message(msg, envelope)` sees every verified manifest and chunk with the signed envelope
+    it came in, before it is assembled (a relay forwards that envelope to its children as is).
+    """
 
     def __init__(
         self,
@@ -47,7 +51,7 @@ class WeightSync:
         parents: tuple[str, ...],
         on_version: Callable[[int, np.ndarray], None],
         *,
-        on_message: Callable[[Any], None] | None = None,
+        on_message: Callable[[Any, bytes], None] | None = None,
         inbox_size: int = 64,
     ) -> None:
         if not parents:
@@ -77,7 +81,10 @@ class WeightSync:
         for p in parents:
             # One inbox per possible parent, declared up front: switching parent never
             # redeclares anything from a Zenoh callback.
-            self._inboxes[p] = fabric.subscribe_ctrl(fabric.keys.weights(p), inbox_size, (WeightManifest, WeightChunk))
+            self._inboxes[p] = fabric.subscribe_ctrl(
+                fabric.keys.weights(p), inbox_size, (WeightManifest, WeightChunk),
+                sign_key=fabric.keys.weights_signed(), with_envelope=True,
+            )
         fabric.watch_alive(self._on_alive)
         self._select()
 
@@ -128,10 +135,10 @@ class WeightSync:
                 other.drain_count()
         if got is None:
             return
-        _sender, msg = got
+        _sender, msg, envelope = got
         with ctx.busy():
             if self.on_message is not None:
-                self.on_message(msg)
+                self.on_message(msg, envelope)
             self._handle(msg)
             ctx.count()
 
@@ -261,10 +268,11 @@ def send_version(fabric: Fabric, key: str, sender: str, enc: EncodedVersion) -> 
     Returns the bytes put on the wire. Used by the actor's ``publish`` lane (and by anything else
     that originates versions, such as the replication benchmark's source).
     """
-    sent = fabric.publish_ctrl(key, WeightManifest(sender=sender, **enc.to_dict()), weights=True)
+    signed = fabric.keys.weights_signed()  # not `key`: relays forward these envelopes unchanged
+    sent = fabric.publish_ctrl(key, WeightManifest(sender=sender, **enc.to_dict()), weights=True, sign_key=signed)
     for i, data in enumerate(enc.chunks):
         msg = WeightChunk(sender=sender, version=enc.version, index=i, n_chunks=enc.n_chunks, data=bytes(data))
-        sent += fabric.publish_ctrl(key, msg, weights=True)
+        sent += fabric.publish_ctrl(key, msg, weights=True, sign_key=signed)
     return sent
 
 
