@@ -274,9 +274,9 @@ DOES = {
             "congestion control, no encoding; subscriber: callback on Zenoh's receive thread copies the payload out as Python bytes "
             "(ZBytes.to_bytes) and counts it"),
     "fabric": ("publisher: Fabric.publish_traj (validate and encode the TrajectoryChunk into the publisher's reused "
-               "buffer, BLOCK put, accounting); subscriber: Fabric.subscribe_traj's bounded Zenoh FIFO channel, from "
-               "which a consumer thread takes every chunk with inbox.get() (copies the payload out as Python bytes, "
-               "accounts, decodes and validates it zero-copy into a TrajectoryChunk)"),
+               "buffer, BLOCK put, accounting); subscriber: Fabric.subscribe_traj callback on Zenoh's receive thread "
+               "copies the payload out as Python bytes, accounts, decodes and validates it zero-copy into a "
+               "TrajectoryChunk and hands it to the bounded inbox; a consumer thread takes every chunk from the inbox"),
 }
 
 
