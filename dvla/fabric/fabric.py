@@ -6,10 +6,9 @@
   with the cluster secret and sent at a higher priority. It is a different session on a
   different link, so a flooded data plane cannot delay it.
 
-Nothing blocks Zenoh for long. Control messages go through a Python callback into a bounded
-:class:`Inbox` whose reading lane verifies and decodes them; trajectories go through a bounded
-Zenoh FIFO channel that the consuming lane reads, copies and decodes itself (zero-copy arrays),
-so no Python runs on Zenoh's threads for them (:class:`ChannelInbox`). Everything is counted.
+Zenoh callbacks never block for long: they hand messages to a bounded :class:`Inbox`. The
+trajectory inbox decodes (zero-copy) on Zenoh's receive thread, so its lane gets ready chunks;
+ctrl inboxes queue raw bytes that the reading lane verifies and decodes. Everything is counted.
 Usable without any dvla configuration: pass two plain `zenoh.Config` objects (docs/embedding.md).
 """
 
@@ -25,7 +24,6 @@ from typing import Any, Callable
 import zenoh
 
 from .accounting import Accounting
-from .channel_inbox import ChannelInbox
 from .codec import CodecError, decode, encode, encode_into
 from .keys import KeySpace
 from .signing import SignatureError, Signer, Verifier
@@ -58,6 +56,7 @@ class Inbox:
         accounting: Accounting,
         plane: str,
         block_s: float = 1.0,
+        decode_on_receive: bool = False,
     ) -> None:
         # Two C-implemented SimpleQueues instead of one queue.Queue: `_items` holds messages,
         # `_room` one token per free slot. Taking a token is the bounded wait for space, and
@@ -71,6 +70,7 @@ class Inbox:
         self._acct = accounting
         self._plane = plane
         self._block_s = block_s
+        self._decode_on_receive = decode_on_receive
         self.maxsize = maxsize
         self.high_watermark = 0
 
@@ -79,7 +79,14 @@ class Inbox:
         raw = sample.payload.to_bytes()
         peer = KeySpace.last(key)
         self._acct.received(self._plane, len(raw), peer)
-        item = (key, raw)
+        if self._decode_on_receive:
+            # Zero-copy decode right here: the queue then holds ready messages, and the
+            # consumer never competes with this thread for the GIL over the same bytes.
+            item = self._decoder(key, raw)
+            if item is None:
+                return  # rejected and counted by the decoder
+        else:
+            item = (key, raw)
         try:
             self._room.get(timeout=self._block_s)
         except queue.Empty:
@@ -107,6 +114,8 @@ class Inbox:
             except queue.Empty:
                 return None
             self._room.put(None)
+            if self._decode_on_receive:
+                return item
             msg = self._decoder(*item)
             if msg is not None:
                 return msg
@@ -161,7 +170,6 @@ class Fabric:
         self._pub_lock = threading.Lock()
         self._traj_buf = bytearray()
         self._traj_lock = threading.Lock()
-        self._channel_inboxes: list[ChannelInbox] = []
         self.ctrl = _open_retrying(ctrl_conf, open_timeout_s, "ctrl")
         try:
             self.data = _open_retrying(data_conf, open_timeout_s, "data") if data_conf is not None else None
@@ -182,9 +190,8 @@ class Fabric:
         self.accounting.sent(DATA, n, self.name)
         return n
 
-    def subscribe_traj(self, maxsize: int, expect: type, block_s: float = 1.0, rollout: str = "*") -> ChannelInbox:
-        """Bounded inbox of decoded TrajectoryChunks from every (or one) rollout: a Zenoh FIFO
-        channel read by the consuming lane, no Python on Zenoh's threads (see ChannelInbox)."""
+    def subscribe_traj(self, maxsize: int, expect: type, block_s: float = 1.0, rollout: str = "*") -> Inbox:
+        """Bounded inbox of decoded TrajectoryChunks from every (or one) rollout."""
         if self.data is None:
             raise RuntimeError(f"{self.name}: this fabric was opened without a data plane")
 
@@ -203,8 +210,8 @@ class Fabric:
             return msg
 
         key = self.keys.traj(rollout) if rollout != "*" else self.keys.traj_all()
-        inbox = ChannelInbox(self.data, key, maxsize, _decode, self.accounting, DATA, block_s, name=f"{self.name}-traj")
-        self._channel_inboxes.append(inbox)
+        inbox = Inbox(maxsize, _decode, self.accounting, DATA, block_s, decode_on_receive=True)
+        self._declared.append(self.data.declare_subscriber(key, _on_receive_thread(inbox._on_sample)))
         return inbox
 
     # ------------------------------------------------------------------ ctrl plane
@@ -372,8 +379,6 @@ class Fabric:
         if self._closed:
             return
         self._closed = True
-        for inbox in self._channel_inboxes:
-            inbox.close()
         for entity in reversed(self._declared):
             try:
                 entity.undeclare()
@@ -396,6 +401,22 @@ class Fabric:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _on_receive_thread(callback: Callable[[zenoh.Sample], None]) -> Any:
+    """`callback` as a handler that runs on Zenoh's receive thread itself.
+
+    By default zenoh-python hands each sample to a per-subscriber Python thread through a
+    queue, so an `Inbox` waiting for space stalls only that thread while Zenoh keeps reading
+    the link and buffering samples (hundreds of MB for a stalled consumer). Run directly, the
+    wait holds the link's receive task instead, and Zenoh's BLOCK congestion control slows
+    the sender down. `indirect` is an unstable zenoh-python option: fall back to the default
+    when it is missing.
+    """
+    try:
+        return zenoh.handlers.Callback(callback, indirect=False)
+    except TypeError:
+        return callback
 
 
 def _open_retrying(conf: zenoh.Config, timeout_s: float, plane: str) -> zenoh.Session:
