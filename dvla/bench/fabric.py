@@ -7,8 +7,10 @@ its own process (multiprocessing, spawn) so that the cores are used as in a real
   payload of exactly the same size; what each side does per message is spelled out in
   :data:`DOES` and copied into the JSON. Same message count, same endpoints, same callback mode
   (Zenoh's receive thread); bytes/s from the publisher's first put to the subscriber's last
-  message. Raw and fabric rounds alternate, and the ratio fabric ÷ raw is the median of the
-  per-round ratios, for chunks of about 64 KiB and 1 MiB.
+  message. The fabric side is measured twice: through `Fabric.on_traj` (the handler runs on the
+  receive thread, as raw's callback does) and through `Fabric.subscribe_traj`'s inbox with a
+  consumer thread (``_inbox`` figures). The kinds' rounds rotate, and each ratio fabric ÷ raw is
+  the median of the per-round ratios, for chunks of about 64 KiB and 1 MiB.
 * **Ctrl latency.** RTT of a signed status request/reply (`Fabric.query` -> `Fabric.serve`)
   from a tool process, through the sink's ctrl router, to a source process: idle; while the
   source floods its data session with 1 MiB chunks to the sink (the real layout of a rollout
@@ -36,6 +38,7 @@ import shutil
 import socket
 import statistics
 import subprocess
+import threading
 import time
 from dataclasses import asdict, dataclass
 from typing import Any, Callable
@@ -206,21 +209,36 @@ def _throughput_sub(kind: str, port: int, n: int, rounds: int, secret: bytes, re
         return
     fabric = _open_fabric(SINK, secret, ctrl=plane_config(), data=conf)
     try:
-        inbox = fabric.subscribe_traj(maxsize=64, expect=TrajectoryChunk)
+        got = [0]
+        ends_f: queue.Queue[float] = queue.Queue()
+        if kind == "fabric":
+            def on_chunk(_chunk: Any) -> None:
+                got[0] += 1
+                if got[0] % n == 0:
+                    ends_f.put(time.monotonic())
+
+            fabric.on_traj(TrajectoryChunk, on_chunk)
+        else:  # "inbox": a consumer thread takes every chunk from the bounded inbox
+            inbox = fabric.subscribe_traj(maxsize=64, expect=TrajectoryChunk)
+
+            def consume() -> None:
+                while got[0] < rounds * n:
+                    if inbox.get(timeout=0.5) is not None:
+                        got[0] += 1
+                        if got[0] % n == 0:
+                            ends_f.put(time.monotonic())
+
+            threading.Thread(target=consume, name="consumer", daemon=True).start()
         probe = _probe_subscriber(fabric.data, routed)
         out.put(("sub_ready", 0, 0.0, _cpu_s()))
         ready.set()
-        got = 0
-        for r in range(rounds):
-            deadline = time.monotonic() + _between_rounds_s(timeout_s)
-            while got < (r + 1) * n and time.monotonic() < deadline:
-                if inbox.get(timeout=0.5) is not None:
-                    got += 1
-            if got < (r + 1) * n:
-                out.put(("error", f"fabric subscriber got {got} of {rounds * n} messages: {fabric.accounting.snapshot()}"))
-                return
-            out.put(("sub", r, time.monotonic(), _cpu_s()))
-        probe.undeclare()
+        try:
+            for r in range(rounds):
+                out.put(("sub", r, ends_f.get(timeout=_between_rounds_s(timeout_s)), _cpu_s()))
+        except queue.Empty:
+            out.put(("error", f"{kind} subscriber got {got[0]} of {rounds * n} messages: {fabric.accounting.snapshot()}"))
+        finally:
+            probe.undeclare()
     finally:
         fabric.close()
 
@@ -274,9 +292,12 @@ DOES = {
             "congestion control, no encoding; subscriber: callback on Zenoh's receive thread copies the payload out as Python bytes "
             "(ZBytes.to_bytes) and counts it"),
     "fabric": ("publisher: Fabric.publish_traj (validate and encode the TrajectoryChunk into the publisher's reused "
-               "buffer, BLOCK put, accounting); subscriber: Fabric.subscribe_traj callback on Zenoh's receive thread "
-               "copies the payload out as Python bytes, accounts, decodes and validates it zero-copy into a "
-               "TrajectoryChunk and hands it to the bounded inbox; a consumer thread takes every chunk from the inbox"),
+               "buffer, BLOCK put, accounting); subscriber: Fabric.on_traj, on Zenoh's receive thread: copies the "
+               "payload out as Python bytes, accounts, decodes and validates it zero-copy into a TrajectoryChunk and "
+               "calls the handler, which counts it"),
+    "inbox": ("publisher: as for fabric; subscriber: Fabric.subscribe_traj, on Zenoh's receive thread: copies, "
+              "accounts, decodes and validates as for fabric, then hands the chunk to the bounded inbox; a consumer "
+              "thread takes every chunk from the inbox (one thread wake-up per chunk)"),
 }
 
 
@@ -317,17 +338,20 @@ class _Pair:
         _stop([self.sub, self.pub])
 
 
+KINDS = ("raw", "fabric", "inbox")
+
+
 def _measure_throughput(ctx: Any, n: int, size: int, cfg: BenchConfig, secret: bytes, pids: list[int]) -> dict[str, Any]:
-    """Raw and fabric rounds alternate (raw first, then fabric first, ...) so that a change of
-    background load hits both alike; the ratio is the median of the per-round ratios."""
-    pairs = {kind: _Pair(ctx, kind, n, size, cfg, secret) for kind in ("raw", "fabric")}
+    """Raw and fabric rounds alternate (the order rotates each round) so that a change of
+    background load hits every kind alike; each ratio is the median of the per-round ratios."""
+    pairs = {kind: _Pair(ctx, kind, n, size, cfg, secret) for kind in KINDS}
     try:
         for pair in pairs.values():
             pair.start(pids)
-        rates: dict[str, list[float]] = {"raw": [], "fabric": []}
-        cpu: dict[str, list[tuple[float, float]]] = {"raw": [], "fabric": []}
+        rates: dict[str, list[float]] = {k: [] for k in KINDS}
+        cpu: dict[str, list[tuple[float, float]]] = {k: [] for k in KINDS}
         for r in range(cfg.rounds):
-            for kind in (("raw", "fabric") if r % 2 == 0 else ("fabric", "raw")):
+            for kind in KINDS[r % 3:] + KINDS[:r % 3]:
                 rate, pub_us, sub_us = pairs[kind].round(r)
                 rates[kind].append(rate)
                 cpu[kind].append((pub_us, sub_us))
@@ -340,10 +364,11 @@ def _measure_throughput(ctx: Any, n: int, size: int, cfg: BenchConfig, secret: b
         out[kind] = {"bytes_per_s": bps, "msgs_per_s": bps / size, "rounds_bytes_per_s": values, "does": DOES[kind],
                      "pub_cpu_us_per_msg": statistics.median(c[0] for c in cpu[kind]),
                      "sub_cpu_us_per_msg": statistics.median(c[1] for c in cpu[kind])}
-    out["ratio"] = statistics.median(f / r for f, r in zip(rates["fabric"], rates["raw"]))
-    # CPU per message (publisher + subscriber), raw ÷ fabric: less sensitive than bytes/s to other
-    # load on the machine, it says how much more work a chunk costs through the fabric.
-    out["cpu_ratio"] = statistics.median(sum(r) / sum(f) for f, r in zip(cpu["fabric"], cpu["raw"]))
+    for kind, suffix in (("fabric", ""), ("inbox", "_inbox")):
+        out["ratio" + suffix] = statistics.median(f / r for f, r in zip(rates[kind], rates["raw"]))
+        # CPU per message (publisher + subscriber), raw ÷ fabric: less sensitive than bytes/s to
+        # other load on the machine, it says how much more work a chunk costs through the fabric.
+        out["cpu_ratio" + suffix] = statistics.median(sum(r) / sum(f) for f, r in zip(cpu[kind], cpu["raw"]))
     return out
 
 
@@ -705,6 +730,7 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
         throughput[label] = entry
         doc[f"throughput_ratio_{label}"] = entry["ratio"]
         doc[f"cpu_ratio_{label}"] = entry["cpu_ratio"]
+        doc[f"throughput_ratio_{label}_inbox"] = entry["ratio_inbox"]
     layouts = [LOOPBACK]
     why_not = links_available() if links else "not asked for (--no-links)"
     doc["links_layout"] = "used" if why_not is None else f"skipped: {why_not}"
@@ -738,22 +764,25 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
 
 
 HEADLINE_KEYS = (
-    "throughput_ratio_64k", "throughput_ratio_1m", "ctrl_rtt_p99_idle_ms", "ctrl_rtt_p99_loaded_ms",
+    "throughput_ratio_64k", "throughput_ratio_1m", "throughput_ratio_64k_inbox", "throughput_ratio_1m_inbox",
+    "ctrl_rtt_p99_idle_ms", "ctrl_rtt_p99_loaded_ms",
     "ctrl_rtt_p99_loaded_shared_ms", "loaded_over_idle", "shared_over_separate",
 )
 
 
 def format_table(doc: dict[str, Any]) -> str:
     """A short human summary of `run_bench`'s document."""
-    lines = [f"{'throughput':<12}{'payload':>10}{'raw MB/s':>11}{'fabric MB/s':>13}{'msgs/s':>9}{'ratio':>8}"
-             f"{'CPU us/msg pub+sub, raw':>26}{'fabric':>16}{'CPU ratio':>11}"]
+    lines = [f"{'throughput':<12}{'payload':>10}{'raw MB/s':>11}{'fabric MB/s':>13}{'ratio':>7}{'inbox MB/s':>12}"
+             f"{'ratio':>7}{'CPU us/msg pub+sub: raw':>26}{'fabric':>10}{'inbox':>10}"]
     for label, e in doc["throughput"].items():
-        cpu = {k: f"{e[k]['pub_cpu_us_per_msg']:.0f}+{e[k]['sub_cpu_us_per_msg']:.0f}" for k in ("raw", "fabric")}
+        cpu = {k: f"{e[k]['pub_cpu_us_per_msg']:.0f}+{e[k]['sub_cpu_us_per_msg']:.0f}" for k in KINDS}
         lines.append(
             f"{label:<12}{e['payload_bytes']:>10}{e['raw']['bytes_per_s'] / 1e6:>11.0f}"
-            f"{e['fabric']['bytes_per_s'] / 1e6:>13.0f}{e['fabric']['msgs_per_s']:>9.0f}{e['ratio']:>8.2f}"
-            f"{cpu['raw']:>26}{cpu['fabric']:>16}{e['cpu_ratio']:>11.2f}"
+            f"{e['fabric']['bytes_per_s'] / 1e6:>13.0f}{e['ratio']:>7.2f}{e['inbox']['bytes_per_s'] / 1e6:>12.0f}"
+            f"{e['ratio_inbox']:>7.2f}{cpu['raw']:>26}{cpu['fabric']:>10}{cpu['inbox']:>10}"
         )
+    lines.append("fabric: Fabric.on_traj (decoded chunks to a function on the receive thread, as raw's callback); "
+                 "inbox: Fabric.subscribe_traj and a consumer thread")
     names = {"idle": "idle", "loaded": "flooded, own ctrl session", "loaded_shared": "flooded, shared session"}
     for layout, entry in doc["ctrl_rtt_layouts"].items():
         lines.append("")

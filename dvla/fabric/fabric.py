@@ -8,7 +8,9 @@
 
 Zenoh callbacks never block for long: they hand messages to a bounded :class:`Inbox`. The
 trajectory inbox decodes (zero-copy) on Zenoh's receive thread, so its lane gets ready chunks;
-ctrl inboxes queue raw bytes that the reading lane verifies and decodes. Everything is counted.
+ctrl inboxes queue raw bytes that the reading lane verifies and decodes. A consumer that needs
+no thread of its own takes trajectories with `Fabric.on_traj` instead: decoded chunks handed to
+its function on the receive thread, with no queue in between. Everything is counted.
 Usable without any dvla configuration: pass two plain `zenoh.Config` objects (docs/embedding.md).
 """
 
@@ -191,9 +193,49 @@ class Fabric:
         return n
 
     def subscribe_traj(self, maxsize: int, expect: type, block_s: float = 1.0, rollout: str = "*") -> Inbox:
-        """Bounded inbox of decoded TrajectoryChunks from every (or one) rollout."""
+        """Bounded inbox of decoded TrajectoryChunks from every (or one) rollout, for a lane
+        that takes them with ``inbox.get(timeout)``."""
+        inbox = Inbox(maxsize, self._traj_decoder(expect), self.accounting, DATA, block_s, decode_on_receive=True)
+        self._subscribe_data(rollout, inbox._on_sample)
+        return inbox
+
+    def on_traj(self, expect: type, handler: Callable[[Any], None], rollout: str = "*") -> None:
+        """Call `handler(chunk)` for each valid TrajectoryChunk, on Zenoh's receive thread.
+
+        No queue and no thread hand-off, which per chunk costs more CPU than the decode
+        (a consumer thread woken for every 64 KiB chunk adds ~80 µs on a 2-core VM). While
+        `handler` runs, that link's receive task waits, so a handler that blocks applies
+        backpressure to the senders (BLOCK congestion control); keep its waits well under
+        Zenoh's 5 s BLOCK limit (docs/embedding.md). An exception in `handler` is logged and
+        the chunk counted as ``dropped.handler_error``; the subscription carries on.
+        """
+        decoder = self._traj_decoder(expect)
+        acct = self.accounting
+
+        def _cb(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            raw = sample.payload.to_bytes()
+            peer = KeySpace.last(key)
+            acct.received(DATA, len(raw), peer)
+            chunk = decoder(key, raw)
+            if chunk is None:
+                return  # rejected and counted by the decoder
+            try:
+                handler(chunk)
+            except Exception:  # a handler bug must not kill Zenoh's receive task
+                acct.dropped(DATA, "handler_error", peer)
+                log.exception("trajectory handler failed on a chunk from %s", peer)
+
+        self._subscribe_data(rollout, _cb)
+
+    def _subscribe_data(self, rollout: str, callback: Callable[[zenoh.Sample], None]) -> None:
         if self.data is None:
             raise RuntimeError(f"{self.name}: this fabric was opened without a data plane")
+        key = self.keys.traj(rollout) if rollout != "*" else self.keys.traj_all()
+        self._declared.append(self.data.declare_subscriber(key, _on_receive_thread(callback)))
+
+    def _traj_decoder(self, expect: type) -> Callable[[str, bytes], Any | None]:
+        """Decode and check one data-plane payload; None (rejected and counted) when it fails."""
 
         def _decode(key: str, raw: bytes) -> Any | None:
             peer = KeySpace.last(key)
@@ -209,10 +251,7 @@ class Fabric:
                 return None
             return msg
 
-        key = self.keys.traj(rollout) if rollout != "*" else self.keys.traj_all()
-        inbox = Inbox(maxsize, _decode, self.accounting, DATA, block_s, decode_on_receive=True)
-        self._declared.append(self.data.declare_subscriber(key, _on_receive_thread(inbox._on_sample)))
-        return inbox
+        return _decode
 
     # ------------------------------------------------------------------ ctrl plane
     def seal(self, key: str, msg: Any) -> bytes:

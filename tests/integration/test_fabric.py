@@ -330,6 +330,41 @@ def test_garbage_and_oversized_data_payloads_are_rejected_and_counted(pair: Pair
     assert acct.get(DATA, "received") == 1 + acct.get(DATA, "rejected") + acct.get(DATA, "dropped") + inbox.depth()
 
 
+@pytest.mark.timeout(30)
+def test_on_traj_hands_decoded_chunks_to_a_function_and_survives_its_errors(pair: Pair) -> None:
+    """`Fabric.on_traj`: chunks reach the handler on Zenoh's receive thread, in order and
+    bit-identical; bad payloads never reach it; a handler that raises is counted and the
+    subscription goes on; the accounting identity holds with no queue in between."""
+    actor, rollout = pair.actor, pair.rollout
+    got: list[TrajectoryChunk] = []
+    threads: set[str] = set()
+
+    def handler(chunk: TrajectoryChunk) -> None:
+        threads.add(threading.current_thread().name)
+        if chunk.seq % 10 == 3:
+            raise RuntimeError(f"handler bug on chunk {chunk.seq}")
+        got.append(chunk)
+
+    actor.on_traj(TrajectoryChunk, handler)
+    wait_route(actor.data, rollout.data)
+    sent = [make_chunk(rollout.name, i) if i % 4 else big_chunk(rollout.name, i, 200_000) for i in range(40)]
+    for c in sent:
+        rollout.publish_traj(c)
+    rollout.data.put(rollout.keys.traj(rollout.name), b"\x00garbage")
+    rollout.data.put(rollout.keys.traj(rollout.name), encode(make_chunk("rollout-9", 99)))  # forged sender
+    assert wait_for(lambda: actor.accounting.get(DATA, "received") == len(sent) + 2, 10)
+
+    raised = [c.seq for c in sent if c.seq % 10 == 3]
+    assert [c.seq for c in got] == [c.seq for c in sent if c.seq % 10 != 3]
+    for g in got:
+        assert_same_chunk(g, sent[g.seq])
+    assert threading.main_thread().name not in threads  # run on Zenoh's thread, not a lane of ours
+    acct = actor.accounting
+    assert acct.get(DATA, "dropped.handler_error") == acct.get(DATA, "dropped") == len(raised)
+    assert acct.get(DATA, "rejected") == 2
+    assert acct.get(DATA, "received") == len(got) + acct.get(DATA, "dropped") + acct.get(DATA, "rejected")
+
+
 # --------------------------------------------------------------------------------------------
 # control plane
 
