@@ -37,7 +37,7 @@ from dvla.replication.encoding import (
     split_encoding,
     topk_count,
 )
-from dvla.replication.layout import LayoutMismatch, ParamLayout, ReplicationError, flatten, unflatten_into
+from dvla.replication.layout import LayoutMismatch, ParamLayout, ReplicationError, bind_flat, flatten, unflatten_into
 
 __all__ = [
     "MANIFEST_FIELDS",
@@ -64,4 +64,5 @@ __all__ = [
     "split_encoding",
     "topk_count",
     "unflatten_into",
+    "bind_flat",
 ]

@@ -196,3 +196,48 @@ def unflatten_into(flat: np.ndarray, model_or_state_dict: StateDictLike, layout:
             tensor = _tensor_for(tensors, layout, i)
             start, stop = layout.span(i)
             tensor.copy_(src[start:stop].view(layout.shapes[i]))
+
+
+def bind_flat(module: torch.nn.Module, layout: ParamLayout) -> torch.Tensor | None:
+    """Make the layout's tensors of ``module`` views into one flat float32 tensor; return it.
+
+    Afterwards copying a whole version into the module is one ``flat.copy_(src)`` (a single
+    memcpy, one GIL release) instead of one copy per tensor, and :func:`unflatten_into` and
+    ``state_dict`` still work through the views. The current values are kept. Returns None, and
+    changes nothing, when the tensors are not all float32 on one device (a bf16 model keeps the
+    per-tensor path) or a layout name is not a parameter or buffer of ``module``.
+    """
+    owners: list[tuple[torch.nn.Module, str, bool]] = []
+    devices = set()
+    for name, dtype in zip(layout.names, layout.dtypes):
+        path, _, attr = name.rpartition(".")
+        try:
+            owner = module.get_submodule(path) if path else module
+        except AttributeError:
+            return None
+        if attr in owner._parameters and owner._parameters[attr] is not None:
+            tensor, is_param = owner._parameters[attr], True
+        elif attr in owner._buffers and owner._buffers[attr] is not None:
+            tensor, is_param = owner._buffers[attr], False
+        else:
+            return None
+        if dtype != "float32" or tensor.dtype != torch.float32:
+            return None
+        devices.add(tensor.device)
+        owners.append((owner, attr, is_param))
+    if len(devices) > 1:
+        return None
+    device = devices.pop() if devices else torch.device("cpu")
+    flat = torch.empty(layout.numel, dtype=torch.float32, device=device)
+    with torch.no_grad():
+        for i, (owner, attr, is_param) in enumerate(owners):
+            start, stop = layout.span(i)
+            view = flat[start:stop].view(layout.shapes[i])
+            if is_param:
+                param = owner._parameters[attr]
+                view.copy_(param)
+                param.data = view  # the same Parameter object, now stored in `flat`
+            else:
+                view.copy_(owner._buffers[attr])
+                owner._buffers[attr] = view
+    return flat

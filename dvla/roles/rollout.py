@@ -32,7 +32,7 @@ from ..learn import EnvGroup, make_policy
 from ..learn.policies import sample_actions
 from ..learn.envs import obs_as_dict, obs_to_torch
 from ..learn.grpo import grpo_envs
-from ..replication import ParamLayout, unflatten_into
+from ..replication import ParamLayout, bind_flat, unflatten_into
 from .counters import INCARNATION_SHIFT, CounterFile
 from .runtime import main
 from .swimlane import LaneContext, LatencyHistogram, Swimlane
@@ -72,6 +72,10 @@ class PolicyPool:
         self.staging = make()
         self.active_version = -1
         self.layout = ParamLayout.from_state_dict(self.active.state_dict())
+        # Each module's weights as views of one flat tensor where the policy allows (all
+        # float32): a staging write is then one copy, a short window with one GIL release,
+        # instead of one copy per tensor. Keyed by module, since the two swap roles.
+        self._flat: dict[int, torch.Tensor | None] = {id(m): bind_flat(m, self.layout) for m in (self.active, self.staging)}
         self._pending: int | None = None
         self._lock = threading.Lock()
         self.swaps = 0
@@ -86,9 +90,17 @@ class PolicyPool:
             self.stage_seq += 1
             if self._pending is not None:
                 self.overwritten += 1
-            unflatten_into(flat, self.staging, self.layout)
+            self._write_staging(flat)
             self._pending = version
             self.stage_seq += 1
+
+    def _write_staging(self, flat: np.ndarray) -> None:
+        target = self._flat[id(self.staging)]
+        if target is not None and flat.dtype == np.float32 and flat.shape == (self.layout.numel,):
+            with torch.no_grad():
+                target.copy_(torch.from_numpy(flat))
+        else:
+            unflatten_into(flat, self.staging, self.layout)  # checks the vector, copies per tensor
 
     def maybe_swap(self) -> bool:
         """Called between batches (by infer; in sync mode also by sim while it waits).
@@ -150,9 +162,13 @@ class Rollout:
         self.episodes = 0
         self.successes = 0
         self.infer_ms: list[float] = []
-        # Inference batch latency, split by whether weights were staged or swapped during the
-        # batch or the one before it (the dual pool promises that a swap costs inference nothing).
-        self.infer_latency = LatencyHistogram(("swap", "no_swap"))
+        # Inference batch latency (the dual pool promises that a swap costs inference nothing),
+        # split two ways. "swap": the batch *started* while a staging write was under way, or is
+        # the first on newly swapped weights; decided before the batch runs, so its duration
+        # cannot pick the label. "overlap": a write overlapped the batch or the one before; a
+        # long batch overlaps a write more often than a short one whatever the write costs, so
+        # that split leans towards slow batches (length-biased) and is kept as a second figure.
+        self.infer_latency = LatencyHistogram(("swap", "no_swap", "overlap", "no_overlap"))
         self.sync_mode = cfg.mode == "sync"
         self.sim_only = cfg.mode == "sim_only"
         self._lockstep_version = -1  # sync mode: actions of older versions are recomputed
@@ -224,8 +240,9 @@ class Rollout:
                     action, logprob = sample_actions(self.pool.active, obs)
                 ms = (time.perf_counter() - t0) * 1e3
                 seq1 = self.pool.stage_seq
+                self.infer_latency.record("swap" if swapped or seq0 % 2 == 1 else "no_swap", ms)
                 touched = swapped or seq1 != seq0 or seq1 % 2 == 1
-                self.infer_latency.record("swap" if touched or touched_before else "no_swap", ms)
+                self.infer_latency.record("overlap" if touched or touched_before else "no_overlap", ms)
                 touched_before = touched
                 self.infer_ms.append(ms)
                 if len(self.infer_ms) > 2048:

@@ -69,7 +69,10 @@ def test_bench_swimlane_quick_writes_every_figure(tmp_path: Path) -> None:
     assert all(lanes["sim"]["utilisation"] > 0.5 for n, lanes in sim_only["lanes"].items() if n.startswith("rollout"))
     async_default = default["runs"][0]["async"]
     assert async_default["versions"] >= 1 and async_default["policy_lag"]["chunks"] > 0
-    assert async_default["infer_latency"]["no_swap"]["n"] > 0
+    lat = async_default["infer_latency"]
+    assert lat["no_swap"]["n"] > 0
+    # every batch is counted once in each split: by its start, and by what overlapped it
+    assert lat["swap"]["n"] + lat["no_swap"]["n"] == lat["overlap"]["n"] + lat["no_overlap"]["n"]
     assert async_default["rss"]["roles"] and all(r["samples"] >= 2 for r in async_default["rss"]["roles"].values())
     assert not any(n.startswith("evaluator") for n in async_default["lanes"])
 

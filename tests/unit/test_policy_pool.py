@@ -9,7 +9,6 @@ import numpy as np
 import torch
 
 from dvla.replication import flatten
-from dvla.roles import rollout
 from dvla.roles.rollout import PolicyPool
 
 
@@ -31,14 +30,14 @@ def test_swap_does_not_wait_for_a_staging_write(monkeypatch):
     pool = make_pool()
     pool.stage(1, np.zeros(pool.layout.numel, np.float32))  # pending, not swapped yet
     writing, release = threading.Event(), threading.Event()
-    real = rollout.unflatten_into
+    real = PolicyPool._write_staging
 
-    def slow_unflatten(*args, **kwargs):
+    def slow_write(*args, **kwargs):
         writing.set()
         release.wait(5)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(rollout, "unflatten_into", slow_unflatten)
+    monkeypatch.setattr(PolicyPool, "_write_staging", slow_write)
     stager = threading.Thread(target=pool.stage, args=(2, np.ones(pool.layout.numel, np.float32)))
     stager.start()
     try:
@@ -73,3 +72,42 @@ def test_sample_is_act_without_the_value():
 
     a, lp = sample_actions(ActOnly(), obs)
     assert torch.equal(a, obs[:, :2] * 2) and torch.equal(lp, obs[:, 0])
+
+
+def test_staging_is_one_flat_copy_and_the_modules_still_work():
+    """Both modules' weights live in one flat tensor each: a staged version reaches every
+    parameter and buffer, the module computes with it, and its state_dict reads it back."""
+    from dvla.learn.policies import MLPPolicy
+
+    pool = PolicyPool(lambda: MLPPolicy(5, 2, hidden=(8, 8), obs_norm=True))
+    assert all(f is not None for f in pool._flat.values())
+    active_flat = pool._flat[id(pool.active)]
+    lo, hi = active_flat.data_ptr(), active_flat.data_ptr() + 4 * active_flat.numel()
+    tensors = list(pool.active.parameters()) + list(pool.active.buffers())
+    assert all(lo <= t.data_ptr() < hi for t in tensors if t.is_floating_point())  # all inside it
+    flat = np.random.default_rng(0).standard_normal(pool.layout.numel).astype(np.float32)
+    pool.stage(1, flat)
+    assert pool.maybe_swap()
+    np.testing.assert_array_equal(flatten(pool.active.state_dict(), pool.layout), flat)
+    reference = MLPPolicy(5, 2, hidden=(8, 8), obs_norm=True)
+    from dvla.replication import unflatten_into
+
+    unflatten_into(flat, reference, pool.layout)
+    obs = torch.randn(3, 5)
+    with torch.no_grad():
+        np.testing.assert_array_equal(pool.active.actor(obs).numpy(), reference.actor(obs).numpy())
+    assert isinstance(pool.active.actor[0].weight, torch.nn.Parameter)
+
+
+def test_bind_flat_refuses_mixed_dtypes_and_leaves_the_module_alone():
+    from dvla.replication import ParamLayout, bind_flat
+
+    m = torch.nn.Sequential(torch.nn.Linear(3, 2), torch.nn.Linear(2, 2).to(torch.bfloat16))
+    before = [p.data_ptr() for p in m.parameters()]
+    assert bind_flat(m, ParamLayout.from_state_dict(m)) is None
+    assert [p.data_ptr() for p in m.parameters()] == before
+    pool = PolicyPool(lambda: torch.nn.Sequential(torch.nn.Linear(3, 2), torch.nn.Linear(2, 2).to(torch.bfloat16)))
+    flat = np.arange(pool.layout.numel, dtype=np.float32)
+    pool.stage(3, flat)  # the per-tensor path
+    assert pool.maybe_swap()
+    np.testing.assert_array_equal(flatten(pool.active.state_dict(), pool.layout), flat)
