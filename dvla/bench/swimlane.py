@@ -47,6 +47,7 @@ HEADLINE_KEYS = (
     "sim_only_sps",
     "async_sps",
     "async_over_sim_only",
+    "ceiling_from_learner",
     "balanced_async_sps",
     "sync_sps",
     "async_over_sync",
@@ -491,12 +492,26 @@ def _default(base: Topology, profile: Profile, runs_root: Path, port: int | None
     steady = max(profile.window_s, profile.rss_window_s)
     pairs = _pairs(("sim_only", topo, profile.window_s), ("async", topo, steady), profile, runs_root, port, progress)
     ratios = [_ratio(p["async"].get("consumed_sps"), p["sim_only"].get("produced_sps")) for p in pairs]
+    # The learner's share of a core during training: the simulators can have at most the
+    # machine's cores minus that share (before inference, shipping and Zenoh take theirs).
+    shares = [_learn_share(p["async"]) for p in pairs]
+    share = _median(shares)
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     return {
         "placement": placement_of(topo), "runs": pairs, "ratios": ratios,
+        "learner_core_share": share,
+        "ceiling_from_learner": None if share is None else 1 - share / cpus,
         "sim_only_sps": _median([p["sim_only"].get("produced_sps") for p in pairs]),
         "async_sps": _median([p["async"].get("consumed_sps") for p in pairs]),
         "async_over_sim_only": _median(ratios),
     }
+
+
+def _learn_share(run: dict[str, Any]) -> float | None:
+    for lanes in run.get("lanes", {}).values():
+        if "learn" in lanes:
+            return lanes["learn"]["utilisation"]
+    return None
 
 
 def _balanced(base: Topology, profile: Profile, runs_root: Path, port: int | None, progress: Callable[[str], None]) -> dict[str, Any]:
@@ -537,6 +552,7 @@ def headline(workloads: dict[str, Any]) -> dict[str, Any]:
         "sim_only_sps": d.get("sim_only_sps"),
         "async_sps": d.get("async_sps"),
         "async_over_sim_only": d.get("async_over_sim_only"),
+        "ceiling_from_learner": d.get("ceiling_from_learner"),
         "balanced_async_sps": b.get("async_sps"),
         "sync_sps": b.get("sync_sps"),
         "async_over_sync": b.get("async_over_sync"),
