@@ -284,10 +284,6 @@ class NodeConfig:
     roles: tuple[RolePlacement, ...] = ()
     #: CPU cores the node's processes are pinned to (None: no pinning)
     cpus: tuple[int, ...] | None = None
-    #: Python's GIL switch interval in the node's role processes, ms (None: Python's default, 5).
-    #: A shorter one lets a rollout's infer lane take the GIL from its sim lane sooner (lower
-    #: inference latency) at the price of more thread switches
-    gil_switch_ms: float | None = None
     #: SSH settings for this node when its host is remote (None: the topology's `ssh`)
     ssh: SshConfig | None = None
 
@@ -398,8 +394,6 @@ class RoleConfig:
     secret_env: str = "DVLA_SECRET"
     #: CPU cores to pin to (None: no pinning)
     cpus: tuple[int, ...] | None = None
-    #: GIL switch interval, ms (None: Python's default)
-    gil_switch_ms: float | None = None
     #: sync mode: env steps a rollout ships per policy version (its share of one learner batch)
     lockstep_steps: int = 0
     #: the task

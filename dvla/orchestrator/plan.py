@@ -196,7 +196,6 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
             actors=tuple(s.actors),
             rollouts=tuple(s.rollouts),
             cpus=s.node.cpus,
-            gil_switch_ms=s.node.gil_switch_ms,
             lockstep_steps=_lockstep_steps(topo, s, by_name),
             task=topo.task,
             replication=topo.replication,

@@ -570,7 +570,6 @@ _RANGES: dict[type, dict[str, _Range]] = {
     },
     LinkConfig: {"node_gbit": _POSITIVE, "rack_uplink_gbit": _POSITIVE},
     RolePlacement: {"count": _AT_LEAST_1},
-    NodeConfig: {"gil_switch_ms": _Range(low=0.05, high=100, note="(ms)")},
     SshConfig: {"port": _Range(low=1, high=65535), "connect_timeout_s": _AT_LEAST_1},
 }
 

@@ -194,8 +194,6 @@ def main(role_factory: Any, argv: list[str] | None = None) -> int:
     # One intra-op thread per role: the lanes are the concurrency, and a role's share of the
     # cores is what `cpus` (or the scheduler) gives it; more threads only contend.
     threads = set_torch_threads(1)
-    if cfg.gil_switch_ms is not None:
-        sys.setswitchinterval(cfg.gil_switch_ms / 1000.0)
     fabric = open_fabric(cfg)
     role = None
     host: RoleHost | None = None
@@ -205,7 +203,6 @@ def main(role_factory: Any, argv: list[str] | None = None) -> int:
         host.placement = {
             "cpus": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
             "torch_threads": threads,
-            "gil_switch_ms": round(sys.getswitchinterval() * 1000.0, 3),
         }
 
         def _on_signal(signum: int, _frame: Any) -> None:

@@ -382,18 +382,3 @@ def test_topology_to_dict_is_plain() -> None:
     assert "source" not in d
     assert isinstance(d["racks"], list) and isinstance(d["racks"][0]["nodes"][0]["roles"], list)
     assert set(d) == {f.name for f in dataclasses.fields(Topology)} - {"source"}
-
-
-def test_gil_switch_interval_reaches_the_role_config_and_is_range_checked(tmp_path) -> None:
-    from dvla.config import RoleConfig
-    from dvla.orchestrator.plan import make_plan
-
-    topo = parse_topology(MINIMAL.replace("        roles:", "        gil_switch_ms: 1\n        roles:"))
-    assert topo.racks[0].nodes[0].gil_switch_ms == 1.0
-    cfgs = [p.config for p in make_plan(topo, str(tmp_path), base_port=21000).processes]
-    assert cfgs and all(c.gil_switch_ms == 1.0 for c in cfgs)
-    assert RoleConfig.from_json(cfgs[0].to_json()).gil_switch_ms == 1.0
-    assert make_plan(parse_topology(MINIMAL), str(tmp_path), base_port=21000).processes[0].config.gil_switch_ms is None
-    for bad in ("0", "-1", "500"):
-        problems = _problems(MINIMAL.replace("        roles:", f"        gil_switch_ms: {bad}\n        roles:"))
-        assert len(problems) == 1 and "gil_switch_ms" in str(problems[0]) and "out of range" in str(problems[0])
