@@ -120,6 +120,10 @@ class TaskConfig:
     budget: BudgetConfig = field(default_factory=BudgetConfig)
     #: envs stepped by each rollout process (split into two groups for double-buffered sampling)
     envs_per_rollout: int = 4
+    #: where a rollout computes actions: "lane" (its own `infer` thread, overlapping the other
+    #: group's simulation) or "inline" (the `sim` lane calls the policy between steps: no
+    #: hand-off between threads, for CPU policies whose forward holds the GIL anyway)
+    rollout_infer: Literal["lane", "inline"] = "lane"
     #: steps per env in one trajectory chunk
     chunk_steps: int = 25
     #: torch device: "auto" (cuda when present), "cpu", "cuda"

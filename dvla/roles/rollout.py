@@ -174,6 +174,7 @@ class Rollout:
         self._lockstep_version = -1  # sync mode: actions of older versions are recomputed
         self._since_version = 0
         self._ready = threading.Event()
+        self._touched_before = False  # a staging write overlapped the previous inference batch
         #: (version, checksum) of the newest verified weights
         self.held: tuple[int, str] = (-1, "")
 
@@ -204,8 +205,10 @@ class Rollout:
         self.weights = WeightSync(  # verified versions from the parent (ancestors as fallback)
             self.fabric, self.pool.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version
         )
-        sl.lane("sim", self._sim_random if self.sim_only else self._sim)
-        sl.lane("infer", self._infer)
+        inline = self.cfg.task.rollout_infer == "inline"
+        sl.lane("sim", self._sim_random if self.sim_only else self._sim_inline if inline else self._sim)
+        if not inline:
+            sl.lane("infer", self._infer)
         sl.lane("ship", self._ship)
         sl.lane("sync", self._sync)
 
@@ -219,37 +222,57 @@ class Rollout:
         while ctx.running:
             self.weights.step(ctx)
 
-    def _infer(self, ctx: LaneContext) -> None:
+    def _wait_for_weights(self, ctx: LaneContext) -> None:
         # No acting before the first verified weights: random initial weights on every rollout
         # would make their log-probs meaningless to the learner.
         while ctx.running and not self._ready.is_set():
             with ctx.waiting():
                 self._ready.wait(0.1)
-        touched_before = False
+
+    def _infer(self, ctx: LaneContext) -> None:
+        self._wait_for_weights(ctx)
         while ctx.running:
             gid = self.to_infer.get(ctx.stop, stats=ctx.stats)
             if gid is None:
                 return
             with ctx.busy():
-                seq0 = self.pool.stage_seq
-                swapped = self.pool.maybe_swap()
-                g = self.groups[gid]
-                t0 = time.perf_counter()
-                with torch.no_grad():
-                    obs = obs_to_torch(g.obs)
-                    action, logprob = sample_actions(self.pool.active, obs)
-                ms = (time.perf_counter() - t0) * 1e3
-                seq1 = self.pool.stage_seq
-                self.infer_latency.record("swap" if swapped or seq0 % 2 == 1 else "no_swap", ms)
-                touched = swapped or seq1 != seq0 or seq1 % 2 == 1
-                self.infer_latency.record("overlap" if touched or touched_before else "no_overlap", ms)
-                touched_before = touched
-                self.infer_ms.append(ms)
-                if len(self.infer_ms) > 2048:
-                    del self.infer_ms[:1024]
-                item = (gid, action.numpy(), logprob.numpy(), self.pool.active_version)
+                item = self._act(gid)
             self.to_sim.put(item, ctx.stop, stats=ctx.stats)
             ctx.count()
+
+    def _act(self, gid: int) -> tuple[int, np.ndarray, np.ndarray, int]:
+        """Swap in pending weights, then (group id, actions, log-probs, version) for a group."""
+        seq0 = self.pool.stage_seq
+        swapped = self.pool.maybe_swap()
+        g = self.groups[gid]
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            obs = obs_to_torch(g.obs)
+            action, logprob = sample_actions(self.pool.active, obs)
+        ms = (time.perf_counter() - t0) * 1e3
+        seq1 = self.pool.stage_seq
+        self.infer_latency.record("swap" if swapped or seq0 % 2 == 1 else "no_swap", ms)
+        touched = swapped or seq1 != seq0 or seq1 % 2 == 1
+        self.infer_latency.record("overlap" if touched or self._touched_before else "no_overlap", ms)
+        self._touched_before = touched
+        self.infer_ms.append(ms)
+        if len(self.infer_ms) > 2048:
+            del self.infer_ms[:1024]
+        return gid, action.numpy(), logprob.numpy(), self.pool.active_version
+
+    def _sim_inline(self, ctx: LaneContext) -> None:
+        """``rollout_infer: inline``: act and step each group in turn on this one thread."""
+        self._wait_for_weights(ctx)
+        while ctx.running:
+            for g in self.groups:
+                with ctx.busy():
+                    _gid, actions, logprobs, version = self._act(g.gid)
+                    self._record_step(g, actions, logprobs, version)
+                    ctx.count(g.envs.n)
+                if g.t == self.T:
+                    self._finish_chunk(g, ctx)
+                if not ctx.running:
+                    return
 
     def _sim(self, ctx: LaneContext) -> None:
         for g in self.groups:

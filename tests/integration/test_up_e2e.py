@@ -91,3 +91,28 @@ def test_up_tiny_end_to_end(tmp_path: Path) -> None:
     assert all((run_dir / "logs" / f"{r}.log").stat().st_size > 0 for r in ROLES)
     assert not (run_dir / "state.json").exists()
     assert pids_of_run(run_dir) == []
+
+
+@pytest.mark.timeout(300)
+def test_up_with_inline_inference(tmp_path: Path) -> None:
+    """`rollout_infer: inline`: the rollouts act on their sim lane (no infer lane), weights still
+    advance, and the chunk accounting closes exactly."""
+    topo = tmp_path / "tiny-inline.yaml"
+    text = (ROOT / "topologies/tiny.yaml").read_text()
+    assert "  algorithm: ppo\n" in text
+    topo.write_text(text.replace("  algorithm: ppo\n", "  algorithm: ppo\n  rollout_infer: inline\n", 1))
+    runs = tmp_path / "runs"
+    up = dvla("up", str(topo), "--runs", str(runs), "--base-port", str(free_port_block()),
+              "--max-env-steps", "1600", "--quiet", timeout=280)
+    assert up.returncode == 0, up.stdout + up.stderr
+    run_dir = runs / "tiny"
+    result = json.loads((run_dir / "result.json").read_text())
+    assert result["final_env_steps"] >= 1600
+    assert result["accounting"]["consumed"] > 0 and result["accounting"]["unaccounted"] == 0, result["accounting"]
+    for name in ("rollout-node0-0", "rollout-node0-1"):
+        s = json.loads((run_dir / "summaries" / f"{name}.json").read_text())
+        assert "infer" not in s["lanes"] and s["lanes"]["sim"]["items"] > 0, s["lanes"]
+        assert s["policy_version"] >= 2 and s["error"] is None
+        lat = s["extra"]["infer_latency_counts"]
+        assert sum(lat["swap"].values()) + sum(lat["no_swap"].values()) > 0  # acting is still timed
+    assert pids_of_run(run_dir) == []
