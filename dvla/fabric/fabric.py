@@ -77,10 +77,7 @@ class Inbox:
         self.high_watermark = 0
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        raw = sample.payload.to_bytes()
-        peer = KeySpace.last(key)
-        self._acct.received(self._plane, len(raw), peer)
+        key, raw, peer = _take(sample, self._acct, self._plane)
         if self._decode_on_receive:
             # Zero-copy decode right here: the queue then holds ready messages, and the
             # consumer never competes with this thread for the GIL over the same bytes.
@@ -213,10 +210,7 @@ class Fabric:
         acct = self.accounting
 
         def _cb(sample: zenoh.Sample) -> None:
-            key = str(sample.key_expr)
-            raw = sample.payload.to_bytes()
-            peer = KeySpace.last(key)
-            acct.received(DATA, len(raw), peer)
+            key, raw, peer = _take(sample, acct, DATA)
             chunk = decoder(key, raw)
             if chunk is None:
                 return  # rejected and counted by the decoder
@@ -315,9 +309,7 @@ class Fabric:
         """
 
         def _cb(sample: zenoh.Sample) -> None:
-            k = str(sample.key_expr)
-            raw = sample.payload.to_bytes()
-            self.accounting.received(CTRL, len(raw), KeySpace.last(k))
+            k, raw, _peer = _take(sample, self.accounting, CTRL)
             got = self.open_signed(k, raw, expect)
             if got is not None:
                 try:
@@ -440,6 +432,15 @@ class Fabric:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _take(sample: zenoh.Sample, acct: Accounting, plane: str) -> tuple[str, bytes, str]:
+    """(key, payload bytes, sending peer) of a received sample, counted as received."""
+    key = str(sample.key_expr)
+    raw = sample.payload.to_bytes()
+    peer = KeySpace.last(key)
+    acct.received(plane, len(raw), peer)
+    return key, raw, peer
 
 
 def _on_receive_thread(callback: Callable[[zenoh.Sample], None]) -> Any:

@@ -56,6 +56,7 @@ __all__ = [
     "WeightEncoder",
     "bf16_round_bits",
     "bf16_to_float32",
+    "bind_flat",
     "checksum",
     "chunk_count",
     "chunk_span",
@@ -64,5 +65,4 @@ __all__ = [
     "split_encoding",
     "topk_count",
     "unflatten_into",
-    "bind_flat",
 ]
