@@ -174,6 +174,32 @@ def _between_rounds_s(phase_timeout_s: float) -> float:
     return START_TIMEOUT_S + 2 * phase_timeout_s
 
 
+class _Arrivals:
+    """Counts a subscriber's messages and notes the arrival time of each round's last one."""
+
+    def __init__(self, per_round: int) -> None:
+        self.per_round = per_round
+        self.count = 0
+        self.ends: queue.Queue[float] = queue.Queue()
+
+    def hit(self) -> None:
+        self.count += 1
+        if self.count % self.per_round == 0:
+            self.ends.put(time.monotonic())
+
+
+def _report_rounds(kind: str, arrivals: _Arrivals, rounds: int, ready: Any, out: Any, timeout_s: float,
+                   detail: Callable[[], str] = lambda: "") -> None:
+    """Signal readiness, then report each round's end (time, process CPU) or the shortfall."""
+    out.put(("sub_ready", 0, 0.0, _cpu_s()))
+    ready.set()
+    try:
+        for r in range(rounds):
+            out.put(("sub", r, arrivals.ends.get(timeout=_between_rounds_s(timeout_s)), _cpu_s()))
+    except queue.Empty:
+        out.put(("error", f"{kind} subscriber got {arrivals.count} of {rounds * arrivals.per_round} messages{detail()}"))
+
+
 def _throughput_sub(kind: str, port: int, n: int, rounds: int, secret: bytes, ready: Any, routed: Any,
                     out: Any, timeout_s: float) -> None:
     """Receives `rounds` x `n` messages; reports the arrival time of each round's last one."""
@@ -182,64 +208,49 @@ def _throughput_sub(kind: str, port: int, n: int, rounds: int, secret: bytes, re
     from ..fabric import TrajectoryChunk, plane_config
 
     conf = plane_config(mode="peer", listen=[endpoint(port)])
+    arrivals = _Arrivals(n)
     if kind == "raw":
         session = zenoh.open(conf)
-        count = [0]
-        ends: queue.Queue[float] = queue.Queue()
 
         def on_sample(sample: Any) -> None:
             sample.payload.to_bytes()  # what any consumer must do to use the payload
-            count[0] += 1
-            if count[0] % n == 0:
-                ends.put(time.monotonic())
+            arrivals.hit()
 
         sub = session.declare_subscriber(f"dvla/{RUN}/data/traj/{SOURCE}", _direct(on_sample))
         probe = _probe_subscriber(session, routed)
-        out.put(("sub_ready", 0, 0.0, _cpu_s()))
-        ready.set()
         try:
-            for r in range(rounds):
-                out.put(("sub", r, ends.get(timeout=_between_rounds_s(timeout_s)), _cpu_s()))
-        except queue.Empty:
-            out.put(("error", f"raw subscriber got {count[0]} of {rounds * n} messages"))
+            _report_rounds(kind, arrivals, rounds, ready, out, timeout_s)
         finally:
             probe.undeclare()
             sub.undeclare()
             session.close()
         return
     fabric = _open_fabric(SINK, secret, ctrl=plane_config(), data=conf)
+    stop = threading.Event()
+    consumer = None
     try:
-        got = [0]
-        ends_f: queue.Queue[float] = queue.Queue()
         if kind == "fabric":
-            def on_chunk(_chunk: Any) -> None:
-                got[0] += 1
-                if got[0] % n == 0:
-                    ends_f.put(time.monotonic())
-
-            fabric.on_traj(TrajectoryChunk, on_chunk)
+            fabric.on_traj(TrajectoryChunk, lambda _chunk: arrivals.hit())
         else:  # "inbox": a consumer thread takes every chunk from the bounded inbox
             inbox = fabric.subscribe_traj(maxsize=64, expect=TrajectoryChunk)
 
             def consume() -> None:
-                while got[0] < rounds * n:
+                while not stop.is_set():
                     if inbox.get(timeout=0.5) is not None:
-                        got[0] += 1
-                        if got[0] % n == 0:
-                            ends_f.put(time.monotonic())
+                        arrivals.hit()
 
-            threading.Thread(target=consume, name="consumer", daemon=True).start()
+            consumer = threading.Thread(target=consume, name="consumer")
+            consumer.start()
         probe = _probe_subscriber(fabric.data, routed)
-        out.put(("sub_ready", 0, 0.0, _cpu_s()))
-        ready.set()
         try:
-            for r in range(rounds):
-                out.put(("sub", r, ends_f.get(timeout=_between_rounds_s(timeout_s)), _cpu_s()))
-        except queue.Empty:
-            out.put(("error", f"{kind} subscriber got {got[0]} of {rounds * n} messages: {fabric.accounting.snapshot()}"))
+            _report_rounds(kind, arrivals, rounds, ready, out, timeout_s,
+                           lambda: f": {fabric.accounting.snapshot()}")
         finally:
             probe.undeclare()
     finally:
+        stop.set()
+        if consumer is not None:
+            consumer.join()
         fabric.close()
 
 
