@@ -23,6 +23,7 @@ are exactly those of the full decoder; only the time differs.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import struct
 import threading
@@ -111,7 +112,7 @@ def _compile(spans: list[tuple[int, bytes]], slots: list[tuple], cls: type,
         else:  # _NONE
             lines.append(f"    {v} = None")
         if key is None:
-            if name in checkers:
+            if name in checkers and not _implied(checkers[name], kind, arg):
                 ns[f"chk_{name}"] = checkers[name]
                 fields[name] = f"chk_{name}({v}, {name!r})"
             else:
@@ -121,11 +122,30 @@ def _compile(spans: list[tuple[int, bytes]], slots: list[tuple], cls: type,
             dicts[name].append(f"k{i}: {v}")
     for name, items in dicts.items():
         fields[name] = "{" + ", ".join(items) + "}"
-    lines.append("    msg = cls(" + ", ".join(f"{name}={expr}" for name, expr in fields.items()) + ")")
+    if _plain_fields(cls) == set(fields):
+        # Every field is on the wire and __init__ would only store them: fill the instance's
+        # dict directly (a frozen dataclass's __init__ stores each field through
+        # object.__setattr__, which costs more than the rest of the build).
+        ns["new"] = object.__new__
+        lines.append("    msg = new(cls)")
+        lines.append("    msg.__dict__.update(" + ", ".join(f"{name}={expr}" for name, expr in fields.items()) + ")")
+    else:
+        lines.append("    msg = cls(" + ", ".join(f"{name}={expr}" for name, expr in fields.items()) + ")")
     lines.append("    msg.validate_values()")
     lines.append("    return msg")
     exec(compile("\n".join(lines), f"<dvla layout of {cls.__name__}>", "exec"), ns)
     return ns["build"]
+
+
+def _plain_fields(cls: type) -> set[str] | None:
+    """The init fields of a dataclass whose __init__ does nothing but store them (no
+    ``__post_init__``, no ``__slots__``, no init-only variables), else None."""
+    if not dataclasses.is_dataclass(cls) or hasattr(cls, "__post_init__") or hasattr(cls, "__slots__"):
+        return None
+    fields = dataclasses.fields(cls)
+    if any(not f.init or isinstance(f.type, dataclasses.InitVar) for f in fields):
+        return None
+    return {f.name for f in fields}
 
 
 # The integer range msgpack's packer writes with each type byte (it always picks the smallest).
@@ -439,3 +459,23 @@ class _Walker:
 
 def _is_identity(check: Callable[[Any, Any], Any]) -> bool:
     return getattr(check, "__name__", "") in ("_check_ndarray", "_check_any")
+
+
+_INT_TYPE_BYTES = frozenset(range(0xCC, 0xD4))
+
+
+def _implied(check: Callable[[Any, Any], Any], kind: int, arg: Any) -> bool:
+    """True when the slot's wire type alone guarantees what `check` checks and returns: the
+    value is already the plain ``int``, ``float``, ``str`` or ``bool`` the checker would give
+    back (a fixint or integer struct reads an int, a float struct a float, ...), so the call
+    can be left out of the generated function."""
+    name = getattr(check, "__name__", "")
+    if name == "_check_int":
+        return kind in (_FIXINT_POS, _FIXINT_NEG) or (kind == _SCALAR and _TYPE_BYTE[arg] in _INT_TYPE_BYTES)
+    if name == "_check_float":
+        return kind == _SCALAR and _TYPE_BYTE[arg] in (0xCA, 0xCB)
+    if name == "_check_str":
+        return kind == _STR
+    if name == "_check_bool":
+        return kind == _BOOL
+    return False

@@ -100,6 +100,41 @@ def test_a_primed_layout_decodes_without_the_full_decoder(monkeypatch):
     assert np.shares_memory(got.actions, np.frombuffer(raw, np.uint8))
 
 
+def test_the_fast_path_builds_a_frozen_message_like_the_constructor(monkeypatch):
+    raw = encode(big_traj(seq=7))
+    decode(raw)
+    no_full_walkers(monkeypatch)
+    got = decode(raw)
+    assert type(got) is TrajectoryChunk and got.seq == 7
+    assert vars(got).keys() == {f.name for f in dataclasses.fields(TrajectoryChunk)}
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        got.seq = 8  # type: ignore[misc]
+
+
+def test_only_a_store_only_init_is_bypassed():
+    from dvla.fabric.layout import _plain_fields
+
+    @dataclasses.dataclass(frozen=True)
+    class Plain:
+        a: int
+
+    @dataclasses.dataclass(frozen=True)
+    class Post:
+        a: int
+
+        def __post_init__(self) -> None:
+            pass
+
+    @dataclasses.dataclass(frozen=True)
+    class Computed:
+        a: int
+        b: int = dataclasses.field(init=False, default=0)
+
+    assert _plain_fields(Plain) == {"a"}
+    assert _plain_fields(Post) is None and _plain_fields(Computed) is None
+    assert _plain_fields(TrajectoryChunk) == {f.name for f in dataclasses.fields(TrajectoryChunk)}
+
+
 def test_layouts_of_equal_length_coexist(monkeypatch):
     # seq 200 takes 2 bytes and policy_version 5 one; swapped, the length is the same but the
     # structure differs: two layouts under one length, each decoding its own messages.
