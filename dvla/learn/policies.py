@@ -147,10 +147,47 @@ def _layer(n_in: int, n_out: int, std: float) -> nn.Linear:
     return layer
 
 
+class _SigmoidTanh(torch.autograd.Function):
+    """tanh(x) computed as 2 * sigmoid(2x) - 1, with tanh's own backward (1 - y^2)."""
+
+    @staticmethod
+    def forward(ctx: Any, x: Tensor) -> Tensor:
+        y = torch.sigmoid(x * 2.0).mul_(2.0).sub_(1.0)
+        ctx.save_for_backward(y)
+        return y
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> Tensor:
+        (y,) = ctx.saved_tensors
+        return torch.ops.aten.tanh_backward(grad, y)
+
+
+class Tanh(nn.Tanh):
+    """``nn.Tanh`` that is faster for large CPU batches (the learner's minibatches).
+
+    PyTorch's CPU tanh kernel takes ~4.5 ns per element on an AVX2 core, more than three
+    times its sigmoid; for a 400 x 256 activation ``2 * sigmoid(2x) - 1`` is about twice as fast
+    (464 -> 220 µs, one thread), which is a tenth of a PPO update of the default MLP. The two
+    agree to float32 rounding (absolute error below 1e-6). Small inputs (a rollout's inference
+    batch) and other devices use ``torch.tanh``: there the extra kernels or the autograd
+    function's Python overhead would cost more than they save.
+    """
+
+    #: elements from which the sigmoid form is used on the CPU
+    MIN_ELEMENTS = 16384
+
+    def forward(self, x: Tensor) -> Tensor:
+        if x.device.type != "cpu" or x.numel() < self.MIN_ELEMENTS or x.dtype != torch.float32:
+            return torch.tanh(x)
+        if torch.is_grad_enabled() and x.requires_grad:
+            return _SigmoidTanh.apply(x)
+        return torch.sigmoid(x * 2.0).mul_(2.0).sub_(1.0)
+
+
 def _mlp(n_in: int, hidden: Sequence[int], n_out: int, out_std: float) -> nn.Sequential:
     layers: list[nn.Module] = []
     for width in hidden:
-        layers += [_layer(n_in, width, math.sqrt(2)), nn.Tanh()]
+        layers += [_layer(n_in, width, math.sqrt(2)), Tanh()]
         n_in = width
     layers.append(_layer(n_in, n_out, out_std))
     return nn.Sequential(*layers)
