@@ -278,7 +278,12 @@ def _fraction(part: float, whole: float) -> float:
 
 
 class BoundedQueue(Generic[T]):
-    """A ``queue.Queue`` with a mandatory bound and stop-aware, accounted waits.
+    """A bounded FIFO with stop-aware, accounted waits.
+
+    Built from two C-implemented ``queue.SimpleQueue``: ``_items`` holds the items, ``_room``
+    one token per free slot (a put takes a token first, a get gives one back). Neither side
+    runs Python-level ``Condition`` code, which in ``queue.Queue`` cost ~5% of a rollout's
+    GIL time at one hand-off per env-group step.
 
     ``put``/``get`` block in :data:`WAIT_SLICE_S` slices and give up as soon as the stop event is
     set, so a lane blocked on a queue always exits. Blocking time is charged to the calling
@@ -292,7 +297,11 @@ class BoundedQueue(Generic[T]):
         if wait_slice_s <= 0:
             raise ValueError(f"wait_slice_s must be > 0, got {wait_slice_s}")
         self.name = name
-        self._q: queue.Queue[T] = queue.Queue(maxsize)
+        self._maxsize = maxsize
+        self._items: queue.SimpleQueue[T] = queue.SimpleQueue()
+        self._room: queue.SimpleQueue[None] = queue.SimpleQueue()
+        for _ in range(maxsize):
+            self._room.put(None)
         self._slice = wait_slice_s
         self.high_watermark = 0
         self.dropped = 0
@@ -300,18 +309,18 @@ class BoundedQueue(Generic[T]):
     @property
     def maxsize(self) -> int:
         """Capacity in items."""
-        return self._q.maxsize
+        return self._maxsize
 
     @property
     def depth(self) -> int:
         """Items queued right now."""
-        return self._q.qsize()
+        return self._items.qsize()
 
     def __len__(self) -> int:
-        return self._q.qsize()
+        return self._items.qsize()
 
     def _note_depth(self) -> None:
-        depth = self._q.qsize()
+        depth = self._items.qsize()
         if depth > self.high_watermark:
             self.high_watermark = depth
 
@@ -329,9 +338,10 @@ class BoundedQueue(Generic[T]):
         if stop.is_set():
             return False
         try:
-            self._q.put_nowait(item)
-        except queue.Full:
+            self._room.get_nowait()
+        except queue.Empty:
             return self._put_blocking(item, stop, timeout, stats)
+        self._items.put(item)
         self._note_depth()
         return True
 
@@ -345,9 +355,10 @@ class BoundedQueue(Generic[T]):
                 if wait <= 0:
                     return False
                 try:
-                    self._q.put(item, timeout=wait)
-                except queue.Full:
+                    self._room.get(timeout=wait)
+                except queue.Empty:
                     continue
+                self._items.put(item)
                 self._note_depth()
                 return True
         return False
@@ -357,10 +368,11 @@ class BoundedQueue(Generic[T]):
         if item is None:
             raise ValueError(f"BoundedQueue {self.name!r}: None is reserved as the stop result")
         try:
-            self._q.put_nowait(item)
-        except queue.Full:
+            self._room.get_nowait()
+        except queue.Empty:
             self.dropped += 1
             return False
+        self._items.put(item)
         self._note_depth()
         return True
 
@@ -375,9 +387,12 @@ class BoundedQueue(Generic[T]):
         if stop.is_set():
             return None
         try:
-            return self._q.get_nowait()
+            item = self._items.get_nowait()
         except queue.Empty:
             pass
+        else:
+            self._room.put(None)
+            return item
         deadline = None if timeout is None else time.monotonic() + timeout
         with _wait_section(stats):
             while not stop.is_set():
@@ -385,17 +400,21 @@ class BoundedQueue(Generic[T]):
                 if wait <= 0:
                     return None
                 try:
-                    return self._q.get(timeout=wait)
+                    item = self._items.get(timeout=wait)
                 except queue.Empty:
                     continue
+                self._room.put(None)
+                return item
         return None
 
     def get_nowait(self) -> T | None:
         """Dequeue an item if one is ready, else None (for draining on shutdown)."""
         try:
-            return self._q.get_nowait()
+            item = self._items.get_nowait()
         except queue.Empty:
             return None
+        self._room.put(None)
+        return item
 
     def status(self) -> dict[str, Any]:
         """Depth, capacity, high watermark and drop count, for the role's status report."""
