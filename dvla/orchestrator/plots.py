@@ -26,9 +26,13 @@ def plot_run(run_dir: Path) -> Path:
         t = [float(r["time_s"]) for r in evals]
         ax1.plot(t, [float(r["success_once"]) for r in evals], "o-", label="success_once")
         ax1.plot(t, [float(r["success_at_end"]) for r in evals], "s--", label="success_at_end")
+        ax1.legend(loc="lower right")
+    else:
+        # A run without evaluations (no evaluator, or stopped before the first one) says so
+        # instead of drawing an empty axis with an empty legend.
+        ax1.text(0.5, 0.5, "no evaluations in this run", ha="center", va="center", transform=ax1.transAxes)
     ax1.set_ylabel("eval success")
     ax1.set_ylim(-0.02, 1.02)
-    ax1.legend(loc="lower right")
     ax1.grid(alpha=0.3)
     if metrics:
         t = [float(r["time_s"]) for r in metrics]
