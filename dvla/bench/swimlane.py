@@ -7,8 +7,9 @@ Two workloads, each run in two modes on the same topology, env and policy:
   is not part of the training pipeline), placement as in the file. ``sim_only`` (the same
   rollout processes stepping random actions, nothing inferred, shipped or learned) against
   ``async`` (training): ``async_over_sim_only`` = learner-consumed env steps/s ÷ simulated env
-  steps/s. The async run also measures RSS growth over the steady state, policy lag and the
-  inference latency split by weight swaps.
+  steps/s, where the simulated rate is the mean of the sim_only runs just before and just after
+  the async run (a closing sim_only run follows the last pair). The async run also measures
+  RSS growth over the steady state, policy lag and the inference latency split by weight swaps.
 * **balanced**: the same task with the rollouts (and the replicator) pinned to core 0 and the
   actor to core 1, and PPO epochs chosen so that the learner needs about as long per batch as
   the rollouts need to sample one. ``sync`` (lock-step: sample a batch, ship, learn, publish,
@@ -470,16 +471,22 @@ def _pairs(
         pair = {}
         for mode, topo, window in (first, second):
             progress(f"{topo.run}: {mode} run {i + 1}/{profile.repeats}")
-            pair[mode] = measure_run(topo, mode, profile.warmup_s, window, runs_root, base_port, progress)
-            if str(pair[mode].get("error")).startswith("ConnectionError"):
-                # On a crowded machine the roles can take longer to open their planes than the
-                # orchestrator waits for them; that says nothing about the lanes: try once more.
-                progress(f"{topo.run}/{mode}: {pair[mode]['error'][:120]}; starting it again")
-                pair[mode] = measure_run(topo, mode, profile.warmup_s, window, runs_root, base_port, progress)
-            if pair[mode].get("error"):
-                progress(f"{topo.run}/{mode}: {pair[mode]['error']}")
+            pair[mode] = _measure(topo, mode, window, profile, runs_root, base_port, progress)
         out.append(pair)
     return out
+
+
+def _measure(topo: Topology, mode: str, window: float, profile: Profile, runs_root: Path,
+             base_port: int | None, progress: Callable[[str], None]) -> dict[str, Any]:
+    run = measure_run(topo, mode, profile.warmup_s, window, runs_root, base_port, progress)
+    if str(run.get("error")).startswith("ConnectionError"):
+        # On a crowded machine the roles can take longer to open their planes than the
+        # orchestrator waits for them; that says nothing about the lanes: try once more.
+        progress(f"{topo.run}/{mode}: {run['error'][:120]}; starting it again")
+        run = measure_run(topo, mode, profile.warmup_s, window, runs_root, base_port, progress)
+    if run.get("error"):
+        progress(f"{topo.run}/{mode}: {run['error']}")
+    return run
 
 
 def _median(xs: list[float | None]) -> float | None:
@@ -491,20 +498,37 @@ def _default(base: Topology, profile: Profile, runs_root: Path, port: int | None
     topo = default_workload(base, profile)
     steady = max(profile.window_s, profile.rss_window_s)
     pairs = _pairs(("sim_only", topo, profile.window_s), ("async", topo, steady), profile, runs_root, port, progress)
-    ratios = [_ratio(p["async"].get("consumed_sps"), p["sim_only"].get("produced_sps")) for p in pairs]
+    # One more sim_only run after the last async one: each async run is then bracketed by a
+    # simulator baseline before and after it, and its ratio is taken against their mean, so a
+    # host whose speed drifts over the minutes of the bench (seen here: +-20% between
+    # consecutive sim_only runs) does not bias the ratio in the direction of the drift.
+    progress(f"{topo.run}: closing sim_only run")
+    closing = _measure(topo, "sim_only", profile.window_s, profile, runs_root, port, progress)
+    sims = [p["sim_only"].get("produced_sps") for p in pairs] + [closing.get("produced_sps")]
+    baselines = [_bracket(sims[i], sims[i + 1]) for i in range(len(pairs))]
+    ratios = [_ratio(p["async"].get("consumed_sps"), b) for p, b in zip(pairs, baselines)]
     # The learner's share of a core during training: the simulators can have at most the
     # machine's cores minus that share (before inference, shipping and Zenoh take theirs).
     shares = [_learn_share(p["async"]) for p in pairs]
     share = _median(shares)
     cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     return {
-        "placement": placement_of(topo), "runs": pairs, "ratios": ratios,
+        "placement": placement_of(topo), "runs": pairs, "closing_sim_only": closing, "ratios": ratios,
+        "sim_only_sps_runs": sims, "sim_only_baselines": baselines,
+        "sim_only_drift": _ratio(sims[-1], sims[0]),
         "learner_core_share": share,
         "ceiling_from_learner": None if share is None else 1 - share / cpus,
-        "sim_only_sps": _median([p["sim_only"].get("produced_sps") for p in pairs]),
+        "sim_only_sps": _median(baselines),
         "async_sps": _median([p["async"].get("consumed_sps") for p in pairs]),
         "async_over_sim_only": _median(ratios),
     }
+
+
+def _bracket(before: float | None, after: float | None) -> float | None:
+    """The simulator baseline of a run measured between two sim_only runs: their mean, or the
+    one that succeeded."""
+    vals = [v for v in (before, after) if v]
+    return sum(vals) / len(vals) if vals else None
 
 
 def _learn_share(run: dict[str, Any]) -> float | None:
@@ -587,4 +611,10 @@ def format_table(doc: dict[str, Any]) -> str:
     for name, wl in doc["workloads"].items():
         for i, r in enumerate(wl.get("ratios", [])):
             lines.append(f"{name} repeat {i + 1}: ratio {'-' if r is None else f'{r:.3f}'}")
+        sims = wl.get("sim_only_sps_runs")
+        if sims:
+            runs = ", ".join("-" if v is None else f"{v:.0f}" for v in sims)
+            drift = wl.get("sim_only_drift")
+            lines.append(f"{name} sim_only runs (env steps/s, in order): {runs}"
+                         + ("" if drift is None else f"; last / first {drift:.2f}"))
     return "\n".join(lines)

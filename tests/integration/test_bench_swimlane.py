@@ -66,6 +66,12 @@ def test_bench_swimlane_quick_writes_every_figure(tmp_path: Path) -> None:
                 acct = run["accounting"]
                 assert acct["unaccounted"] == 0, (mode, acct)
                 assert run["window_s"] > 5
+    # the async run is bracketed by a sim_only run before and a closing one after it
+    assert default["closing_sim_only"]["error"] is None
+    before, after = default["sim_only_sps_runs"]
+    assert positive(before) and positive(after)
+    assert default["sim_only_baselines"] == [pytest.approx((before + after) / 2)]
+    assert doc["async_over_sim_only"] == pytest.approx(doc["async_sps"] / doc["sim_only_sps"])
     sim_only = default["runs"][0]["sim_only"]
     assert sim_only["consumed_sps"] == 0 and sim_only["accounting"]["produced"] == 0  # nothing shipped
     assert all(lanes["sim"]["utilisation"] > 0.5 for n, lanes in sim_only["lanes"].items() if n.startswith("rollout"))
