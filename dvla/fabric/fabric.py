@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import logging
 import os
-import queue
 import threading
 import time
 from typing import Any, Callable
@@ -29,6 +28,7 @@ from .accounting import Accounting
 from .codec import CodecError, decode, encode, encode_into
 from .keys import KeySpace
 from .signing import SignatureError, Signer, Verifier
+from .tokenqueue import TokenQueue
 
 log = logging.getLogger("dvla.fabric")
 
@@ -60,14 +60,8 @@ class Inbox:
         block_s: float = 1.0,
         decode_on_receive: bool = False,
     ) -> None:
-        # Two C-implemented SimpleQueues instead of one queue.Queue: `_items` holds messages,
-        # `_room` one token per free slot. Taking a token is the bounded wait for space, and
-        # neither side runs Python-level Condition code (which, per message, cost more than
-        # the decode: lock juggling under the GIL between the receive thread and the lane).
-        self._items: queue.SimpleQueue[Any] = queue.SimpleQueue()
-        self._room: queue.SimpleQueue[None] = queue.SimpleQueue()
-        for _ in range(maxsize):
-            self._room.put(None)
+        # No queue.Queue: its Python-level Condition cost more per message than the decode.
+        self._queue: TokenQueue[Any] = TokenQueue(maxsize)
         self._decoder = decoder
         self._acct = accounting
         self._plane = plane
@@ -86,12 +80,9 @@ class Inbox:
                 return  # rejected and counted by the decoder
         else:
             item = (key, raw)
-        try:
-            self._room.get(timeout=self._block_s)
-        except queue.Empty:
+        if not self._queue.put(item, timeout=self._block_s):
             self._acct.dropped(self._plane, "backpressure", peer)
             return
-        self._items.put(item)
         depth = self.depth()
         if depth > self.high_watermark:
             self.high_watermark = depth
@@ -108,11 +99,9 @@ class Inbox:
         late = 0
         while True:
             remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
-            try:
-                item = self._items.get(timeout=remaining)
-            except queue.Empty:
+            item = self._queue.get(timeout=remaining)
+            if item is None:
                 return None
-            self._room.put(None)
             if self._decode_on_receive:
                 return item
             msg = self._decoder(*item)
@@ -127,18 +116,14 @@ class Inbox:
         return self.get(timeout=0.0)
 
     def depth(self) -> int:
-        return self.maxsize - self._room.qsize()
+        return self._queue.qsize()
 
     def drain_count(self) -> int:
         """Discard what is queued (at shutdown); returns how many were discarded."""
         n = 0
-        while True:
-            try:
-                self._items.get_nowait()
-                n += 1
-                self._room.put(None)
-            except queue.Empty:
-                return n
+        while self._queue.get() is not None:
+            n += 1
+        return n
 
 
 class Fabric:

@@ -147,12 +147,17 @@ def _layer(n_in: int, n_out: int, std: float) -> nn.Linear:
     return layer
 
 
+def _sigmoid_tanh(x: Tensor) -> Tensor:
+    """tanh(x) as 2 * sigmoid(2x) - 1."""
+    return torch.sigmoid(x * 2.0).mul_(2.0).sub_(1.0)
+
+
 class _SigmoidTanh(torch.autograd.Function):
-    """tanh(x) computed as 2 * sigmoid(2x) - 1, with tanh's own backward (1 - y^2)."""
+    """:func:`_sigmoid_tanh` with tanh's own backward (1 - y^2)."""
 
     @staticmethod
     def forward(ctx: Any, x: Tensor) -> Tensor:
-        y = torch.sigmoid(x * 2.0).mul_(2.0).sub_(1.0)
+        y = _sigmoid_tanh(x)
         ctx.save_for_backward(y)
         return y
 
@@ -181,7 +186,7 @@ class Tanh(nn.Tanh):
             return torch.tanh(x)
         if torch.is_grad_enabled() and x.requires_grad:
             return _SigmoidTanh.apply(x)
-        return torch.sigmoid(x * 2.0).mul_(2.0).sub_(1.0)
+        return _sigmoid_tanh(x)
 
 
 def _mlp(n_in: int, hidden: Sequence[int], n_out: int, out_std: float) -> nn.Sequential:
