@@ -111,15 +111,25 @@ def make_chunk(name: str, target_bytes: int) -> Any:
     )
 
 
-def _raw_payload(size: int) -> bytes:
-    """The encoded chunk of exactly `size` bytes that the fabric side sends for this size."""
+#: integer fields a rollout changes from chunk to chunk: 64-bit slots in its wire buffers
+WIDE = ("seq", "policy_version", "created_ns")
+
+
+def wire_chunk(target_bytes: int) -> Any:
+    """`make_chunk`'s chunk laid out in a WireBuffer, as a rollout ships it."""
+    from ..fabric import WireBuffer
+
+    return WireBuffer(make_chunk(SOURCE, target_bytes), wide=WIDE)
+
+
+def payload_size(kind: str, target_bytes: int) -> int:
+    """Bytes per message of a throughput kind: the encoded chunk for "encode", the wire
+    buffer's bytes for every other kind (raw sends those very bytes)."""
     from ..fabric import encode
 
-    for target in (64 * KIB, MIB):
-        payload = encode(make_chunk(SOURCE, target))
-        if len(payload) == size:
-            return payload
-    return os.urandom(size)
+    if kind == "encode":
+        return len(encode(make_chunk(SOURCE, target_bytes)))
+    return wire_chunk(target_bytes).nbytes
 
 
 def _cpu_s() -> float:
@@ -229,7 +239,7 @@ def _throughput_sub(kind: str, port: int, n: int, rounds: int, secret: bytes, re
     stop = threading.Event()
     consumer = None
     try:
-        if kind == "fabric":
+        if kind in ("fabric", "encode"):
             fabric.on_traj(TrajectoryChunk, lambda _chunk: arrivals.hit())
         else:  # "inbox": a consumer thread takes every chunk from the bounded inbox
             inbox = fabric.subscribe_traj(maxsize=64, expect=TrajectoryChunk)
@@ -254,7 +264,7 @@ def _throughput_sub(kind: str, port: int, n: int, rounds: int, secret: bytes, re
         fabric.close()
 
 
-def _throughput_pub(kind: str, port: int, n: int, rounds: int, size: int, secret: bytes, routed: Any,
+def _throughput_pub(kind: str, port: int, n: int, rounds: int, target: int, secret: bytes, routed: Any,
                     go: Any, out: Any, timeout_s: float) -> None:
     """Sends `n` messages per round, each round when told; reports when each round started."""
     import zenoh
@@ -270,19 +280,28 @@ def _throughput_pub(kind: str, port: int, n: int, rounds: int, size: int, secret
         )
         # The very bytes the fabric side sends (real data, not a zero-filled buffer whose pages
         # all map the kernel's one zero page), from a prebuilt object: no encoding per message.
-        payload = _raw_payload(size)
+        payload = bytes(wire_chunk(target).buf)
 
         def send() -> None:
             pub.put(payload)
 
         probe_session, close = session, session.close
-    else:
+    elif kind == "encode":
         fabric = _open_fabric(SOURCE, secret, ctrl=plane_config(), data=conf)
-        chunk = make_chunk(SOURCE, size)
+        chunk = make_chunk(SOURCE, target)
 
         def send() -> None:
             fabric.publish_traj(chunk)
+    else:
+        fabric = _open_fabric(SOURCE, secret, ctrl=plane_config(), data=conf)
+        wb, seq = wire_chunk(target), iter(range(1 << 62))
 
+        def send() -> None:
+            # As a rollout ships a chunk: its arrays were filled in place, step by step.
+            wb.seal(seq=next(seq), policy_version=1, created_ns=time.time_ns())
+            fabric.publish_traj(wb)
+
+    if kind != "raw":
         probe_session, close = fabric.data, fabric.close
     try:
         _probe_until_routed(probe_session, routed, timeout_s)
@@ -299,13 +318,16 @@ def _throughput_pub(kind: str, port: int, n: int, rounds: int, size: int, secret
 
 #: what each side of a throughput round does per message (also written into the JSON)
 DOES = {
-    "raw": ("publisher: Publisher.put of one prebuilt bytes payload (the fabric side's encoded chunk), BLOCK "
+    "raw": ("publisher: Publisher.put of one prebuilt bytes payload (the fabric side's wire chunk), BLOCK "
             "congestion control, no encoding; subscriber: callback on Zenoh's receive thread copies the payload out as Python bytes "
             "(ZBytes.to_bytes) and counts it"),
-    "fabric": ("publisher: Fabric.publish_traj (validate and encode the TrajectoryChunk into the publisher's reused "
-               "buffer, BLOCK put, accounting); subscriber: Fabric.on_traj, on Zenoh's receive thread: copies the "
+    "fabric": ("publisher: as a rollout ships a chunk whose arrays it filled in place: WireBuffer.seal (pack and "
+               "range-check seq, policy_version, created_ns) and Fabric.publish_traj of the WireBuffer (BLOCK put of its "
+               "bytes, accounting); subscriber: Fabric.on_traj, on Zenoh's receive thread: copies the "
                "payload out as Python bytes, accounts, decodes and validates it zero-copy into a TrajectoryChunk and "
                "calls the handler, which counts it"),
+    "encode": ("publisher: Fabric.publish_traj of a TrajectoryChunk (validate and encode it into the publisher's "
+               "reused buffer, BLOCK put, accounting); subscriber: as for fabric"),
     "inbox": ("publisher: as for fabric; subscriber: Fabric.subscribe_traj, on Zenoh's receive thread: copies, "
               "accounts, decodes and validates as for fabric, then hands the chunk to the bounded inbox; a consumer "
               "thread takes every chunk from the inbox (one thread wake-up per chunk)"),
@@ -315,13 +337,13 @@ DOES = {
 class _Pair:
     """A subscriber and a publisher process of one kind ("raw" or "fabric"), driven round by round."""
 
-    def __init__(self, ctx: Any, kind: str, n: int, size: int, cfg: BenchConfig, secret: bytes) -> None:
-        self.kind, self.n, self.size, self.cfg = kind, n, size, cfg
+    def __init__(self, ctx: Any, kind: str, n: int, target: int, cfg: BenchConfig, secret: bytes) -> None:
+        self.kind, self.n, self.size, self.cfg = kind, n, payload_size(kind, target), cfg
         port = free_port()
         self.ready, self.routed, self.out, self.go = ctx.Event(), ctx.Event(), ctx.Queue(), ctx.Queue()
         t = cfg.phase_timeout_s
         self.sub = ctx.Process(target=_throughput_sub, args=(kind, port, n, cfg.rounds, secret, self.ready, self.routed, self.out, t))
-        self.pub = ctx.Process(target=_throughput_pub, args=(kind, port, n, cfg.rounds, size, secret, self.routed, self.go, self.out, t))
+        self.pub = ctx.Process(target=_throughput_pub, args=(kind, port, n, cfg.rounds, target, secret, self.routed, self.go, self.out, t))
 
     def start(self, pids: list[int]) -> None:
         self.sub.start()
@@ -349,33 +371,33 @@ class _Pair:
         _stop([self.sub, self.pub])
 
 
-KINDS = ("raw", "fabric", "inbox")
+KINDS = ("raw", "fabric", "encode", "inbox")
 
 
-def _measure_throughput(ctx: Any, n: int, size: int, cfg: BenchConfig, secret: bytes, pids: list[int]) -> dict[str, Any]:
+def _measure_throughput(ctx: Any, n: int, target: int, cfg: BenchConfig, secret: bytes, pids: list[int]) -> dict[str, Any]:
     """Raw and fabric rounds alternate (the order rotates each round) so that a change of
     background load hits every kind alike; each ratio is the median of the per-round ratios."""
-    pairs = {kind: _Pair(ctx, kind, n, size, cfg, secret) for kind in KINDS}
+    pairs = {kind: _Pair(ctx, kind, n, target, cfg, secret) for kind in KINDS}
     try:
         for pair in pairs.values():
             pair.start(pids)
         rates: dict[str, list[float]] = {k: [] for k in KINDS}
         cpu: dict[str, list[tuple[float, float]]] = {k: [] for k in KINDS}
         for r in range(cfg.rounds):
-            for kind in KINDS[r % 3:] + KINDS[:r % 3]:
+            for kind in KINDS[r % len(KINDS):] + KINDS[:r % len(KINDS)]:
                 rate, pub_us, sub_us = pairs[kind].round(r)
                 rates[kind].append(rate)
                 cpu[kind].append((pub_us, sub_us))
     finally:
         for pair in pairs.values():
             pair.stop()
-    out: dict[str, Any] = {"payload_bytes": size, "messages": n}
+    out: dict[str, Any] = {"payload_bytes": pairs["fabric"].size, "messages": n}
     for kind, values in rates.items():
         bps = statistics.median(values)
-        out[kind] = {"bytes_per_s": bps, "msgs_per_s": bps / size, "rounds_bytes_per_s": values, "does": DOES[kind],
+        out[kind] = {"payload_bytes": pairs[kind].size, "bytes_per_s": bps, "msgs_per_s": bps / pairs[kind].size, "rounds_bytes_per_s": values, "does": DOES[kind],
                      "pub_cpu_us_per_msg": statistics.median(c[0] for c in cpu[kind]),
                      "sub_cpu_us_per_msg": statistics.median(c[1] for c in cpu[kind])}
-    for kind, suffix in (("fabric", ""), ("inbox", "_inbox")):
+    for kind, suffix in (("fabric", ""), ("encode", "_encode"), ("inbox", "_inbox")):
         out["ratio" + suffix] = statistics.median(f / r for f, r in zip(rates[kind], rates["raw"]))
         # CPU per message (publisher + subscriber), raw ÷ fabric: less sensitive than bytes/s to
         # other load on the machine, it says how much more work a chunk costs through the fabric.
@@ -735,13 +757,14 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
     doc: dict[str, Any] = {"config": asdict(cfg), "quick": quick, "shared_memory": False, "cpus": os.cpu_count()}
     throughput: dict[str, Any] = {}
     for label, target, n in (("64k", 64 * KIB, cfg.n_64k), ("1m", MIB, cfg.n_1m)):
-        size = len(encode(make_chunk(SOURCE, target)))  # the raw baseline sends exactly as many bytes
+        size = payload_size("fabric", target)  # the raw baseline sends these very bytes
         progress(f"throughput {label}: {cfg.rounds} rounds x {n} messages of {size} bytes, raw and fabric")
-        entry = _measure_throughput(ctx, n, size, cfg, secret, pids)
+        entry = _measure_throughput(ctx, n, target, cfg, secret, pids)
         throughput[label] = entry
         doc[f"throughput_ratio_{label}"] = entry["ratio"]
         doc[f"cpu_ratio_{label}"] = entry["cpu_ratio"]
         doc[f"throughput_ratio_{label}_inbox"] = entry["ratio_inbox"]
+        doc[f"throughput_ratio_{label}_encode"] = entry["ratio_encode"]
     layouts = [LOOPBACK]
     why_not = links_available() if links else "not asked for (--no-links)"
     doc["links_layout"] = "used" if why_not is None else f"skipped: {why_not}"
@@ -775,7 +798,8 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
 
 
 HEADLINE_KEYS = (
-    "throughput_ratio_64k", "throughput_ratio_1m", "throughput_ratio_64k_inbox", "throughput_ratio_1m_inbox",
+    "throughput_ratio_64k", "throughput_ratio_1m", "throughput_ratio_64k_encode", "throughput_ratio_1m_encode",
+    "throughput_ratio_64k_inbox", "throughput_ratio_1m_inbox",
     "ctrl_rtt_p99_idle_ms", "ctrl_rtt_p99_loaded_ms",
     "ctrl_rtt_p99_loaded_shared_ms", "loaded_over_idle", "shared_over_separate",
 )
@@ -783,17 +807,20 @@ HEADLINE_KEYS = (
 
 def format_table(doc: dict[str, Any]) -> str:
     """A short human summary of `run_bench`'s document."""
-    lines = [f"{'throughput':<12}{'payload':>10}{'raw MB/s':>11}{'fabric MB/s':>13}{'ratio':>7}{'inbox MB/s':>12}"
-             f"{'ratio':>7}{'CPU us/msg pub+sub: raw':>26}{'fabric':>10}{'inbox':>10}"]
+    lines = [f"{'throughput':<11}{'payload':>8}{'raw MB/s':>9}{'fabric':>8}{'ratio':>6}{'encode':>8}{'ratio':>6}"
+             f"{'inbox':>7}{'ratio':>6}{'CPU us/msg pub+sub: raw':>25}{'fabric':>9}{'encode':>9}{'inbox':>9}"]
     for label, e in doc["throughput"].items():
         cpu = {k: f"{e[k]['pub_cpu_us_per_msg']:.0f}+{e[k]['sub_cpu_us_per_msg']:.0f}" for k in KINDS}
         lines.append(
-            f"{label:<12}{e['payload_bytes']:>10}{e['raw']['bytes_per_s'] / 1e6:>11.0f}"
-            f"{e['fabric']['bytes_per_s'] / 1e6:>13.0f}{e['ratio']:>7.2f}{e['inbox']['bytes_per_s'] / 1e6:>12.0f}"
-            f"{e['ratio_inbox']:>7.2f}{cpu['raw']:>26}{cpu['fabric']:>10}{cpu['inbox']:>10}"
+            f"{label:<11}{e['payload_bytes']:>8}{e['raw']['bytes_per_s'] / 1e6:>9.0f}"
+            f"{e['fabric']['bytes_per_s'] / 1e6:>8.0f}{e['ratio']:>6.2f}"
+            f"{e['encode']['bytes_per_s'] / 1e6:>8.0f}{e['ratio_encode']:>6.2f}"
+            f"{e['inbox']['bytes_per_s'] / 1e6:>7.0f}{e['ratio_inbox']:>6.2f}"
+            f"{cpu['raw']:>25}{cpu['fabric']:>9}{cpu['encode']:>9}{cpu['inbox']:>9}"
         )
-    lines.append("fabric: Fabric.on_traj (decoded chunks to a function on the receive thread, as raw's callback); "
-                 "inbox: Fabric.subscribe_traj and a consumer thread")
+    lines.append("fabric: a rollout's WireBuffer (arrays filled in place) to Fabric.on_traj (decoded chunks to a function "
+                 "on the receive thread, as raw's callback); encode: a TrajectoryChunk encoded per message, to "
+                 "Fabric.on_traj; inbox: WireBuffer to Fabric.subscribe_traj and a consumer thread")
     names = {"idle": "idle", "loaded": "flooded, own ctrl session", "loaded_shared": "flooded, shared session"}
     for layout, entry in doc["ctrl_rtt_layouts"].items():
         lines.append("")

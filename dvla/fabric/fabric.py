@@ -29,6 +29,7 @@ from .codec import CodecError, decode, encode, encode_into
 from .keys import KeySpace
 from .signing import SignatureError, Signer, Verifier
 from .tokenqueue import TokenQueue
+from .wirebuf import WireBuffer
 
 log = logging.getLogger("dvla.fabric")
 
@@ -154,6 +155,7 @@ class Fabric:
         self._pub_lock = threading.Lock()
         self._traj_buf = bytearray()
         self._traj_lock = threading.Lock()
+        self._traj_pub: Any = None  # this process's trajectory publisher, once declared
         self.ctrl = _open_retrying(ctrl_conf, open_timeout_s, "ctrl")
         try:
             self.data = _open_retrying(data_conf, open_timeout_s, "data") if data_conf is not None else None
@@ -164,13 +166,27 @@ class Fabric:
 
     # ------------------------------------------------------------------ data plane
     def publish_traj(self, chunk: Any) -> int:
-        """Encode and send a TrajectoryChunk on the data plane; returns bytes sent."""
-        pub = self._publisher(DATA, self.keys.traj(self.name))
-        # One reused buffer per data publisher: no fresh allocation per chunk (a new 1 MiB
-        # object per message costs page faults on every put). Zenoh copies it during `put`.
-        with self._traj_lock:
-            n = encode_into(chunk, self._traj_buf)
-            pub.put(self._traj_buf)
+        """Send a TrajectoryChunk on the data plane; returns bytes sent.
+
+        ``chunk`` is a :class:`~dvla.fabric.TrajectoryChunk` (encoded here) or a sealed
+        :class:`~dvla.fabric.WireBuffer` holding one (sent as it is: no encoding, no copy of its
+        arrays). Either way Zenoh copies the bytes during the put, so the caller may reuse the
+        buffer as soon as this returns.
+        """
+        pub = self._traj_pub
+        if pub is None:
+            pub = self._traj_pub = self._publisher(DATA, self.keys.traj(self.name))
+        if type(chunk) is WireBuffer:
+            if chunk.msg.rollout != self.name:
+                raise ValueError(f"{self.name}: wire buffer of rollout {chunk.msg.rollout!r} (receivers reject it)")
+            n = chunk.nbytes
+            pub.put(chunk.buf)
+        else:
+            # One reused buffer per data publisher: no fresh allocation per chunk (a new 1 MiB
+            # object per message costs page faults on every put). Zenoh copies it during `put`.
+            with self._traj_lock:
+                n = encode_into(chunk, self._traj_buf)
+                pub.put(self._traj_buf)
         self.accounting.sent(DATA, n, self.name)
         return n
 

@@ -2,10 +2,12 @@
 
 Lanes (and what flows between them):
 - ``sim``:   steps env group A while ``infer`` computes actions for group B (double-buffered
-             sampling); appends each transition to its group's chunk buffer.
+             sampling); writes each transition into its group's chunk, a wire buffer taken
+             from the group's preallocated pool (chunkpool.py).
 - ``infer``: policy forward for one group's observations; swaps in new weights between two
              batches, never during one.
-- ``ship``:  encodes finished chunks and publishes them on the data plane.
+- ``ship``:  publishes finished chunks on the data plane (already in wire format: no encoding)
+             and gives their buffers back to the pool.
 - ``sync``:  receives weight versions into the staging pool (see weightsync.py).
 
 In ``sync`` mode (the lock-step baseline) the sim lane stops after its share of one learner
@@ -26,13 +28,13 @@ import numpy as np
 import torch
 
 from ..config import RoleConfig
-from ..fabric import Fabric
-from ..fabric.messages import TrajectoryChunk
+from ..fabric import Fabric, WireBuffer
 from ..learn import EnvGroup, make_policy
 from ..learn.policies import sample_actions
 from ..learn.envs import obs_as_dict, obs_to_torch
 from ..learn.grpo import grpo_envs
 from ..replication import ParamLayout, bind_flat, unflatten_into
+from .chunkpool import ChunkPool, chunk_template
 from .counters import INCARNATION_SHIFT, CounterFile
 from .runtime import main
 from .swimlane import LaneContext, LatencyHistogram, Swimlane
@@ -54,7 +56,10 @@ class _Group:
     obs: np.ndarray
     t: int = 0
     versions: list[int] = field(default_factory=list)
-    buf: dict[str, np.ndarray] = field(default_factory=dict)
+    #: the chunk being filled (a wire buffer of `pool`) and its arrays by field name
+    wb: Any = None
+    pool: Any = None
+    buf: dict[str, Any] = field(default_factory=dict)
 
 
 class PolicyPool:
@@ -151,7 +156,9 @@ class Rollout:
         self.pool = PolicyPool(lambda: make_policy(task.policy, self.obs_spec, self.act_dim, **task.policy_kwargs).eval())
         self.T = task.chunk_steps
         for g in self.groups:
-            g.buf = self._alloc(g.envs.n)
+            template = chunk_template(cfg.name, self.T, g.envs.n, self.obs_spec, self.act_dim)
+            g.pool = ChunkPool(template, SHIP_QUEUE + 2)
+            self._bind(g, g.pool.take(threading.Event()))
         # Counters that survive a kill -9 (counters.py); the incarnation goes in seq's high bits.
         self.counters = CounterFile(cfg.run_dir, cfg.name)
         self.seq = self.counters.incarnation << INCARNATION_SHIFT
@@ -182,25 +189,20 @@ class Rollout:
     def policy_version(self) -> int:
         return self.pool.active_version
 
-    def _alloc(self, n: int) -> dict[str, np.ndarray]:
-        T, A = self.T, self.act_dim
-        return {
-            # observations keep their dtype (uint8 images) all the way to the wire
-            "obs": {k: np.zeros((T, n, *s.shape), s.dtype) for k, s in self.obs_spec.items()},
-            "actions": np.zeros((T, n, A), np.float32),
-            "logprobs": np.zeros((T, n), np.float32),
-            "rewards": np.zeros((T, n), np.float32),
-            "terminated": np.zeros((T, n), bool),
-            "truncated": np.zeros((T, n), bool),
-            "success": np.zeros((T, n), bool),
-            "final_obs": {k: np.zeros((T, n, *s.shape), s.dtype) for k, s in self.obs_spec.items()},
-        }
+    @staticmethod
+    def _bind(g: _Group, wb: Any) -> None:
+        """Make `wb` the chunk that group `g` fills next."""
+        m = wb.msg
+        g.wb = wb
+        g.buf = {"obs": m.obs, "actions": m.actions, "logprobs": m.logprobs, "rewards": m.rewards,
+                 "terminated": m.terminated, "truncated": m.truncated, "success": m.success,
+                 "final_obs": m.final_obs}
 
     # -- wiring -------------------------------------------------------------------------------
     def build(self, sl: Swimlane) -> None:
         self.to_infer = sl.queue("obs", len(self.groups))  # group ids whose obs await actions
         self.to_sim = sl.queue("actions", len(self.groups))  # (group id, actions, logprobs)
-        self.to_ship = sl.queue("chunks", SHIP_QUEUE)  # finished TrajectoryChunks
+        self.to_ship = sl.queue("chunks", SHIP_QUEUE)  # (pool, sealed wire buffer) of finished chunks
         self._count()
         self.weights = WeightSync(  # verified versions from the parent (ancestors as fallback)
             self.fabric, self.pool.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version
@@ -330,31 +332,23 @@ class Rollout:
             self.successes += int((step.episode_done & step.success).sum())
 
     def _finish_chunk(self, g: _Group, ctx: LaneContext) -> None:
-        b = g.buf
-        chunk = TrajectoryChunk(
-            rollout=self.cfg.name,
-            seq=self.seq,
-            policy_version=min(g.versions),
-            env_steps=self.T * g.envs.n,
-            obs=b["obs"],
-            actions=b["actions"],
-            logprobs=b["logprobs"],
-            rewards=b["rewards"],
-            terminated=b["terminated"],
-            truncated=b["truncated"],
-            success=b["success"],
-            next_obs={k: v.copy() for k, v in obs_as_dict(g.obs).items()},
-            final_obs=b["final_obs"],
-            created_ns=time.time_ns(),
-        )
+        wb = g.wb
+        for k, v in obs_as_dict(g.obs).items():
+            wb.msg.next_obs[k][...] = v
+        wb.seal(seq=self.seq, policy_version=min(g.versions), created_ns=time.time_ns())
         self.seq += 1
         g.t = 0
         g.versions = []
-        g.buf = self._alloc(g.envs.n)  # the shipped arrays belong to the chunk until encoded
         # Produced = handed to the ship lane; a chunk finished while stopping never is.
-        if self.to_ship.put(chunk, ctx.stop, stats=ctx.stats):
+        if self.to_ship.put((g.pool, wb), ctx.stop, stats=ctx.stats):
             self.chunks_produced += 1
             self._count()
+        else:
+            g.pool.give(wb)
+        nxt = g.pool.take(ctx.stop)  # never waits with a full-size pool (chunkpool.py)
+        if nxt is None:
+            return  # stopping
+        self._bind(g, nxt)
         if self.sync_mode:
             self._lockstep_wait(g, ctx)
 
@@ -390,8 +384,12 @@ class Rollout:
         while (chunk := self.to_ship.get_nowait()) is not None:
             self._publish(chunk)
 
-    def _publish(self, chunk: TrajectoryChunk) -> None:
-        self.bytes_shipped += self.fabric.publish_traj(chunk)
+    def _publish(self, item: tuple[ChunkPool, WireBuffer]) -> None:
+        pool, wb = item
+        try:
+            self.bytes_shipped += self.fabric.publish_traj(wb)  # Zenoh has copied the bytes on return
+        finally:
+            pool.give(wb)
         self.chunks_shipped += 1
         self._count()
 

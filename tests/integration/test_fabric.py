@@ -238,6 +238,43 @@ def test_traj_chunks_round_trip_and_accounting_identity(pair: Pair) -> None:
     assert rollout.accounting.get(DATA, "sent_bytes") == actor.accounting.get(DATA, "received_bytes")
 
 
+@pytest.mark.timeout(30)
+def test_wire_buffers_filled_in_place_arrive_as_chunks(pair: Pair) -> None:
+    """A rollout's path: arrays written into a reused WireBuffer, sealed, published as bytes."""
+    from dvla.fabric import WireBuffer
+
+    actor, rollout = pair.actor, pair.rollout
+    inbox = actor.subscribe_traj(maxsize=64, expect=TrajectoryChunk)
+    wait_route(actor.data, rollout.data)
+    template = make_chunk(rollout.name, 0, rgb=True)
+    wb = WireBuffer(template, wide=("seq", "policy_version", "created_ns"))
+    sent_actions = []
+    for i in range(40):
+        wb.msg.actions[...] = i  # the buffer is reused: each chunk overwrites the last
+        wb.msg.obs["rgb"][0, 0, 0, 0, 0] = i
+        wb.seal(seq=i, policy_version=i // 4, created_ns=time.time_ns())
+        assert rollout.publish_traj(wb) == wb.nbytes
+        sent_actions.append(float(i))
+    got: list[TrajectoryChunk] = []
+    deadline = time.monotonic() + 10
+    while len(got) < 40 and time.monotonic() < deadline:
+        c = inbox.get(timeout=0.5)
+        if c is not None:
+            got.append(c)
+    assert [c.seq for c in got] == list(range(40))
+    assert [float(c.actions[0, 0, 0]) for c in got] == sent_actions
+    assert [c.policy_version for c in got] == [i // 4 for i in range(40)]
+    assert all(int(c.obs["rgb"][0, 0, 0, 0, 0]) == c.seq for c in got)
+    counts = data_identity(rollout, actor, consumed=len(got), queued=inbox.depth())
+    assert counts["sent"] == counts["received"] == counts["consumed"] == 40, counts
+    assert rollout.accounting.get(DATA, "sent_bytes") == 40 * wb.nbytes == actor.accounting.get(DATA, "received_bytes")
+    # A buffer laid out for another rollout is refused before it is sent (receivers would reject it).
+    other = WireBuffer(make_chunk("rollout-9", 0), wide=("seq",))
+    with pytest.raises(ValueError, match="rollout-9"):
+        rollout.publish_traj(other)
+    assert rollout.accounting.get(DATA, "sent") == 40
+
+
 @pytest.mark.timeout(40)
 @pytest.mark.parametrize("block_s", [1.0, 0.01], ids=["blocks", "drops"])
 def test_slow_consumer_backpressure_loses_nothing_silently(pair: Pair, block_s: float) -> None:
