@@ -18,6 +18,8 @@ class Accounting:
         self._plane: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
         # plane -> peer -> counter name -> value
         self._peer: dict[str, dict[str, dict[str, int]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(int)))
+        # (plane, peer) -> (plane counters, peer counters): the per-message fast path
+        self._pairs: dict[tuple[str, str | None], tuple[dict[str, int], dict[str, int] | None]] = {}
 
     def add(self, plane: str, counter: str, peer: str | None = None, n: int = 1, nbytes: int = 0) -> None:
         with self._lock:
@@ -31,11 +33,31 @@ class Accounting:
                 if nbytes:
                     q[counter + "_bytes"] += nbytes
 
+    def _counters(self, plane: str, peer: str | None) -> tuple[dict[str, int], dict[str, int] | None]:
+        """The counter dicts of a plane and of one of its peers (created on first use)."""
+        with self._lock:
+            pair = (self._plane[plane], None if peer is None else self._peer[plane][peer])
+        self._pairs[(plane, peer)] = pair
+        return pair
+
+    def _count(self, counter: str, counter_bytes: str, plane: str, nbytes: int, peer: str | None) -> None:
+        # The per-message path (every chunk on the data plane): the counter dicts come from one
+        # lookup, not four nested ones, and the byte counter's name is not built per call.
+        p, q = self._pairs.get((plane, peer)) or self._counters(plane, peer)
+        with self._lock:
+            p[counter] += 1
+            if nbytes:
+                p[counter_bytes] += nbytes
+            if q is not None:
+                q[counter] += 1
+                if nbytes:
+                    q[counter_bytes] += nbytes
+
     def sent(self, plane: str, nbytes: int, peer: str | None = None) -> None:
-        self.add(plane, "sent", peer, 1, nbytes)
+        self._count("sent", "sent_bytes", plane, nbytes, peer)
 
     def received(self, plane: str, nbytes: int, peer: str | None = None) -> None:
-        self.add(plane, "received", peer, 1, nbytes)
+        self._count("received", "received_bytes", plane, nbytes, peer)
 
     def rejected(self, plane: str, reason: str, peer: str | None = None) -> None:
         """A message that failed decoding or verification (never applied)."""
