@@ -33,6 +33,11 @@ import numpy as np
 
 log = logging.getLogger("dvla.fabric")
 
+try:  # the span check and array views in C (dvla/fabric/_views.c), when it could be built
+    from ._views import views as _c_views
+except ImportError:  # no compiler at install time: the same checks in Python
+    _c_views = None
+
 _STRUCTS = {
     0xCA: struct.Struct(">f"), 0xCB: struct.Struct(">d"),
     0xCC: struct.Struct(">B"), 0xCD: struct.Struct(">H"), 0xCE: struct.Struct(">I"), 0xCF: struct.Struct(">Q"),
@@ -74,19 +79,34 @@ class Layout:
 
 
 def _compile(spans: list[tuple[int, bytes]], slots: list[tuple], cls: type,
-             checkers: dict[str, Callable[[Any, Any], Any]], dict_fields: tuple[str, ...]) -> Callable[[Any], Any]:
+             checkers: dict[str, Callable[[Any, Any], Any]], dict_fields: tuple[str, ...],
+             use_c: bool | None = None) -> Callable[[Any], Any]:
     ns: dict[str, Any] = {"cls": cls, "nd": np.ndarray, "UnicodeDecodeError": UnicodeDecodeError}
     lines = ["def build(data):"]
-    for i, (start, const) in enumerate(spans):
-        ns[f"c{i}"] = const
-        lines.append(f"    if data[{start}:{start + len(const)}] != c{i}: return None")
+    arrays = [(i, off, arg) for i, (kind, _n, _k, off, arg) in enumerate(slots) if kind == _ARRAY]
+    if (_c_views is not None if use_c is None else use_c) and arrays:
+        # One C call checks every span and builds every array view (dvla/fabric/_views.c).
+        ns["views"] = _c_views
+        ns["spans_t"] = tuple((start, bytes(const)) for start, const in spans)
+        ns["arrays_t"] = tuple((off, arg[1], tuple(arg[0])) for _i, off, arg in arrays)
+        lines.append("    vs = views(data, spans_t, arrays_t)")
+        lines.append("    if vs is None: return None")
+        lines.append("    " + ", ".join(f"v{i}" for i, _o, _a in arrays) + ", = vs")
+        in_c = {i for i, _o, _a in arrays}
+    else:
+        in_c = set()
+        for i, (start, const) in enumerate(spans):
+            ns[f"c{i}"] = const
+            lines.append(f"    if data[{start}:{start + len(const)}] != c{i}: return None")
     fields: dict[str, str] = {}
     dicts: dict[str, list[str]] = {name: [] for name in dict_fields}
     for i, (kind, name, key, off, arg) in enumerate(slots):
         if not name.isidentifier():
             raise _NotCacheable
         v = f"v{i}"
-        if kind == _ARRAY:
+        if i in in_c:
+            pass  # built by the C call above
+        elif kind == _ARRAY:
             ns[f"shape{i}"], ns[f"dt{i}"] = arg
             lines.append(f"    {v} = nd(shape{i}, dt{i}, data, {off})")
         elif kind == _SCALAR:

@@ -16,6 +16,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dvla.fabric import codec
+import dvla.fabric.layout as layout_mod
 from dvla.fabric.codec import LAYOUT_MIN_BYTES, LAYOUTS, WRITERS, CodecError, decode, encode, encode_into
 from dvla.fabric.messages import TrajectoryChunk
 
@@ -24,8 +25,13 @@ from tests.unit.test_codec import assert_same, make_traj
 FUZZ = settings(max_examples=150, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
 
 
-@pytest.fixture(autouse=True)
-def fresh_caches():
+@pytest.fixture(autouse=True, params=["c-views", "python-views"])
+def fresh_caches(request, monkeypatch):
+    """Every test runs twice: spans and array views by the C helper, and in Python."""
+    if request.param == "python-views":
+        monkeypatch.setattr(layout_mod, "_c_views", None)
+    elif layout_mod._c_views is None:
+        pytest.skip("dvla.fabric._views is not built here (test_the_c_helper_is_built says why)")
     LAYOUTS.clear()
     WRITERS.clear()
     yield
@@ -278,3 +284,58 @@ def test_encode_into_matches_encode_for_any_chunk(t, n, d, vision, variants):
             continue
         assert encode_into(msg, out) == len(wire) and bytes(out) == wire
         assert_bitwise_same(decode(bytes(out)), decode(wire, layouts=False))
+
+
+# --------------------------------------------------------------------------------------------
+# The C helper itself (dvla/fabric/_views.c)
+
+
+def test_the_c_helper_is_built_wherever_a_compiler_is():
+    import shutil
+    import sysconfig
+
+    if shutil.which(sysconfig.get_config_var("CC").split()[0] or "cc") is None:
+        pytest.skip("no C compiler: dvla runs the Python views")
+    from dvla.fabric import _views  # noqa: F401  (an ImportError here: the build skipped it)
+
+
+def _c():
+    views = pytest.importorskip("dvla.fabric._views").views
+    f4, u1 = np.dtype("<f4"), np.dtype("u1")
+    data = b"HEAD" + np.arange(6, dtype=f4).tobytes() + b"MID" + bytes([1, 2, 3])
+    spans = ((0, b"HEAD"), (28, b"MID"))
+    arrays = ((4, f4, (2, 3)), (31, u1, (3,)))
+    return views, data, spans, arrays
+
+
+def test_c_views_check_spans_and_view_the_arrays_without_copying():
+    views, data, spans, arrays = _c()
+    a, b = views(data, spans, arrays)
+    np.testing.assert_array_equal(a, np.arange(6, dtype="<f4").reshape(2, 3))
+    np.testing.assert_array_equal(b, [1, 2, 3])
+    assert a.base is data and not a.flags.writeable and a.flags.c_contiguous
+    assert views(data[:0] + b"HEAX" + data[4:], spans, arrays) is None  # a span differs
+    assert views(data[:30], spans, arrays) is None  # a span runs past the end
+    wb = bytearray(data)
+    a, _b = views(wb, spans, arrays)
+    a[0, 0] = 42.0  # writable views of a writable buffer
+    assert np.frombuffer(wb, "<f4", 1, 4)[0] == 42.0
+    with pytest.raises(BufferError):
+        wb.extend(b"x")  # pinned while a view lives
+    del a, _b
+    wb.extend(b"x")
+
+
+@pytest.mark.parametrize("spans, arrays, error", [
+    (((0, "HEAD"),), (), TypeError),
+    (((0,),), (), TypeError),
+    ((), ((4, "f4", (2, 3)),), TypeError),
+    ((), ((30, np.dtype("<f4"), (2, 3)),), ValueError),  # beyond the end
+    ((), ((-1, np.dtype("u1"), (1,)),), ValueError),
+    ((), ((0, np.dtype("u1"), (-1,)),), ValueError),
+    ((), ((0, np.dtype("u1"), (2**62, 2**62)),), ValueError),  # size overflows
+])
+def test_c_views_refuse_bad_specs_with_an_error_not_a_crash(spans, arrays, error):
+    views, data, _s, _a = _c()
+    with pytest.raises(error):
+        views(data, spans, arrays)
