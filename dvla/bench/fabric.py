@@ -58,11 +58,11 @@ class BenchConfig:
     """Counts of one bench run (`quick` shrinks them to check the machinery, not the speed)."""
 
     #: messages per throughput round, 64 KiB chunks
-    n_64k: int = 3000
+    n_64k: int = 6000
     #: messages per throughput round, 1 MiB chunks
     n_1m: int = 300
     #: throughput rounds per configuration (the median is reported)
-    rounds: int = 5
+    rounds: int = 9
     #: RTT samples per phase
     rtt_samples: int = 1000
     #: idle and loaded samples are taken in this many alternating blocks, so that a change of

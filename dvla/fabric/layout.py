@@ -33,10 +33,10 @@ import numpy as np
 
 log = logging.getLogger("dvla.fabric")
 
-try:  # the span check and array views in C (dvla/fabric/_views.c), when it could be built
-    from ._views import views as _c_views
-except ImportError:  # no compiler at install time: the same checks in Python
-    _c_views = None
+try:  # the per-message work in C (dvla/fabric/_views.c), when it could be built
+    from . import _views as _C
+except ImportError:  # no compiler at install time: the same steps in Python
+    _C = None
 
 _STRUCTS = {
     0xCA: struct.Struct(">f"), 0xCB: struct.Struct(">d"),
@@ -83,10 +83,30 @@ def _compile(spans: list[tuple[int, bytes]], slots: list[tuple], cls: type,
              use_c: bool | None = None) -> Callable[[Any], Any]:
     ns: dict[str, Any] = {"cls": cls, "nd": np.ndarray, "UnicodeDecodeError": UnicodeDecodeError}
     lines = ["def build(data):"]
+    c = _C if use_c is None or use_c else None
+    if c is not None and _plain_fields(cls) == {name for _k, name, _key, _o, _a in slots} and not any(
+        key is None and name in checkers and not _implied(checkers[name], kind, arg)
+        for kind, name, key, _o, arg in slots
+    ):
+        # The whole message in one C call: spans, every slot, the instance (dvla/fabric/_views.c).
+        # Only when no field needs a checker beyond its wire type and __init__ only stores.
+        ns["build_c"], ns["new"] = c.build, object.__new__
+        ns["spans_t"] = tuple((start, bytes(const)) for start, const in spans)
+        ns["slots_t"] = tuple(
+            (kind, name, key, off, (off, arg[1], tuple(arg[0])) if kind == _ARRAY
+             else arg.format[1:] if kind == _SCALAR else arg)
+            for kind, name, key, off, arg in slots
+        )
+        lines.append("    msg = build_c(data, new, cls, spans_t, slots_t)")
+        lines.append("    if msg is None: return None")
+        lines.append("    msg.validate_values()")
+        lines.append("    return msg")
+        exec(compile("\n".join(lines), f"<dvla layout of {cls.__name__}>", "exec"), ns)
+        return ns["build"]
     arrays = [(i, off, arg) for i, (kind, _n, _k, off, arg) in enumerate(slots) if kind == _ARRAY]
-    if (_c_views is not None if use_c is None else use_c) and arrays:
+    if c is not None and arrays:
         # One C call checks every span and builds every array view (dvla/fabric/_views.c).
-        ns["views"] = _c_views
+        ns["views"] = c.views
         ns["spans_t"] = tuple((start, bytes(const)) for start, const in spans)
         ns["arrays_t"] = tuple((off, arg[1], tuple(arg[0])) for _i, off, arg in arrays)
         lines.append("    vs = views(data, spans_t, arrays_t)")

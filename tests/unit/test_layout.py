@@ -29,8 +29,8 @@ FUZZ = settings(max_examples=150, deadline=None, database=None, suppress_health_
 def fresh_caches(request, monkeypatch):
     """Every test runs twice: spans and array views by the C helper, and in Python."""
     if request.param == "python-views":
-        monkeypatch.setattr(layout_mod, "_c_views", None)
-    elif layout_mod._c_views is None:
+        monkeypatch.setattr(layout_mod, "_C", None)
+    elif layout_mod._C is None:
         pytest.skip("dvla.fabric._views is not built here (test_the_c_helper_is_built says why)")
     LAYOUTS.clear()
     WRITERS.clear()
