@@ -1,12 +1,17 @@
-"""Build of dvla's one optional C extension (dvla.fabric._views: the decoder's per-message span
-check and array views). Everything else is in pyproject.toml. Without a C compiler the
-extension is skipped and dvla runs the same decoder in Python."""
+"""Build of dvla's one optional C extension (dvla.fabric._views: the decoder's per-message fast
+path). Everything else is in pyproject.toml. Without a C compiler, or without numpy in the
+build environment (``--no-build-isolation``), the extension is skipped and dvla runs the same
+decoder in Python."""
 
-import numpy
 from setuptools import Extension, setup
 
+try:
+    import numpy
+except ImportError:  # only possible without build isolation: pyproject.toml requires numpy
+    numpy = None
+
 setup(
-    ext_modules=[
+    ext_modules=[] if numpy is None else [
         Extension(
             "dvla.fabric._views",
             ["dvla/fabric/_views.c"],
