@@ -56,9 +56,10 @@ class _Group:
     obs: np.ndarray
     t: int = 0
     versions: list[int] = field(default_factory=list)
-    #: the chunk being filled (a wire buffer of `pool`) and its arrays by field name
-    wb: Any = None
-    pool: Any = None
+    #: this group's preallocated chunk buffers (its trajectory slot pool)
+    chunks: ChunkPool | None = None
+    #: the chunk being filled (a wire buffer of `chunks`) and its arrays by field name
+    wb: WireBuffer | None = None
     buf: dict[str, Any] = field(default_factory=dict)
 
 
@@ -157,8 +158,8 @@ class Rollout:
         self.T = task.chunk_steps
         for g in self.groups:
             template = chunk_template(cfg.name, self.T, g.envs.n, self.obs_spec, self.act_dim)
-            g.pool = ChunkPool(template, SHIP_QUEUE + 2)
-            self._bind(g, g.pool.take(threading.Event()))
+            g.chunks = ChunkPool(template, SHIP_QUEUE + 2)
+            self._bind(g, g.chunks.take(threading.Event()))
         # Counters that survive a kill -9 (counters.py); the incarnation goes in seq's high bits.
         self.counters = CounterFile(cfg.run_dir, cfg.name)
         self.seq = self.counters.incarnation << INCARNATION_SHIFT
@@ -190,7 +191,7 @@ class Rollout:
         return self.pool.active_version
 
     @staticmethod
-    def _bind(g: _Group, wb: Any) -> None:
+    def _bind(g: _Group, wb: WireBuffer) -> None:
         """Make `wb` the chunk that group `g` fills next."""
         m = wb.msg
         g.wb = wb
@@ -340,12 +341,12 @@ class Rollout:
         g.t = 0
         g.versions = []
         # Produced = handed to the ship lane; a chunk finished while stopping never is.
-        if self.to_ship.put((g.pool, wb), ctx.stop, stats=ctx.stats):
+        if self.to_ship.put((g.chunks, wb), ctx.stop, stats=ctx.stats):
             self.chunks_produced += 1
             self._count()
         else:
-            g.pool.give(wb)
-        nxt = g.pool.take(ctx.stop)  # never waits with a full-size pool (chunkpool.py)
+            g.chunks.give(wb)
+        nxt = g.chunks.take(ctx.stop)  # never waits with a full-size pool (chunkpool.py)
         if nxt is None:
             return  # stopping
         self._bind(g, nxt)
@@ -385,11 +386,11 @@ class Rollout:
             self._publish(chunk)
 
     def _publish(self, item: tuple[ChunkPool, WireBuffer]) -> None:
-        pool, wb = item
+        chunks, wb = item
         try:
             self.bytes_shipped += self.fabric.publish_traj(wb)  # Zenoh has copied the bytes on return
         finally:
-            pool.give(wb)
+            chunks.give(wb)
         self.chunks_shipped += 1
         self._count()
 
