@@ -37,6 +37,21 @@
 #define PyFloat_Unpack8 _PyFloat_Unpack8
 #endif
 
+/* The buffer of `data`, writable when it allows that (bytearray), else read-only (bytes). */
+static int open_data(PyObject *data, Py_buffer *view, int *writable) {
+    *writable = 1;
+    if (PyObject_GetBuffer(data, view, PyBUF_WRITABLE) == 0) return 0;
+    PyErr_Clear();
+    *writable = 0;
+    return PyObject_GetBuffer(data, view, PyBUF_SIMPLE);
+}
+
+/* The base object of views of `data` (new reference): the object itself when immutable, a
+ * memoryview (an export that pins the buffer) when writable. */
+static PyObject *view_base(PyObject *data, int writable) {
+    return writable ? PyMemoryView_FromObject(data) : Py_NewRef(data);
+}
+
 static int spans_match(const char *buf, Py_ssize_t len, PyObject *spans) {
     Py_ssize_t ns = PyTuple_GET_SIZE(spans);
     for (Py_ssize_t i = 0; i < ns; i++) {
@@ -101,12 +116,8 @@ static PyObject *views(PyObject *self, PyObject *args) {
     PyObject *data, *spans, *arrays;
     if (!PyArg_ParseTuple(args, "OO!O!:views", &data, &PyTuple_Type, &spans, &PyTuple_Type, &arrays)) return NULL;
     Py_buffer view;
-    int writable = 1;
-    if (PyObject_GetBuffer(data, &view, PyBUF_WRITABLE) < 0) {
-        PyErr_Clear();
-        writable = 0;
-        if (PyObject_GetBuffer(data, &view, PyBUF_SIMPLE) < 0) return NULL;
-    }
+    int writable;
+    if (open_data(data, &view, &writable) < 0) return NULL;
     const char *buf = (const char *)view.buf;
     Py_ssize_t len = view.len;
     int match = spans_match(buf, len, spans);
@@ -115,15 +126,7 @@ static PyObject *views(PyObject *self, PyObject *args) {
         if (match < 0) return NULL;
         Py_RETURN_NONE;
     }
-    /* The views' base: the object itself when immutable, a memoryview (an export that pins the
-     * buffer) when writable. */
-    PyObject *base;
-    if (writable) {
-        base = PyMemoryView_FromObject(data);
-    } else {
-        Py_INCREF(data);
-        base = data;
-    }
+    PyObject *base = view_base(data, writable);
     PyBuffer_Release(&view);
     if (base == NULL) return NULL;
     Py_ssize_t na = PyTuple_GET_SIZE(arrays);
@@ -222,12 +225,8 @@ static PyObject *build(PyObject *self, PyObject *args) {
     if (!PyArg_ParseTuple(args, "OOOO!O!:build", &data, &new_fn, &cls, &PyTuple_Type, &spans, &PyTuple_Type, &slots))
         return NULL;
     Py_buffer view;
-    int writable = 1;
-    if (PyObject_GetBuffer(data, &view, PyBUF_WRITABLE) < 0) {
-        PyErr_Clear();
-        writable = 0;
-        if (PyObject_GetBuffer(data, &view, PyBUF_SIMPLE) < 0) return NULL;
-    }
+    int writable;
+    if (open_data(data, &view, &writable) < 0) return NULL;
     const char *buf = (const char *)view.buf;
     Py_ssize_t len = view.len;
     PyObject *base = NULL, *fields = NULL, *msg = NULL, *dict = NULL, *result = NULL;
@@ -237,7 +236,7 @@ static PyObject *build(PyObject *self, PyObject *args) {
         result = Py_NewRef(Py_None);
         goto done;
     }
-    base = writable ? PyMemoryView_FromObject(data) : Py_NewRef(data);
+    base = view_base(data, writable);
     fields = PyDict_New();
     if (base == NULL || fields == NULL) goto done;
     Py_ssize_t n = PyTuple_GET_SIZE(slots);

@@ -155,7 +155,7 @@ class Fabric:
         self._pub_lock = threading.Lock()
         self._traj_buf = bytearray()
         self._traj_lock = threading.Lock()
-        self._traj_pub: Any = None  # this process's trajectory publisher, once declared
+        self._traj_key = self.keys.traj(name)  # this process's trajectory key
         self.ctrl = _open_retrying(ctrl_conf, open_timeout_s, "ctrl")
         try:
             self.data = _open_retrying(data_conf, open_timeout_s, "data") if data_conf is not None else None
@@ -173,9 +173,7 @@ class Fabric:
         arrays). Either way Zenoh copies the bytes during the put, so the caller may reuse the
         buffer as soon as this returns.
         """
-        pub = self._traj_pub
-        if pub is None:
-            pub = self._traj_pub = self._publisher(DATA, self.keys.traj(self.name))
+        pub = self._publisher(DATA, self._traj_key)
         if type(chunk) is WireBuffer:
             if chunk.msg.rollout != self.name:
                 raise ValueError(f"{self.name}: wire buffer of rollout {chunk.msg.rollout!r} (receivers reject it)")

@@ -79,42 +79,26 @@ class Layout:
 
 
 def _compile(spans: list[tuple[int, bytes]], slots: list[tuple], cls: type,
-             checkers: dict[str, Callable[[Any, Any], Any]], dict_fields: tuple[str, ...],
-             use_c: bool | None = None) -> Callable[[Any], Any]:
-    ns: dict[str, Any] = {"cls": cls, "nd": np.ndarray, "UnicodeDecodeError": UnicodeDecodeError}
-    lines = ["def build(data):"]
-    c = _C if use_c is None or use_c else None
-    if c is not None and _plain_fields(cls) == {name for _k, name, _key, _o, _a in slots} and not any(
+             checkers: dict[str, Callable[[Any, Any], Any]], dict_fields: tuple[str, ...]) -> Callable[[Any], Any]:
+    spans_t = tuple((start, bytes(const)) for start, const in spans)  # the C helper's form
+    if _C is not None and _plain_fields(cls) == {name for _k, name, _key, _o, _a in slots} and not any(
         key is None and name in checkers and not _implied(checkers[name], kind, arg)
         for kind, name, key, _o, arg in slots
     ):
-        # The whole message in one C call: spans, every slot, the instance (dvla/fabric/_views.c).
-        # Only when no field needs a checker beyond its wire type and __init__ only stores.
-        ns["build_c"], ns["new"] = c.build, object.__new__
-        ns["spans_t"] = tuple((start, bytes(const)) for start, const in spans)
-        ns["slots_t"] = tuple(
-            (kind, name, key, off, (off, arg[1], tuple(arg[0])) if kind == _ARRAY
-             else arg.format[1:] if kind == _SCALAR else arg)
-            for kind, name, key, off, arg in slots
-        )
-        lines.append("    msg = build_c(data, new, cls, spans_t, slots_t)")
-        lines.append("    if msg is None: return None")
-        lines.append("    msg.validate_values()")
-        lines.append("    return msg")
-        exec(compile("\n".join(lines), f"<dvla layout of {cls.__name__}>", "exec"), ns)
-        return ns["build"]
+        return _compile_whole_c(spans_t, slots, cls)
+    ns: dict[str, Any] = {"cls": cls, "nd": np.ndarray, "UnicodeDecodeError": UnicodeDecodeError}
+    lines = ["def build(data):"]
     arrays = [(i, off, arg) for i, (kind, _n, _k, off, arg) in enumerate(slots) if kind == _ARRAY]
-    if c is not None and arrays:
+    in_c: set[int] = set()
+    if _C is not None and arrays:
         # One C call checks every span and builds every array view (dvla/fabric/_views.c).
-        ns["views"] = c.views
-        ns["spans_t"] = tuple((start, bytes(const)) for start, const in spans)
-        ns["arrays_t"] = tuple((off, arg[1], tuple(arg[0])) for _i, off, arg in arrays)
+        ns["views"], ns["spans_t"] = _C.views, spans_t
+        ns["arrays_t"] = tuple(_c_array(off, arg) for _i, off, arg in arrays)
         lines.append("    vs = views(data, spans_t, arrays_t)")
         lines.append("    if vs is None: return None")
         lines.append("    " + ", ".join(f"v{i}" for i, _o, _a in arrays) + ", = vs")
         in_c = {i for i, _o, _a in arrays}
     else:
-        in_c = set()
         for i, (start, const) in enumerate(spans):
             ns[f"c{i}"] = const
             lines.append(f"    if data[{start}:{start + len(const)}] != c{i}: return None")
@@ -175,6 +159,32 @@ def _compile(spans: list[tuple[int, bytes]], slots: list[tuple], cls: type,
     lines.append("    return msg")
     exec(compile("\n".join(lines), f"<dvla layout of {cls.__name__}>", "exec"), ns)
     return ns["build"]
+
+
+def _c_array(off: int, arg: tuple) -> tuple:
+    """An array slot as the C helper takes it: (offset, dtype, shape)."""
+    shape, dtype = arg
+    return off, dtype, tuple(shape)
+
+
+def _compile_whole_c(spans_t: tuple, slots: list[tuple], cls: type) -> Callable[[Any], Any]:
+    """The build function of a class whose fields need no checker beyond their wire type and
+    whose __init__ only stores them: spans, every slot and the instance in one C call
+    (dvla/fabric/_views.c), then the message's value checks."""
+    slots_t = tuple(
+        (kind, name, key, off,
+         _c_array(off, arg) if kind == _ARRAY else arg.format[1:] if kind == _SCALAR else arg)
+        for kind, name, key, off, arg in slots
+    )
+    build_c, new = _C.build, object.__new__
+
+    def build(data: Any) -> Any | None:
+        msg = build_c(data, new, cls, spans_t, slots_t)
+        if msg is not None:
+            msg.validate_values()
+        return msg
+
+    return build
 
 
 def _plain_fields(cls: type) -> set[str] | None:

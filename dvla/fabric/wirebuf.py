@@ -23,7 +23,7 @@ from typing import Any
 
 from .codec import _DTYPES_BY_WIRE_NAME, _SCHEMAS_BY_CLASS, encode_into, learn_layout
 from .errors import CodecError
-from .layout import _ARRAY, _SCALAR
+from .layout import _SCALAR
 from .messages import Message
 
 _WIDE = 2**63 - 1
@@ -63,12 +63,6 @@ class WireBuffer:
         self.seal(**{name: getattr(template, name) for name in wide})
         self.msg: Any = self.message()
         self.nbytes = len(self.buf)
-        #: the array views in ``msg``, by (field, dict key or None)
-        self.arrays = {(name, key): self._view(name, key) for kind, name, key, _o, _a in layout.slots if kind == _ARRAY}
-
-    def _view(self, name: str, key: str | None) -> Any:
-        value = getattr(self.msg, name)
-        return value if key is None else value[key]
 
     def seal(self, **values: int) -> None:
         """Pack the given wide fields into their slots. Raises :class:`CodecError` for a value

@@ -11,13 +11,12 @@ filled, at most ``ship_queue`` queued for the ship lane and one being published.
 
 from __future__ import annotations
 
-import queue
-import threading
 from typing import Any
 
 import numpy as np
 
 from ..fabric import TrajectoryChunk, WireBuffer
+from .freelist import FreeList
 
 #: TrajectoryChunk fields that change from chunk to chunk (64-bit slots in the wire bytes)
 WIDE_FIELDS = ("seq", "policy_version", "created_ns")
@@ -39,30 +38,11 @@ def chunk_template(rollout: str, T: int, n: int, obs_spec: dict[str, Any], act_d
     )
 
 
-class ChunkPool:
-    """``size`` wire buffers shaped like ``template``; :meth:`take` one, :meth:`give` it back."""
+class ChunkPool(FreeList[WireBuffer]):
+    """``size`` wire buffers shaped like ``template``: :meth:`take` one, :meth:`give` it back
+    once its bytes have been published (or never will be)."""
 
     def __init__(self, template: TrajectoryChunk, size: int) -> None:
         if size < 1:
             raise ValueError(f"a chunk pool needs at least one buffer, got size={size}")
-        self.size = size
-        self._free: queue.SimpleQueue[WireBuffer] = queue.SimpleQueue()
-        for _ in range(size):
-            self._free.put(WireBuffer(template, wide=WIDE_FIELDS))
-
-    def take(self, stop: threading.Event) -> WireBuffer | None:
-        """A free buffer, waiting while every one is out; None once `stop` is set."""
-        while not stop.is_set():
-            try:
-                return self._free.get(timeout=0.1)
-            except queue.Empty:
-                continue
-        return None
-
-    def give(self, wb: WireBuffer) -> None:
-        """Return a buffer whose bytes have been published (or will never be)."""
-        self._free.put(wb)
-
-    def free(self) -> int:
-        """Buffers available now."""
-        return self._free.qsize()
+        super().__init__(WireBuffer(template, wide=WIDE_FIELDS) for _ in range(size))

@@ -58,9 +58,8 @@ class _Group:
     versions: list[int] = field(default_factory=list)
     #: this group's preallocated chunk buffers (its trajectory slot pool)
     chunks: ChunkPool | None = None
-    #: the chunk being filled (a wire buffer of `chunks`) and its arrays by field name
+    #: the chunk being filled: a wire buffer of `chunks`, written through its message's arrays
     wb: WireBuffer | None = None
-    buf: dict[str, Any] = field(default_factory=dict)
 
 
 class PolicyPool:
@@ -159,7 +158,7 @@ class Rollout:
         for g in self.groups:
             template = chunk_template(cfg.name, self.T, g.envs.n, self.obs_spec, self.act_dim)
             g.chunks = ChunkPool(template, SHIP_QUEUE + 2)
-            self._bind(g, g.chunks.take(threading.Event()))
+            g.wb = g.chunks.take(threading.Event())
         # Counters that survive a kill -9 (counters.py); the incarnation goes in seq's high bits.
         self.counters = CounterFile(cfg.run_dir, cfg.name)
         self.seq = self.counters.incarnation << INCARNATION_SHIFT
@@ -189,15 +188,6 @@ class Rollout:
     @property
     def policy_version(self) -> int:
         return self.pool.active_version
-
-    @staticmethod
-    def _bind(g: _Group, wb: WireBuffer) -> None:
-        """Make `wb` the chunk that group `g` fills next."""
-        m = wb.msg
-        g.wb = wb
-        g.buf = {"obs": m.obs, "actions": m.actions, "logprobs": m.logprobs, "rewards": m.rewards,
-                 "terminated": m.terminated, "truncated": m.truncated, "success": m.success,
-                 "final_obs": m.final_obs}
 
     # -- wiring -------------------------------------------------------------------------------
     def build(self, sl: Swimlane) -> None:
@@ -311,18 +301,18 @@ class Rollout:
                 ctx.count(e.n)
 
     def _record_step(self, g: _Group, actions: np.ndarray, logprobs: np.ndarray, version: int) -> None:
-        b, t = g.buf, g.t
+        m, t = g.wb.msg, g.t  # the chunk's arrays: views of its wire bytes
         for k, v in obs_as_dict(g.obs).items():
-            b["obs"][k][t] = v
+            m.obs[k][t] = v
         step = g.envs.step(actions)
-        b["actions"][t] = actions  # as sampled: the log-probs are of these, the env clips
-        b["logprobs"][t] = logprobs
-        b["rewards"][t] = step.reward
-        b["terminated"][t] = step.terminated
-        b["truncated"][t] = step.truncated
-        b["success"][t] = step.success
+        m.actions[t] = actions  # as sampled: the log-probs are of these, the env clips
+        m.logprobs[t] = logprobs
+        m.rewards[t] = step.reward
+        m.terminated[t] = step.terminated
+        m.truncated[t] = step.truncated
+        m.success[t] = step.success
         for k, v in obs_as_dict(step.final_obs).items():
-            b["final_obs"][k][t] = v
+            m.final_obs[k][t] = v
         g.obs = step.next_obs
         g.versions.append(version)
         g.t += 1
@@ -349,7 +339,7 @@ class Rollout:
         nxt = g.chunks.take(ctx.stop)  # never waits with a full-size pool (chunkpool.py)
         if nxt is None:
             return  # stopping
-        self._bind(g, nxt)
+        g.wb = nxt
         if self.sync_mode:
             self._lockstep_wait(g, ctx)
 

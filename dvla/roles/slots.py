@@ -8,7 +8,6 @@ releases them. Observations are one array per obs key (``{"state"}`` for flat ob
 
 from __future__ import annotations
 
-import queue
 import threading
 from typing import Any, Mapping, NamedTuple
 
@@ -16,6 +15,7 @@ import numpy as np
 import torch
 
 from ..fabric.messages import TrajectoryChunk
+from .freelist import FreeList
 
 _FIELDS_TN = ("logprobs", "rewards", "terminated", "truncated", "success")
 _TORCH_DTYPES = {"float32": torch.float32, "uint8": torch.uint8, "int32": torch.int32}
@@ -62,23 +62,17 @@ class SlotPool:
         self._n = [0] * S
         self._version = [0] * S
         self._rollout = [""] * S
-        self._free: queue.Queue[int] = queue.Queue()
-        for i in range(S):
-            self._free.put(i)
+        self._free: FreeList[int] = FreeList(range(S))
 
     def acquire(self, stop: threading.Event) -> int | None:
-        while not stop.is_set():
-            try:
-                return self._free.get(timeout=0.05)
-            except queue.Empty:
-                continue
-        return None
+        """A free slot, waiting while every one is out; None once `stop` is set."""
+        return self._free.take(stop)
 
     def release(self, slot: int) -> None:
-        self._free.put(slot)
+        self._free.give(slot)
 
     def free_count(self) -> int:
-        return self._free.qsize()
+        return self._free.free()
 
     def fill(self, slot: int, c: TrajectoryChunk) -> str | None:
         """Copy a chunk into `slot`; returns a reason string when its shape does not fit."""
