@@ -189,6 +189,9 @@ def main(role_factory: Any, argv: list[str] | None = None) -> int:
         print(f"dvla role: cannot read config {args.config}: {err}", file=sys.stderr)
         return ExitStatus.CONFIG
     setup_logging(cfg.name)
+    # PyTorch keeps compiled-kernel caches (its fused CPU Adam creates the directory) under
+    # /tmp by default: keep a role's inside its run directory instead.
+    os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(Path(cfg.run_dir) / "cache" / "torchinductor"))
     if cfg.cpus:
         pin_cpus(cfg.cpus)
     # One intra-op thread per role: the lanes are the concurrency, and a role's share of the

@@ -1,0 +1,24 @@
+"""Session-wide test settings."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+
+_CACHE: str | None = None
+
+
+def pytest_configure(config: object) -> None:
+    # PyTorch's fused CPU Adam creates a kernel-cache directory, by default under /tmp: give the
+    # test session (and every process it starts) its own, removed when the session ends.
+    global _CACHE
+    if "TORCHINDUCTOR_CACHE_DIR" not in os.environ:
+        _CACHE = tempfile.mkdtemp(prefix="dvla-tests-torchinductor-")
+        os.environ["TORCHINDUCTOR_CACHE_DIR"] = _CACHE
+
+
+def pytest_unconfigure(config: object) -> None:
+    if _CACHE is not None:
+        shutil.rmtree(_CACHE, ignore_errors=True)
+        os.environ.pop("TORCHINDUCTOR_CACHE_DIR", None)
