@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import threading
 from collections import defaultdict, deque
-from typing import Any
+from typing import Any, Callable
 
 
 #: a pending queue is folded into the counters once it holds this many messages (bounds memory)
@@ -57,6 +57,21 @@ class Accounting:
         pending.append(nbytes)
         if len(pending) >= FOLD_AT:
             self._fold()
+
+    def tally(self, plane: str, counter: str, peer: str | None = None) -> Callable[[int], None]:
+        """``tally(plane, "received", peer)(nbytes)`` counts one message as ``received(plane,
+        nbytes, peer)`` does, for a receiver that keeps the function per peer instead of
+        looking its counter up per message."""
+        with self._lock:
+            pending = self._pending.setdefault((plane, peer, counter), deque())
+        append, fold = pending.append, self._fold
+
+        def count(nbytes: int) -> None:
+            append(nbytes)
+            if len(pending) >= FOLD_AT:
+                fold()
+
+        return count
 
     def _fold(self) -> None:
         with self._lock:

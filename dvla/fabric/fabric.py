@@ -16,18 +16,21 @@ Usable without any dvla configuration: pass two plain `zenoh.Config` objects (do
 
 from __future__ import annotations
 
+import atexit
 import logging
 import os
 import threading
 import time
+import weakref
 from typing import Any, Callable
 
 import zenoh
 
 from .accounting import Accounting
-from .codec import CodecError, decode, encode, encode_into
+from .codec import CodecError, decode, decoder, encode, encode_into
 from .keys import KeySpace
 from .signing import SignatureError, Signer, Verifier
+from .threadstate import hold
 from .tokenqueue import TokenQueue
 from .wirebuf import WireBuffer
 
@@ -41,6 +44,8 @@ PRIO_CTRL = zenoh.Priority.INTERACTIVE_HIGH
 PRIO_WEIGHTS = zenoh.Priority.DATA_HIGH
 #: trajectories
 PRIO_DATA = zenoh.Priority.DATA
+#: senders a trajectory subscription remembers (name and counter by key) before it starts over
+MAX_SENDERS = 1024
 
 
 class Inbox:
@@ -50,16 +55,21 @@ class Inbox:
     through Zenoh's BLOCK congestion control), then drops the message and counts it: a consumer
     that is slow for seconds must never stall Zenoh's receive thread long enough to close the
     transport.
+
+    With a `decoder`, the callback queues raw payloads and :meth:`get` decodes them (the
+    control plane: verification happens on the reader's thread). Without one, the subscription
+    decodes on receive and queues ready messages through :meth:`offer` (the data plane: the
+    queue then holds ready messages, and the consumer never competes with the receive thread
+    for the GIL over the same bytes).
     """
 
     def __init__(
         self,
         maxsize: int,
-        decoder: Callable[[str, bytes], Any],
+        decoder: Callable[[str, bytes], Any] | None,
         accounting: Accounting,
         plane: str,
         block_s: float = 1.0,
-        decode_on_receive: bool = False,
     ) -> None:
         # No queue.Queue: its Python-level Condition cost more per message than the decode.
         self._queue: TokenQueue[Any] = TokenQueue(maxsize)
@@ -67,24 +77,19 @@ class Inbox:
         self._acct = accounting
         self._plane = plane
         self._block_s = block_s
-        self._decode_on_receive = decode_on_receive
         self.maxsize = maxsize
         self.high_watermark = 0
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key, raw, peer = _take(sample, self._acct, self._plane)
-        if self._decode_on_receive:
-            # Zero-copy decode right here: the queue then holds ready messages, and the
-            # consumer never competes with this thread for the GIL over the same bytes.
-            item = self._decoder(key, raw)
-            if item is None:
-                return  # rejected and counted by the decoder
-        else:
-            item = (key, raw)
+        self.offer((key, raw), peer)
+
+    def offer(self, item: Any, peer: str) -> None:
+        """Queue `item` (from `peer`), waiting at most `block_s` for space; else drop and count it."""
         if not self._queue.put(item, timeout=self._block_s):
             self._acct.dropped(self._plane, "backpressure", peer)
             return
-        depth = self.depth()
+        depth = self._queue.qsize()
         if depth > self.high_watermark:
             self.high_watermark = depth
 
@@ -103,7 +108,7 @@ class Inbox:
             item = self._queue.get(timeout=remaining)
             if item is None:
                 return None
-            if self._decode_on_receive:
+            if self._decoder is None:
                 return item
             msg = self._decoder(*item)
             if msg is not None:
@@ -156,6 +161,8 @@ class Fabric:
         self._traj_buf = bytearray()
         self._traj_lock = threading.Lock()
         self._traj_key = self.keys.traj(name)  # this process's trajectory key
+        self._traj_pub: Any = None  # its publisher and sent counter, made on first use
+        self._traj_sent: Callable[[int], None] = lambda n: None
         self.ctrl = _open_retrying(ctrl_conf, open_timeout_s, "ctrl")
         try:
             self.data = _open_retrying(data_conf, open_timeout_s, "data") if data_conf is not None else None
@@ -163,6 +170,7 @@ class Fabric:
             self.ctrl.close()
             raise
         self._closed = False
+        _OPEN.add(self)
 
     # ------------------------------------------------------------------ data plane
     def publish_traj(self, chunk: Any) -> int:
@@ -173,7 +181,10 @@ class Fabric:
         arrays). Either way Zenoh copies the bytes during the put, so the caller may reuse the
         buffer as soon as this returns.
         """
-        pub = self._publisher(DATA, self._traj_key)
+        pub = self._traj_pub
+        if pub is None:
+            self._traj_sent = self.accounting.tally(DATA, "sent", self.name)  # before the publisher is seen
+            pub = self._traj_pub = self._publisher(DATA, self._traj_key)
         if type(chunk) is WireBuffer:
             if chunk.msg.rollout != self.name:
                 raise ValueError(f"{self.name}: wire buffer of rollout {chunk.msg.rollout!r} (receivers reject it)")
@@ -185,14 +196,14 @@ class Fabric:
             with self._traj_lock:
                 n = encode_into(chunk, self._traj_buf)
                 pub.put(self._traj_buf)
-        self.accounting.sent(DATA, n, self.name)
+        self._traj_sent(n)
         return n
 
     def subscribe_traj(self, maxsize: int, expect: type, block_s: float = 1.0, rollout: str = "*") -> Inbox:
         """Bounded inbox of decoded TrajectoryChunks from every (or one) rollout, for a lane
         that takes them with ``inbox.get(timeout)``."""
-        inbox = Inbox(maxsize, self._traj_decoder(expect), self.accounting, DATA, block_s, decode_on_receive=True)
-        self._subscribe_data(rollout, inbox._on_sample)
+        inbox = Inbox(maxsize, None, self.accounting, DATA, block_s)
+        self._subscribe_data(rollout, self._traj_receiver(expect, inbox.offer))
         return inbox
 
     def on_traj(self, expect: type, handler: Callable[[Any], None], rollout: str = "*") -> None:
@@ -205,21 +216,16 @@ class Fabric:
         Zenoh's 5 s BLOCK limit (docs/embedding.md). An exception in `handler` is logged and
         the chunk counted as ``dropped.handler_error``; the subscription carries on.
         """
-        decoder = self._traj_decoder(expect)
         acct = self.accounting
 
-        def _cb(sample: zenoh.Sample) -> None:
-            key, raw, peer = _take(sample, acct, DATA)
-            chunk = decoder(key, raw)
-            if chunk is None:
-                return  # rejected and counted by the decoder
+        def _deliver(chunk: Any, peer: str) -> None:
             try:
                 handler(chunk)
             except Exception:  # a handler bug must not kill Zenoh's receive task
                 acct.dropped(DATA, "handler_error", peer)
                 log.exception("trajectory handler failed on a chunk from %s", peer)
 
-        self._subscribe_data(rollout, _cb)
+        self._subscribe_data(rollout, self._traj_receiver(expect, _deliver))
 
     def _subscribe_data(self, rollout: str, callback: Callable[[zenoh.Sample], None]) -> None:
         if self.data is None:
@@ -227,24 +233,47 @@ class Fabric:
         key = self.keys.traj(rollout) if rollout != "*" else self.keys.traj_all()
         self._declared.append(self.data.declare_subscriber(key, _on_receive_thread(callback)))
 
-    def _traj_decoder(self, expect: type) -> Callable[[str, bytes], Any | None]:
-        """Decode and check one data-plane payload; None (rejected and counted) when it fails."""
+    def _traj_receiver(self, expect: type, deliver: Callable[[Any, str], None]) -> Callable[[zenoh.Sample], None]:
+        """Everything a trajectory subscription does per chunk, as one function for Zenoh's
+        receive thread: count the chunk as received from its sender (the last chunk of its
+        key), decode it, check that it names that sender, and ``deliver(chunk, sender)``. A
+        chunk that fails is counted as rejected, logged, and goes no further.
 
-        def _decode(key: str, raw: bytes) -> Any | None:
+        Flat on purpose: Zenoh's own work between two callbacks evicts the interpreter's caches,
+        so each Python call here costs several times what it does in a loop. Senders are
+        looked up once per key (their name and accounting counter), and the decode goes
+        straight to the layout of the chunk's length (:func:`~dvla.fabric.codec.decoder`).
+        """
+        decode_chunk = decoder(expect)
+        acct = self.accounting
+        senders: dict[str, tuple[str, Callable[[int], None]]] = {}
+
+        def _sender(key: str) -> tuple[str, Callable[[int], None]]:
+            if len(senders) >= MAX_SENDERS:  # a flood of made-up names must not grow this
+                senders.clear()
             peer = KeySpace.last(key)
-            try:
-                msg = decode(raw, expect=expect)
-            except CodecError as err:
-                self.accounting.rejected(DATA, err.reason, peer)
-                log.warning("rejected data message on %s from %s: %s", key, peer, err)
-                return None
-            if getattr(msg, "rollout", peer) != peer:
-                self.accounting.rejected(DATA, "sender_mismatch", peer)
-                log.warning("rejected data message on %s: claims sender %r", key, msg.rollout)
-                return None
-            return msg
+            senders[key] = entry = (peer, acct.tally(DATA, "received", peer))
+            return entry
 
-        return _decode
+        def _receive(sample: zenoh.Sample) -> None:
+            hold()  # this receive thread keeps its Python thread state (threadstate.py)
+            key = str(sample.key_expr)
+            raw = sample.payload.to_bytes()
+            peer, count = senders.get(key) or _sender(key)
+            count(len(raw))
+            try:
+                msg = decode_chunk(raw)
+            except CodecError as err:
+                acct.rejected(DATA, err.reason, peer)
+                log.warning("rejected data message on %s from %s: %s", key, peer, err)
+                return
+            if getattr(msg, "rollout", peer) != peer:
+                acct.rejected(DATA, "sender_mismatch", peer)
+                log.warning("rejected data message on %s: claims sender %r", key, msg.rollout)
+                return
+            deliver(msg, peer)
+
+        return _receive
 
     # ------------------------------------------------------------------ ctrl plane
     def seal(self, key: str, msg: Any) -> bytes:
@@ -406,9 +435,13 @@ class Fabric:
             return pub
 
     def close(self) -> None:
+        """Undeclare everything and close both sessions (idempotent). A fabric still open when
+        the interpreter exits is closed by an exit hook, while Python can still run the
+        callbacks Zenoh waits for (left to the sessions' own teardown, the close times out)."""
         if self._closed:
             return
         self._closed = True
+        _OPEN.discard(self)
         for entity in reversed(self._declared):
             try:
                 entity.undeclare()
@@ -431,6 +464,16 @@ class Fabric:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+#: fabrics not closed yet, closed at interpreter exit (weak: an open fabric may still be dropped)
+_OPEN: "weakref.WeakSet[Fabric]" = weakref.WeakSet()
+
+
+@atexit.register
+def _close_open_fabrics() -> None:
+    for fabric in list(_OPEN):
+        fabric.close()
 
 
 def _take(sample: zenoh.Sample, acct: Accounting, plane: str) -> tuple[str, bytes, str]:

@@ -311,6 +311,12 @@ class LayoutCache:
     def candidates(self, key: Any) -> list[Layout]:
         return self._by_key.get(key, ())  # type: ignore[return-value]
 
+    def live(self) -> dict[Any, list[Layout]]:
+        """The cache's own key -> layouts dict, for a hot loop that looks layouts up itself
+        (read-only: ``add`` replaces a key's list rather than changing it, so a list read from
+        it never changes under the reader)."""
+        return self._by_key
+
     def add(self, key: Any, layout: Layout) -> None:
         with self._lock:
             have = list(self._by_key.get(key, ()))

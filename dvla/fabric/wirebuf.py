@@ -19,6 +19,7 @@ returned; keep a pool of them to overlap filling one with sending another.
 from __future__ import annotations
 
 import dataclasses
+import struct
 from typing import Any
 
 from .codec import _DTYPES_BY_WIRE_NAME, _SCHEMAS_BY_CLASS, encode_into, learn_layout
@@ -69,6 +70,21 @@ class WireBuffer:
         that is not an int in the slot's range (nothing else can have changed: the arrays are
         views with fixed shapes and dtypes, every other field is fixed by the template, and the
         message's value checks ran once on the template)."""
+        scalars, buf = self._scalars, self.buf
+        try:
+            for name, value in values.items():
+                off, st = scalars[name]
+                if type(value) is not int:
+                    break
+                st.pack_into(buf, off, value)
+            else:
+                return
+        except (KeyError, struct.error):
+            pass
+        self._refuse(values)
+
+    def _refuse(self, values: dict[str, Any]) -> None:
+        """The precise error for the first value `seal` could not pack."""
         for name, value in values.items():
             slot = self._scalars.get(name)
             if slot is None:
@@ -78,8 +94,9 @@ class WireBuffer:
             off, st = slot
             try:
                 st.pack_into(self.buf, off, value)
-            except Exception as exc:  # struct.error: out of the slot's range
+            except struct.error as exc:  # out of the slot's range
                 raise CodecError("type", f"{name}: {value} does not fit a 64-bit msgpack integer") from exc
+        raise AssertionError("seal refused values that all pack")  # pragma: no cover
 
     def message(self) -> Any:
         """The message as a receiver decodes it now (arrays are views of ``buf``); runs the

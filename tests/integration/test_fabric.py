@@ -402,6 +402,91 @@ def test_on_traj_hands_decoded_chunks_to_a_function_and_survives_its_errors(pair
     assert acct.get(DATA, "received") == len(got) + acct.get(DATA, "dropped") + acct.get(DATA, "rejected")
 
 
+@pytest.mark.timeout(30)
+def test_a_receive_thread_keeps_its_python_thread_state(pair: Pair) -> None:
+    """zenoh-python gives a Zenoh thread a fresh Python thread state per callback unless the
+    fabric holds one (dvla/fabric/threadstate.py): a thread-local value set while handling one
+    chunk is still there for the next chunk on the same thread."""
+    actor, rollout = pair.actor, pair.rollout
+    local = threading.local()
+    seen: list[tuple[int, bool]] = []
+
+    def handler(chunk: TrajectoryChunk) -> None:
+        seen.append((threading.get_ident(), getattr(local, "mark", False)))
+        local.mark = True
+
+    actor.on_traj(TrajectoryChunk, handler)
+    wait_route(actor.data, rollout.data)
+    for i in range(30):
+        rollout.publish_traj(make_chunk(rollout.name, i))
+        time.sleep(0.002)
+    assert wait_for(lambda: len(seen) == 30, 10)
+    threads = {t for t, _ in seen}
+    assert threading.get_ident() not in threads
+    # Only the first chunk on each receive thread finds no mark.
+    assert sum(1 for _, marked in seen if not marked) == len(threads), seen
+
+
+SINK_SCRIPT = """
+import sys, time
+from dvla.fabric import Fabric, TrajectoryChunk, plane_config
+f = Fabric(run={run!r}, name="sink", secret=bytes.fromhex({secret!r}),
+           ctrl_conf=plane_config(mode="peer", listen=["tcp/127.0.0.1:{ctrl}"]),
+           data_conf=plane_config(mode="peer", listen=["tcp/127.0.0.1:{data}"]))
+got = []
+f.on_traj(TrajectoryChunk, got.append)
+print("ready", flush=True)
+deadline = time.monotonic() + 20
+while len(got) < 50 and time.monotonic() < deadline:
+    time.sleep(0.01)
+print("got", len(got), flush=True)
+{ending}
+"""
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("ending", ["f.close()", "pass"], ids=["closed", "left-open"])
+def test_a_receiving_process_exits_cleanly_while_chunks_still_arrive(ending: str) -> None:
+    """Interpreter exit with receive threads that hold thread states, chunks still arriving,
+    the fabric closed or not: the process exits 0, without a fatal error."""
+    ctrl, data = free_port(), free_port()
+    script = SINK_SCRIPT.format(run=RUN, secret=SECRET.hex(), ctrl=ctrl, data=data, ending=ending)
+    proc = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    stop = threading.Event()
+    source = None
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+        source = Fabric(run=RUN, name="rollout-0", secret=SECRET, ctrl_conf=plane_config(),
+                        data_conf=plane_config(mode="peer", connect=[f"tcp/127.0.0.1:{data}"]))
+
+        def flood() -> None:
+            i = 0
+            while not stop.is_set():
+                try:
+                    source.publish_traj(make_chunk("rollout-0", i))
+                except Exception:
+                    return
+                i += 1
+                time.sleep(0.001)
+
+        t = threading.Thread(target=flood, name="flood")
+        t.start()
+        out, err = proc.communicate(timeout=40)
+        stop.set()
+        t.join(10)
+        assert out.split()[-2:-1] == ["got"] and int(out.split()[-1]) >= 50, (out, err)
+        assert proc.returncode == 0, err
+        assert "Fatal Python error" not in err and "panicked" not in err, err
+    finally:
+        stop.set()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+        if source is not None:
+            source.close()
+
+
 # --------------------------------------------------------------------------------------------
 # control plane
 

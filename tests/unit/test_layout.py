@@ -191,6 +191,27 @@ def test_expect_is_honoured_on_the_fast_path():
     assert err.value.reason == "type"
 
 
+def test_a_receivers_decoder_takes_the_layout_and_decodes_like_decode(monkeypatch):
+    """`codec.decoder(cls)`: the receive threads' entry point. With a primed layout it builds
+    without the full decoder; it honours the class; other input (a bytearray, a length with no
+    layout) goes through `decode` with the same result."""
+    from dvla.fabric.messages import WeightChunk
+
+    want = big_traj(seq=41)
+    raw = encode(want)
+    traj, weights = codec.decoder(TrajectoryChunk), codec.decoder(WeightChunk)
+    assert_same(traj(raw), want)  # no layout yet: learned on the way
+    assert LAYOUTS.candidates(len(raw))
+    assert_same(traj(bytearray(raw)), want)
+    with pytest.raises(CodecError) as err:
+        weights(raw)
+    assert err.value.reason == "type"
+    no_full_walkers(monkeypatch)
+    got = traj(raw)
+    assert_same(got, want)
+    assert np.shares_memory(got.actions, np.frombuffer(raw, np.uint8))
+
+
 BASE = encode(big_traj())
 
 
@@ -204,6 +225,8 @@ def test_mutated_bytes_decode_exactly_as_the_full_decoder_says(edits):
         mutated[pos] = byte
     data = bytes(mutated)
     assert_same_outcome(outcome(decode, data), outcome(decode, data, layouts=False))
+    full = outcome(decode, data, expect=TrajectoryChunk, layouts=False)
+    assert_same_outcome(outcome(codec.decoder(TrajectoryChunk), data), full)
 
 
 def _slot_offsets() -> list[int]:
@@ -225,6 +248,8 @@ def test_mutated_scalar_slots_decode_exactly_as_the_full_decoder_says(data):
         mutated[off % len(mutated)] = data.draw(st.sampled_from([0x00, 0x7F, 0x80, 0xC2, 0xC3, 0xE0, 0xFF, 0xCC]))
     raw = bytes(mutated)
     assert_same_outcome(outcome(decode, raw), outcome(decode, raw, layouts=False))
+    full = outcome(decode, raw, expect=TrajectoryChunk, layouts=False)
+    assert_same_outcome(outcome(codec.decoder(TrajectoryChunk), raw), full)
 
 
 # ----------------------------------------------------------------------------- encoding
