@@ -161,8 +161,8 @@ class Fabric:
         self._traj_buf = bytearray()
         self._traj_lock = threading.Lock()
         self._traj_key = self.keys.traj(name)  # this process's trajectory key
-        self._traj_pub: Any = None  # its publisher and sent counter, made on first use
-        self._traj_sent: Callable[[int], None] = lambda n: None
+        self._traj_pub: Any = None  # its publisher, declared on first use
+        self._traj_sent = self.accounting.tally(DATA, "sent", name)
         self.ctrl = _open_retrying(ctrl_conf, open_timeout_s, "ctrl")
         try:
             self.data = _open_retrying(data_conf, open_timeout_s, "data") if data_conf is not None else None
@@ -183,7 +183,6 @@ class Fabric:
         """
         pub = self._traj_pub
         if pub is None:
-            self._traj_sent = self.accounting.tally(DATA, "sent", self.name)  # before the publisher is seen
             pub = self._traj_pub = self._publisher(DATA, self._traj_key)
         if type(chunk) is WireBuffer:
             if chunk.msg.rollout != self.name:
