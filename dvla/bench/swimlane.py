@@ -4,7 +4,11 @@ ManiSkill, real Zenoh), each figure compared with a baseline measured in the sam
 Two workloads, each run in two modes on the same topology, env and policy:
 
 * **default**: the topology given (``topologies/local.yaml``) without its evaluator (evaluation
-  is not part of the training pipeline), placement as in the file. ``sim_only`` (the same
+  is not part of the training pipeline). Placement ``split`` (the default where cores 0 and 1
+  exist): the rollouts alone on core 0, the actor and the replicator on core 1, so the learner
+  takes no CPU from the simulators, as on a machine whose learner has its own GPU; ``file``:
+  where the file puts the roles (on two cores, unpinned, the learner's share of the CPU then
+  caps the ratio: ``ceiling_from_learner``). ``sim_only`` (the same
   rollout processes stepping random actions, nothing inferred, shipped or learned) against
   ``async`` (training): ``async_over_sim_only`` = learner-consumed env steps/s ÷ simulated env
   steps/s, where the simulated rate is the mean of the sim_only runs just before and just after
@@ -115,8 +119,15 @@ def _task(topo: Topology, profile: Profile, epochs: int | None) -> Any:
     return dataclasses.replace(topo.task, ppo=ppo, budget=budget)
 
 
-def default_workload(topo: Topology, profile: Profile) -> Topology:
-    """The topology as written, without evaluators, budgets off."""
+def default_workload(topo: Topology, profile: Profile, placement: str = "file") -> Topology:
+    """The topology's task without evaluators, budgets off. ``placement`` "file": the roles where
+    the file puts them; "split": the rollouts alone on core 0, the actor and the replicator on
+    core 1 (:func:`split_nodes`)."""
+    if placement == "split":
+        return dataclasses.replace(topo, run="swl-default", task=_task(topo, profile, None),
+                                   racks=(split_nodes(topo, with_replicator_on_sim=False),))
+    if placement != "file":
+        raise ValueError(f"placement must be 'file' or 'split', got {placement!r}")
     racks = []
     for rack in topo.racks:
         nodes = []
@@ -129,14 +140,40 @@ def default_workload(topo: Topology, profile: Profile) -> Topology:
 
 def balanced_workload(topo: Topology, profile: Profile, epochs: int) -> Topology:
     """Same task; rollouts and replicator on core 0, the actor alone on core 1."""
+    return dataclasses.replace(topo, run="swl-balanced", task=_task(topo, profile, epochs),
+                               racks=(split_nodes(topo, with_replicator_on_sim=True),))
+
+
+def split_nodes(topo: Topology, *, with_replicator_on_sim: bool) -> RackConfig:
+    """One rack of two nodes: `sim` on core 0 with the topology's rollouts, `learn` on core 1 with
+    the actor; the replicator on either. The learner then never takes CPU from the simulators,
+    as when it runs on its own GPU."""
     rollouts = sum(r.count for _rack, n in topo.nodes() for r in n.roles if r.role == "rollout")
+    replicator = (RolePlacement(role="replicator"),)
     sim = NodeConfig(
-        name="sim", roles=(RolePlacement(role="replicator"), RolePlacement(role="rollout", count=max(1, rollouts))),
-        cpus=(0,),
+        name="sim", cpus=(0,),
+        roles=(replicator if with_replicator_on_sim else ()) + (RolePlacement(role="rollout", count=max(1, rollouts)),),
     )
-    learn = NodeConfig(name="learn", roles=(RolePlacement(role="actor"),), cpus=(1,))
-    rack = RackConfig(name="rack0", nodes=(learn, sim))
-    return dataclasses.replace(topo, run="swl-balanced", task=_task(topo, profile, epochs), racks=(rack,))
+    learn = NodeConfig(name="learn", cpus=(1,),
+                       roles=(RolePlacement(role="actor"),) + (() if with_replicator_on_sim else replicator))
+    return RackConfig(name="rack0", nodes=(learn, sim))
+
+
+def learner_ceiling(topo: Topology, share: float | None, cpus: int) -> float | None:
+    """The simulators' ceiling left by the learner: 1 - its share of a core / the cores they
+    share, or 1.0 when the actor's cores and the rollouts' are disjoint."""
+    if share is None:
+        return None
+    sim_cpus: set[int] = set()
+    learn_cpus: set[int] = set()
+    for _rack, node in topo.nodes():
+        kinds = {r.role for r in node.roles}
+        for kind, into in (("rollout", sim_cpus), ("actor", learn_cpus)):
+            if kind in kinds:
+                into.update(node.cpus if node.cpus else range(cpus))
+    if sim_cpus and learn_cpus and not sim_cpus & learn_cpus:
+        return 1.0
+    return 1 - share / max(1, len(sim_cpus) or cpus)
 
 
 def placement_of(topo: Topology) -> list[dict[str, Any]]:
@@ -424,7 +461,7 @@ def _ratio(x: float | None, y: float | None) -> float | None:
 
 def run_bench(
     topology: Path, profile: Profile, *, base_port: int | None = None, runs_root: Path | None = None,
-    workloads: tuple[str, ...] = ("default", "balanced"),
+    workloads: tuple[str, ...] = ("default", "balanced"), placement: str = "split",
     progress: Callable[[str], None] = lambda _m: None,
 ) -> dict[str, Any]:
     """Every run of the bench, in order; the JSON document of the results."""
@@ -442,10 +479,14 @@ def run_bench(
         "workloads": {},
     }
     try:
+        two_cores = (os.cpu_count() or 1) >= 2 and {0, 1} <= set(os.sched_getaffinity(0))
         if "default" in workloads:
-            doc["workloads"]["default"] = _default(base, profile, runs_root, base_port, progress)
+            if placement == "split" and not two_cores:
+                progress("default: cores 0 and 1 are not both available: placement as in the file")
+                placement = "file"
+            doc["workloads"]["default"] = _default(base, profile, runs_root, base_port, progress, placement)
         if "balanced" in workloads:
-            if (os.cpu_count() or 1) < 2 or not {0, 1} <= set(os.sched_getaffinity(0)):
+            if not two_cores:
                 doc["workloads"]["balanced"] = {"error": "needs cores 0 and 1"}
             else:
                 doc["workloads"]["balanced"] = _balanced(base, profile, runs_root, base_port, progress)
@@ -494,8 +535,9 @@ def _median(xs: list[float | None]) -> float | None:
     return statistics.median(vals) if vals else None
 
 
-def _default(base: Topology, profile: Profile, runs_root: Path, port: int | None, progress: Callable[[str], None]) -> dict[str, Any]:
-    topo = default_workload(base, profile)
+def _default(base: Topology, profile: Profile, runs_root: Path, port: int | None, progress: Callable[[str], None],
+             placement: str = "file") -> dict[str, Any]:
+    topo = default_workload(base, profile, placement)
     steady = max(profile.window_s, profile.rss_window_s)
     pairs = _pairs(("sim_only", topo, profile.window_s), ("async", topo, steady), profile, runs_root, port, progress)
     # One more sim_only run after the last async one: each async run is then bracketed by a
@@ -513,11 +555,11 @@ def _default(base: Topology, profile: Profile, runs_root: Path, port: int | None
     share = _median(shares)
     cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     return {
-        "placement": placement_of(topo), "runs": pairs, "closing_sim_only": closing, "ratios": ratios,
+        "placement_name": placement, "placement": placement_of(topo), "runs": pairs, "closing_sim_only": closing, "ratios": ratios,
         "sim_only_sps_runs": sims, "sim_only_baselines": baselines,
         "sim_only_drift": _ratio(sims[-1], sims[0]),
         "learner_core_share": share,
-        "ceiling_from_learner": None if share is None else 1 - share / cpus,
+        "ceiling_from_learner": learner_ceiling(topo, share, cpus),
         "sim_only_sps": _median(baselines),
         "async_sps": _median([p["async"].get("consumed_sps") for p in pairs]),
         "async_over_sim_only": _median(ratios),
@@ -573,6 +615,7 @@ def headline(workloads: dict[str, Any]) -> dict[str, Any]:
     """Top-level figures (see HEADLINE_KEYS) from the workloads' results."""
     d, b = workloads.get("default", {}), workloads.get("balanced", {})
     out: dict[str, Any] = {
+        "default_placement": d.get("placement_name"),
         "sim_only_sps": d.get("sim_only_sps"),
         "async_sps": d.get("async_sps"),
         "async_over_sim_only": d.get("async_over_sim_only"),
@@ -601,7 +644,7 @@ def headline(workloads: dict[str, Any]) -> dict[str, Any]:
 
 
 def format_table(doc: dict[str, Any]) -> str:
-    lines = []
+    lines = [f"{'default_placement':28s} {doc.get('default_placement') or '-'}"]
     for k in HEADLINE_KEYS + ("learner_batch_s", "rollout_batch_s"):
         v = doc.get(k)
         goal = GOALS.get(k)

@@ -45,3 +45,31 @@ def test_a_failed_sim_only_run_leaves_the_other_as_the_baseline():
     assert swimlane._bracket(700.0, None) == 700.0
     assert swimlane._bracket(None, None) is None
     assert swimlane._bracket(700.0, 900.0) == 800.0
+
+
+def test_split_placement_gives_the_learner_its_own_core():
+    base = load_topology(ROOT / "topologies" / "local.yaml")
+    profile = swimlane.QUICK
+    split = swimlane.default_workload(base, profile, "split")
+    nodes = {n.name: n for _rack, n in split.nodes()}
+    assert nodes["sim"].cpus == (0,) and nodes["learn"].cpus == (1,)
+    assert [(r.role, r.count) for r in nodes["sim"].roles] == [("rollout", 2)]  # local.yaml's two rollouts
+    assert {r.role for r in nodes["learn"].roles} == {"actor", "replicator"}
+    assert not any(r.role == "evaluator" for _rack, n in split.nodes() for r in n.roles)
+    assert split.task.ppo == dataclasses.replace(base.task.ppo, batch_steps=profile.batch_steps)  # the file's PPO
+    assert swimlane.learner_ceiling(split, 0.3, 2) == 1.0  # the learner takes nothing from core 0
+
+    as_written = swimlane.default_workload(base, profile, "file")
+    assert all(not n.cpus for _rack, n in as_written.nodes())
+    assert swimlane.learner_ceiling(as_written, 0.3, 2) == pytest.approx(0.85)  # 1 - 0.3 of 2 cores
+    assert swimlane.learner_ceiling(as_written, None, 2) is None
+    with pytest.raises(ValueError, match="placement"):
+        swimlane.default_workload(base, profile, "everywhere")
+
+
+def test_the_balanced_workload_keeps_the_replicator_beside_the_rollouts():
+    topo = swimlane.balanced_workload(load_topology(ROOT / "topologies" / "local.yaml"), swimlane.QUICK, 16)
+    nodes = {n.name: n for _rack, n in topo.nodes()}
+    assert {r.role for r in nodes["sim"].roles} == {"rollout", "replicator"}
+    assert [r.role for r in nodes["learn"].roles] == ["actor"]
+    assert topo.task.ppo.update_epochs == 16 and topo.task.ppo.target_kl is None

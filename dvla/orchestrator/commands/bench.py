@@ -81,6 +81,7 @@ def swimlane(
     balanced_epochs: Annotated[Optional[int], typer.Option(help="PPO epochs of the balanced workload")] = None,
     repeats: Annotated[int, typer.Option(help="runs of each workload's pair (alternating), for the spread")] = 1,
     workload: Annotated[Optional[list[str]], typer.Option(help="default and/or balanced (repeatable; default: both)")] = None,
+    placement: Annotated[str, typer.Option(help="default workload: 'split' (rollouts on core 0; actor, replicator on core 1) or 'file' (as the topology places them)")] = "split",
     base_port: Annotated[Optional[int], typer.Option(help="first TCP port (default: a free block for each run)")] = None,
     runs: Annotated[Optional[Path], typer.Option(help="keep the runs' directories here (default: a temporary directory)")] = None,
 ) -> None:
@@ -97,8 +98,10 @@ def swimlane(
     wl = tuple(workload or ("default", "balanced"))
     if repeats < 1 or any(w not in ("default", "balanced") for w in wl):
         raise fail(f"--repeats must be >= 1 and --workload one of default, balanced (got {repeats}, {list(wl)})")
+    if placement not in ("split", "file"):
+        raise fail(f"--placement must be 'split' or 'file' (got {placement!r})")
     try:
-        doc = run_bench(topology, profile, base_port=base_port, runs_root=runs, workloads=wl,
+        doc = run_bench(topology, profile, base_port=base_port, runs_root=runs, workloads=wl, placement=placement,
                         progress=lambda m: typer.echo(f"[bench] {m}", err=True))
     except (RuntimeError, OSError, ValueError) as err:
         raise fail(f"bench swimlane: {err}", code=1)
