@@ -33,6 +33,8 @@ class Accounting:
         self._peer: dict[str, dict[str, dict[str, int]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(int)))
         # (plane, peer, counter) -> sizes of the messages not folded into the counters yet
         self._pending: dict[tuple[str, str | None, str], deque[int]] = {}
+        # the same key -> the function that appends to its deque (see ``tally``)
+        self._tallies: dict[tuple[str, str | None, str], Callable[[int], None]] = {}
 
     def add(self, plane: str, counter: str, peer: str | None = None, n: int = 1, nbytes: int = 0) -> None:
         with self._lock:
@@ -50,20 +52,21 @@ class Accounting:
                 q[counter + "_bytes"] += nbytes
 
     def _count(self, counter: str, plane: str, nbytes: int, peer: str | None) -> None:
-        pending = self._pending.get((plane, peer, counter))
-        if pending is None:
-            with self._lock:
-                pending = self._pending.setdefault((plane, peer, counter), deque())
-        pending.append(nbytes)
-        if len(pending) >= FOLD_AT:
-            self._fold()
+        count = self._tallies.get((plane, peer, counter)) or self.tally(plane, counter, peer)
+        count(nbytes)
 
     def tally(self, plane: str, counter: str, peer: str | None = None) -> Callable[[int], None]:
         """``tally(plane, "received", peer)(nbytes)`` counts one message as ``received(plane,
-        nbytes, peer)`` does, for a receiver that keeps the function per peer instead of
-        looking its counter up per message."""
-        with self._lock:
-            pending = self._pending.setdefault((plane, peer, counter), deque())
+        nbytes, peer)`` does (``sent`` and ``received`` go through it), for a receiver that keeps
+        the function per peer instead of looking its counter up per message."""
+        key = (plane, peer, counter)
+        with self._lock:  # one deque per key, even when two threads ask for it at once
+            count = self._tallies.get(key)
+            if count is None:
+                count = self._tallies[key] = self._appender(self._pending.setdefault(key, deque()))
+        return count
+
+    def _appender(self, pending: deque[int]) -> Callable[[int], None]:
         append, fold = pending.append, self._fold
 
         def count(nbytes: int) -> None:
