@@ -23,6 +23,15 @@ COMPRESSIONS = ("none", "zstd")
 
 RoleKind = Literal["actor", "rollout", "replicator", "evaluator"]
 
+ROLE_LANES: dict[str, tuple[str, ...]] = {
+    "actor": ("ingest", "batch", "learn", "publish"),
+    "rollout": ("sim", "infer", "ship", "sync"),
+    "replicator": ("recv", "forward"),
+    "evaluator": ("sync", "eval"),
+}
+"""The lanes (named threads) of each role, as its ``build()`` registers them; ``lane_cpus`` may
+pin any of them. A rollout with ``rollout_infer: inline`` has no ``infer`` lane."""
+
 
 @dataclass(frozen=True, kw_only=True)
 class PPOConfig:
@@ -249,6 +258,11 @@ class RolePlacement:
     role: RoleKind
     #: number of processes of this role on the node
     count: int = 1
+    #: CPU cores these processes are pinned to (None: the node's `cpus`)
+    cpus: tuple[int, ...] | None = None
+    #: lanes pinned to cores of their own, e.g. `{sim: [0]}`; the process's other threads (other
+    #: lanes, Zenoh's I/O) stay on `cpus` (None: no lane is pinned apart)
+    lane_cpus: dict[str, tuple[int, ...]] | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -398,6 +412,8 @@ class RoleConfig:
     secret_env: str = "DVLA_SECRET"
     #: CPU cores to pin to (None: no pinning)
     cpus: tuple[int, ...] | None = None
+    #: lanes pinned to cores of their own (their threads only; the rest of the process stays on `cpus`)
+    lane_cpus: dict[str, tuple[int, ...]] | None = None
     #: sync mode: env steps a rollout ships per policy version (its share of one learner batch)
     lockstep_steps: int = 0
     #: the task
@@ -421,6 +437,7 @@ class RoleConfig:
                 "actors": tuple(raw["actors"]),
                 "rollouts": tuple(raw["rollouts"]),
                 "cpus": tuple(raw["cpus"]) if raw.get("cpus") is not None else None,
+                "lane_cpus": {k: tuple(v) for k, v in raw["lane_cpus"].items()} if raw.get("lane_cpus") is not None else None,
                 "task": task_from_dict(raw["task"]),
                 "replication": ReplicationConfig(**raw["replication"]),
             }

@@ -119,15 +119,28 @@ def _task(topo: Topology, profile: Profile, epochs: int | None) -> Any:
     return dataclasses.replace(topo.task, ppo=ppo, budget=budget)
 
 
+PLACEMENTS = ("split", "split-roles", "file")
+"""Placements of the default workload; see :func:`default_workload`."""
+
+
 def default_workload(topo: Topology, profile: Profile, placement: str = "file") -> Topology:
-    """The topology's task without evaluators, budgets off. ``placement`` "file": the roles where
-    the file puts them; "split": the rollouts alone on core 0, the actor and the replicator on
-    core 1 (:func:`split_nodes`)."""
+    """The topology's task without evaluators, budgets off, placed by ``placement``:
+
+    * "split": the simulators alone on core 0 (the rollouts' ``sim`` lanes, ``lane_cpus``),
+      everything else on core 1: the rollouts' inference, shipping and weight sync, their Zenoh
+      I/O threads, the actor and the replicator (:func:`split_lanes`). The simulators' core then
+      does nothing but simulate, as on a machine whose policy runs on an accelerator;
+    * "split-roles": whole rollout processes on core 0, the actor and the replicator on core 1
+      (:func:`split_nodes`): the rollouts' own inference and I/O share the simulators' core;
+    * "file": the roles where the file puts them.
+    """
     if placement == "split":
+        return dataclasses.replace(topo, run="swl-default", task=_task(topo, profile, None), racks=(split_lanes(topo),))
+    if placement == "split-roles":
         return dataclasses.replace(topo, run="swl-default", task=_task(topo, profile, None),
                                    racks=(split_nodes(topo, with_replicator_on_sim=False),))
     if placement != "file":
-        raise ValueError(f"placement must be 'file' or 'split', got {placement!r}")
+        raise ValueError(f"placement must be one of {', '.join(PLACEMENTS)}, got {placement!r}")
     racks = []
     for rack in topo.racks:
         nodes = []
@@ -136,6 +149,17 @@ def default_workload(topo: Topology, profile: Profile, placement: str = "file") 
             nodes.append(dataclasses.replace(node, roles=roles))
         racks.append(dataclasses.replace(rack, nodes=tuple(nodes)))
     return dataclasses.replace(topo, run="swl-default", task=_task(topo, profile, None), racks=tuple(racks))
+
+
+def _rollout_count(topo: Topology) -> int:
+    return max(1, sum(r.count for _rack, n in topo.nodes() for r in n.roles if r.role == "rollout"))
+
+
+def split_lanes(topo: Topology) -> RackConfig:
+    """One node on core 1 holding every role; the rollouts' ``sim`` lanes pinned to core 0."""
+    rollout = RolePlacement(role="rollout", count=_rollout_count(topo), lane_cpus={"sim": (0,)})
+    node = NodeConfig(name="host", cpus=(1,), roles=(RolePlacement(role="actor"), RolePlacement(role="replicator"), rollout))
+    return RackConfig(name="rack0", nodes=(node,))
 
 
 def balanced_workload(topo: Topology, profile: Profile, epochs: int) -> Topology:
@@ -148,40 +172,56 @@ def split_nodes(topo: Topology, *, with_replicator_on_sim: bool) -> RackConfig:
     """One rack of two nodes: `sim` on core 0 with the topology's rollouts, `learn` on core 1 with
     the actor; the replicator on either. The learner then never takes CPU from the simulators,
     as when it runs on its own GPU."""
-    rollouts = sum(r.count for _rack, n in topo.nodes() for r in n.roles if r.role == "rollout")
     replicator = (RolePlacement(role="replicator"),)
     sim = NodeConfig(
         name="sim", cpus=(0,),
-        roles=(replicator if with_replicator_on_sim else ()) + (RolePlacement(role="rollout", count=max(1, rollouts)),),
+        roles=(replicator if with_replicator_on_sim else ()) + (RolePlacement(role="rollout", count=_rollout_count(topo)),),
     )
     learn = NodeConfig(name="learn", cpus=(1,),
                        roles=(RolePlacement(role="actor"),) + (() if with_replicator_on_sim else replicator))
     return RackConfig(name="rack0", nodes=(learn, sim))
 
 
+def _cores_of(node: NodeConfig, role: RolePlacement, lane: str | None, cpus: int) -> set[int]:
+    """Cores a role's thread runs on: its lane's pinning, else the role's, else the node's."""
+    if lane is not None and role.lane_cpus and lane in role.lane_cpus:
+        return set(role.lane_cpus[lane])
+    pinned = role.cpus if role.cpus is not None else node.cpus
+    return set(pinned) if pinned else set(range(cpus))
+
+
 def learner_ceiling(topo: Topology, share: float | None, cpus: int) -> float | None:
     """The simulators' ceiling left by the learner: 1 - its share of a core / the cores they
-    share, or 1.0 when the actor's cores and the rollouts' are disjoint."""
+    share, or 1.0 when the actor's cores and the simulators' (the rollouts' ``sim`` lanes) are
+    disjoint."""
     if share is None:
         return None
     sim_cpus: set[int] = set()
     learn_cpus: set[int] = set()
     for _rack, node in topo.nodes():
-        kinds = {r.role for r in node.roles}
-        for kind, into in (("rollout", sim_cpus), ("actor", learn_cpus)):
-            if kind in kinds:
-                into.update(node.cpus if node.cpus else range(cpus))
+        for role in node.roles:
+            if role.role == "rollout":
+                sim_cpus |= _cores_of(node, role, "sim", cpus)
+            elif role.role == "actor":
+                learn_cpus |= _cores_of(node, role, "learn", cpus)
     if sim_cpus and learn_cpus and not sim_cpus & learn_cpus:
         return 1.0
     return 1 - share / max(1, len(sim_cpus) or cpus)
 
 
 def placement_of(topo: Topology) -> list[dict[str, Any]]:
-    return [
-        {"node": n.name, "cpus": list(n.cpus) if n.cpus else "unpinned",
-         "roles": {r.role: r.count for r in n.roles}}
-        for _rack, n in topo.nodes()
-    ]
+    out = []
+    for _rack, n in topo.nodes():
+        roles: dict[str, Any] = {}
+        for r in n.roles:
+            entry: dict[str, Any] = {"count": r.count}
+            if r.cpus is not None:
+                entry["cpus"] = list(r.cpus)
+            if r.lane_cpus:
+                entry["lane_cpus"] = {k: list(v) for k, v in r.lane_cpus.items()}
+            roles[r.role] = entry if len(entry) > 1 else r.count
+        out.append({"node": n.name, "cpus": list(n.cpus) if n.cpus else "unpinned", "roles": roles})
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -325,13 +365,18 @@ def lane_figures(a: RoleStatus, b: RoleStatus) -> dict[str, dict[str, float]]:
     out = {}
     for lane, sb in b.lanes.items():
         sa = a.lanes.get(lane, {})
+        items = int(sb.get("items", 0.0) - sa.get("items", 0.0))
         out[lane] = {
             "utilisation": round((sb.get("busy_s", 0.0) - sa.get("busy_s", 0.0)) / dt, 4),
             "wait_fraction": round((sb.get("wait_s", 0.0) - sa.get("wait_s", 0.0)) / dt, 4),
             "items_per_s": round((sb.get("items", 0.0) - sa.get("items", 0.0)) / dt, 3),
-            "items": int(sb.get("items", 0.0) - sa.get("items", 0.0)),
+            "items": items,
             "busy_s": sb.get("busy_s", 0.0) - sa.get("busy_s", 0.0),
         }
+        if "cpu_s" in sb and "cpu_s" in sa:  # the lane thread's own CPU time (busy is wall time)
+            cpu = sb["cpu_s"] - sa["cpu_s"]
+            out[lane]["cpu_fraction"] = round(cpu / dt, 4)
+            out[lane]["cpu_ms_per_item"] = round(1e3 * cpu / items, 4) if items else None
     return out
 
 
@@ -363,6 +408,12 @@ def window_figures(a: dict[str, RoleStatus], b: dict[str, RoleStatus], topo: Top
         out["dropped_stale"] = int(ab.extra.get("dropped_stale", 0)) - int(aa.extra.get("dropped_stale", 0))
     # Time the rollouts need to sample one learner batch, all of them together.
     out["rollout_batch_s"] = batch / produced if produced > 0 else None
+    # CPU the simulators' threads spend per env step: what separates "the simulators got less
+    # CPU" from "each step cost more" (a busy lane's wall time cannot tell them apart).
+    sims = [lanes[n]["sim"] for n in rollouts if "cpu_fraction" in lanes[n].get("sim", {})]
+    steps = sum(x["items"] for x in sims)
+    out["sim_cpu_ms_per_step"] = 1e3 * sum(x["cpu_fraction"] * out["window_s"] for x in sims) / steps if sims and steps else None
+    out["sim_cpu_cores"] = sum(x["cpu_fraction"] for x in sims) if sims else None
     lat: dict[str, dict[str, int]] = {"swap": {}, "no_swap": {}, "overlap": {}, "no_overlap": {}}
     for n in rollouts:
         ca = a[n].extra.get("infer_latency_counts", {})
@@ -481,7 +532,7 @@ def run_bench(
     try:
         two_cores = (os.cpu_count() or 1) >= 2 and {0, 1} <= set(os.sched_getaffinity(0))
         if "default" in workloads:
-            if placement == "split" and not two_cores:
+            if placement.startswith("split") and not two_cores:
                 progress("default: cores 0 and 1 are not both available: placement as in the file")
                 placement = "file"
             doc["workloads"]["default"] = _default(base, profile, runs_root, base_port, progress, placement)
@@ -563,6 +614,14 @@ def _default(base: Topology, profile: Profile, runs_root: Path, port: int | None
         "sim_only_sps": _median(baselines),
         "async_sps": _median([p["async"].get("consumed_sps") for p in pairs]),
         "async_over_sim_only": _median(ratios),
+        # Where the gap comes from: the simulators' CPU (cores) and CPU per env step in each mode.
+        "sim_cpu": {
+            mode: {
+                "cores": _median([r.get("sim_cpu_cores") for r in runs]),
+                "ms_per_step": _median([r.get("sim_cpu_ms_per_step") for r in runs]),
+            }
+            for mode, runs in (("sim_only", [p["sim_only"] for p in pairs] + [closing]), ("async", [p["async"] for p in pairs]))
+        },
     }
 
 
@@ -643,6 +702,10 @@ def headline(workloads: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _fmt(v: float | None, digits: int) -> str:
+    return "-" if v is None else f"{v:.{digits}f}"
+
+
 def format_table(doc: dict[str, Any]) -> str:
     lines = [f"{'default_placement':28s} {doc.get('default_placement') or '-'}"]
     for k in HEADLINE_KEYS + ("learner_batch_s", "rollout_batch_s"):
@@ -660,4 +723,9 @@ def format_table(doc: dict[str, Any]) -> str:
             drift = wl.get("sim_only_drift")
             lines.append(f"{name} sim_only runs (env steps/s, in order): {runs}"
                          + ("" if drift is None else f"; last / first {drift:.2f}"))
+        cpu = wl.get("sim_cpu") or {}
+        if cpu:
+            cells = [f"{mode} {_fmt(c.get('cores'), 2)} cores, {_fmt(c.get('ms_per_step'), 3)} ms CPU per env step"
+                     for mode, c in cpu.items()]
+            lines.append(f"{name} sim lanes: " + "; ".join(cells))
     return "\n".join(lines)

@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass
 from typing import Callable, Literal
 
 from ..config import Topology
-from .plan import is_local_host, make_plan
+from .plan import is_local_host, make_plan, pinning_problems
 
 Status = Literal["ok", "warn", "fail", "skip"]
 STATUSES: tuple[Status, ...] = ("ok", "warn", "fail", "skip")
@@ -247,6 +247,21 @@ def check_ports(needs: Needs) -> CheckResult:
     return outcome("ports", True, f"{checked} listen port(s) free{note}", required=True)
 
 
+def check_cpus(topo: Topology | None) -> CheckResult:
+    """Every core a local process is pinned to (``cpus``, ``lane_cpus``) exists on this host."""
+    if topo is None:
+        return skip("cpus", "give a TOPOLOGY to check the cores it pins roles and lanes to")
+    plan = make_plan(topo, run_dir=f"runs/{topo.run}")
+    pinned = [p for p in plan.processes if is_local_host(p.host) and (p.config.cpus or p.config.lane_cpus)]
+    if not pinned:
+        return skip("cpus", "no process on this host is pinned")
+    problems = pinning_problems(plan)
+    if problems:
+        return outcome("cpus", False, "; ".join(problems), required=True,
+                       fix="pin to cores this host has (nproc; taskset -pc $$ shows the usable ones)")
+    return outcome("cpus", True, f"{len(pinned)} pinned process(es): every core exists here", required=True)
+
+
 def _run(cmd: list[str]) -> tuple[bool, str]:
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=30)
@@ -318,7 +333,7 @@ def check_clock() -> CheckResult:
 
 
 #: every check `run_checks` knows, in its order (names for `dvla doctor --skip`)
-CHECK_NAMES = ("python", "torch", "zenoh", "vulkan", "maniskill", "ports", "netns", "ssh", "clock")
+CHECK_NAMES = ("python", "torch", "zenoh", "vulkan", "maniskill", "ports", "cpus", "netns", "ssh", "clock")
 
 
 def run_checks(
@@ -333,6 +348,7 @@ def run_checks(
         ("vulkan", lambda: check_vulkan(needs)),
         ("maniskill", lambda: check_maniskill(needs)),
         ("ports", lambda: check_ports(needs)),
+        ("cpus", lambda: check_cpus(topo)),
         ("netns", lambda: check_netns(needs)),
         ("ssh", lambda: check_ssh(topo, needs)),
         ("clock", check_clock),

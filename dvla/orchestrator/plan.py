@@ -14,8 +14,9 @@ from __future__ import annotations
 import dataclasses
 import os
 from dataclasses import dataclass
+from typing import Any
 
-from ..config import NodeConfig, PlaneEndpoints, RackConfig, RoleConfig, Topology
+from ..config import NodeConfig, PlaneEndpoints, RackConfig, RoleConfig, RolePlacement, Topology
 
 LOOPBACK = "127.0.0.1"
 
@@ -60,6 +61,7 @@ class _Slot:
     rack: RackConfig
     node: NodeConfig
     index: int
+    placement: RolePlacement
     parent: str | None = None
     children: list[str] = dataclasses.field(default_factory=list)
     actors: list[str] = dataclasses.field(default_factory=list)
@@ -92,7 +94,7 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
             addresses[node.name] = node_address(topo, ri, ni, node)
             for placement in node.roles:
                 for i in range(placement.count):
-                    slots.append(_Slot(f"{placement.role}-{node.name}-{i}", placement.role, rack, node, len(slots)))
+                    slots.append(_Slot(f"{placement.role}-{node.name}-{i}", placement.role, rack, node, len(slots), placement))
     by_name = {s.name: s for s in slots}
     actors = [s for s in slots if s.kind == "actor"]
     root = actors[0]
@@ -195,7 +197,8 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
             children=tuple(s.children),
             actors=tuple(s.actors),
             rollouts=tuple(s.rollouts),
-            cpus=s.node.cpus,
+            cpus=s.placement.cpus if s.placement.cpus is not None else s.node.cpus,
+            lane_cpus=s.placement.lane_cpus,
             lockstep_steps=_lockstep_steps(topo, s, by_name),
             task=topo.task,
             replication=topo.replication,
@@ -227,3 +230,33 @@ def _lockstep_steps(topo: Topology, s: _Slot, by_name: dict[str, _Slot]) -> int:
         return 0
     n_rollouts = len(by_name[s.actors[0]].rollouts)
     return -(-topo.task.ppo.batch_steps // n_rollouts)
+
+
+def pinning_problems(plan: Plan, allowed: set[int] | None = None) -> list[str]:
+    """One line per pinned core a process on this machine cannot have: ``cpus`` (node or role)
+    and ``lane_cpus`` checked against this host's usable cores (``os.sched_getaffinity``).
+    Remote nodes' cores are theirs to check."""
+    if allowed is None:
+        if not hasattr(os, "sched_getaffinity"):
+            return []
+        allowed = set(os.sched_getaffinity(0))
+    have = _core_list(allowed)
+    problems: list[str] = []
+    seen: set[tuple[str, str, str]] = set()
+    for p in plan.processes:
+        if not is_local_host(p.host):
+            continue
+        cfg = p.config
+        pinned = [("cpus", cfg.cpus or ())] + [(f"lane_cpus.{lane}", c) for lane, c in (cfg.lane_cpus or {}).items()]
+        for key, cores in pinned:
+            missing = sorted(set(cores) - allowed)
+            where = (cfg.node, cfg.kind, key)
+            if missing and where not in seen:
+                seen.add(where)
+                problems.append(f"node {cfg.node}, role {cfg.kind}: {key} names core(s) {_core_list(missing)}, "
+                                f"which this host does not have (usable cores: {have})")
+    return problems
+
+
+def _core_list(cores: Any) -> str:
+    return ",".join(str(c) for c in sorted(cores))

@@ -24,7 +24,7 @@ from ..fabric import Fabric, load_secret, new_secret, plane_config
 from ..fabric.messages import Command
 from .launcher import Launcher, log_tail
 from .monitor import Monitor
-from .plan import Plan, is_local_host, make_plan
+from .plan import Plan, is_local_host, make_plan, pinning_problems
 from .topology import dump_topology_yaml
 
 log = logging.getLogger("dvla.up")
@@ -140,6 +140,9 @@ class Up:
         self.topo = apply_overrides(topo, opts)
         self.opts = opts
         self.on_tick = on_tick
+        pinning = pinning_problems(make_plan(self.topo, "runs"))
+        if pinning:  # caught before anything is created, not as a role that dies on start
+            raise ValueError("\n".join(f"{self.topo.source}: {p}" for p in pinning))
         self.run_dir = prepare_run_dir(opts.runs_root, self.topo.run)
         self.plan: Plan = make_plan(self.topo, str(self.run_dir), opts.base_port)
         self.secret, self.secret_source = resolve_secret(self.topo, self.run_dir)

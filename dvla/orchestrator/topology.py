@@ -32,6 +32,7 @@ from dvla.config import (
     ENCODINGS,
     OBS_MODES,
     ROLE_KINDS,
+    ROLE_LANES,
     BudgetConfig,
     EvalConfig,
     LinkConfig,
@@ -761,22 +762,39 @@ def _check_node_roles(p: _Partial, ctx: _Context) -> None:
 
 
 def _check_cpus(p: _Partial, ctx: _Context) -> None:
-    cpus = p.get("cpus")
+    _check_cpu_list(p.get("cpus"), p.where("cpus"), ctx)
+
+
+def _check_cpu_list(cpus: Any, where: str, ctx: _Context) -> None:
     if not isinstance(cpus, tuple):
         return
     if not cpus:
-        ctx.report(p.where("cpus"), "empty cpu list (expected at least one core index, or null for no pinning)")
+        ctx.report(where, "empty cpu list (expected at least one core index, or null for no pinning)")
     first_index: dict[int, int] = {}
     for i, cpu in enumerate(cpus):
-        path = f"{p.where('cpus')}[{i}]"
+        path = f"{where}[{i}]"
         if type(cpu) is not int:
             continue
         if cpu < 0:
             ctx.report(path, f"negative cpu index {cpu} (expected >= 0)")
         elif cpu in first_index:
-            ctx.report(path, f"duplicate cpu {cpu} (already listed at cpus[{first_index[cpu]}])")
+            ctx.report(path, f"duplicate cpu {cpu} (already listed at {_leaf(where)}[{first_index[cpu]}])")
         else:
             first_index[cpu] = i
+
+
+def _check_lane_cpus(p: _Partial, ctx: _Context) -> None:
+    """``lane_cpus`` names lanes the role has, each with a valid cpu list."""
+    lanes = p.get("lane_cpus")
+    if not isinstance(lanes, dict):
+        return
+    role = p.get("role")
+    known = ROLE_LANES.get(role) if isinstance(role, str) else None
+    for lane, cpus in lanes.items():
+        where = _join(p.where("lane_cpus"), lane)
+        if known is not None and lane not in known:
+            ctx.report(where, _unknown_value(f"{role} lane", lane, known))
+        _check_cpu_list(cpus, where, ctx)
 
 
 # --- remote nodes (SSH) -----------------------------------------------------------------------
@@ -874,6 +892,7 @@ _CHECKS: dict[type, list[Callable[[_Partial, _Context], None]]] = {
     ReplicationConfig: [_check_encoding],
     RackConfig: [_check_rack_nodes],
     NodeConfig: [_check_addresses, _check_node_roles, _check_cpus],
+    RolePlacement: [_check_cpus, _check_lane_cpus],
 }
 
 

@@ -105,7 +105,14 @@ def _sections(cls: type, path: str) -> list[str]:
 
 def render() -> str:
     """The whole page."""
-    return HEADER + "\n" + "\n".join(_sections(config.Topology, "")) + "\n" + FOOTER
+    lanes = "; ".join(f"`{role}`: " + ", ".join(f"`{lane}`" for lane in names) for role, names in config.ROLE_LANES.items())
+    pinning = (f"\nLanes `lane_cpus` can pin (each is one thread of the role's process): {lanes}. A pinned lane's thread "
+               "moves to its cores as it starts; the process's other threads (its other lanes, Zenoh's I/O threads) stay "
+               "on the role's `cpus`. Example: every role on core 1 but the simulators, alone on core 0 "
+               "(what `dvla bench swimlane --placement split` runs):\n\n"
+               "```yaml\n      - name: node0\n        cpus: [1]\n        roles:\n          - role: actor\n"
+               "          - role: replicator\n          - {role: rollout, count: 2, lane_cpus: {sim: [0]}}\n```\n")
+    return HEADER + "\n" + "\n".join(_sections(config.Topology, "")) + "\n" + FOOTER + pinning
 
 
 if __name__ == "__main__":

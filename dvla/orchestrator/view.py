@@ -53,7 +53,16 @@ def latest_version(statuses: dict[str, RoleStatus]) -> int:
 
 
 def _lanes(s: RoleStatus) -> str:
-    return " ".join(f"{lane} {100 * util:.0f}%" for lane, util in lane_utilisation(s).items())
+    """``sim@0 98% infer 11% ...``: a lane pinned apart from its process (``lane_cpus``) shows its cores."""
+    placement = s.extra.get("placement") or {}
+    own = placement.get("cpus")
+    pinned = placement.get("lanes") or {}
+    cells = []
+    for lane, util in lane_utilisation(s).items():
+        cores = pinned.get(lane)
+        at = "@" + ",".join(str(c) for c in cores) if cores and cores != own else ""
+        cells.append(f"{lane}{at} {100 * util:.0f}%")
+    return " ".join(cells)
 
 
 def _infer_cell(s: RoleStatus) -> str:

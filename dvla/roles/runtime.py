@@ -114,7 +114,7 @@ class RoleHost:
             steps_per_s=float(self.steps_per_s()),
             lanes=_lane_floats(self.swimlane.stats()),
             planes=_ints(self.fabric.accounting.snapshot()),
-            extra={**self.role.status_extra(), "placement": self.placement},
+            extra={**self.role.status_extra(), "placement": {**self.placement, "lanes": self.swimlane.affinity()}},
             time_ns=time.time_ns(),
         )
 
@@ -125,6 +125,12 @@ class RoleHost:
         self.fabric.on_ctrl(keys.cmd("all"), Command, self._on_command)  # commands for every role
         self.fabric.serve(keys.status(self.cfg.name), self.status)  # `dvla status` and the orchestrator
         self.role.build(self.swimlane)
+        if self.cfg.lane_cpus:
+            try:
+                self.swimlane.pin(self.cfg.lane_cpus)
+            except ValueError as err:
+                log.error("%s: bad lane_cpus in the config: %s", self.cfg.name, err)
+                return ExitStatus.CONFIG
         self.fabric.declare_alive()  # membership: gone when this process is
         self.swimlane.start()
         self.state = "running"

@@ -22,9 +22,11 @@ is set. This module owns:
 from __future__ import annotations
 
 import collections
+import ctypes
 import logging
 import math
 import os
+import sys
 import threading
 import time
 import traceback
@@ -484,6 +486,14 @@ class _Lane:
         self.target = target
         self.stop_on_exit = stop_on_exit
         self.thread: threading.Thread | None = None
+        #: cores this lane's thread pins itself to when it starts (None: the process's)
+        self.cpus: tuple[int, ...] | None = None
+        #: the thread's CPU affinity once it runs (None: not started, or not reported here)
+        self.affinity: list[int] | None = None
+        #: the thread's CPU-time clock (readable from any thread; None where the OS has none)
+        self.cpu_clock: int | None = None
+        #: CPU seconds the thread had used when it ended (its clock is gone with it)
+        self.cpu_s_final: float | None = None
 
 
 class Swimlane:
@@ -533,6 +543,30 @@ class Swimlane:
         self._queues[name] = q
         return q
 
+    def pin(self, lane_cpus: dict[str, Iterable[int]]) -> None:
+        """Pin lanes to cores of their own (``{"sim": [0]}``); each lane's thread applies its
+        pinning as it starts, so the process's other threads keep their affinity.
+
+        Raises ValueError, naming the lane, for a lane this role does not have or an empty set.
+        A pinning the OS refuses (a core that does not exist here) fails that lane when it starts,
+        which stops the role with an error naming the lane.
+        """
+        if self._started:
+            raise RuntimeError(f"swimlane {self.role!r}: pin() after start()")
+        for name, cpus in lane_cpus.items():
+            if name not in self._lanes:
+                have = ", ".join(self._lanes) or "none"
+                raise ValueError(f"swimlane {self.role!r}: lane_cpus names lane {name!r}, which this role does not "
+                                 f"run (its lanes: {have})")
+            wanted = tuple(sorted({int(c) for c in cpus}))
+            if not wanted:
+                raise ValueError(f"swimlane {self.role!r}: lane_cpus.{name} is empty")
+            self._lanes[name].cpus = wanted
+
+    def affinity(self) -> dict[str, list[int] | None]:
+        """Each lane's CPU affinity as its thread found it after pinning (None before it runs)."""
+        return {name: lane.affinity for name, lane in self._lanes.items()}
+
     # -- lifecycle ---------------------------------------------------------------------------
 
     def start(self) -> None:
@@ -556,7 +590,13 @@ class Swimlane:
     def _run_lane(self, lane: _Lane) -> None:
         ctx = lane.ctx
         _local.lane = ctx
+        _name_os_thread(ctx.name)
+        lane.cpu_clock = _thread_cpu_clock()
         try:
+            if lane.cpus is not None:
+                pin_cpus(lane.cpus)
+            if hasattr(os, "sched_getaffinity"):
+                lane.affinity = sorted(os.sched_getaffinity(0))
             lane.target(ctx)
         except BaseException as exc:  # noqa: BLE001 - any lane failure must stop the role
             self._fail(ctx, exc)
@@ -566,6 +606,7 @@ class Swimlane:
                 self.stop_event.set()
         finally:
             _local.lane = None
+            lane.cpu_s_final = time.thread_time()
 
     def _fail(self, ctx: LaneContext, exc: BaseException) -> None:
         ctx.stats.record_error()
@@ -638,11 +679,16 @@ class Swimlane:
         return "stopped" if self.stop_event.is_set() else "running"
 
     def stats(self) -> dict[str, dict[str, Any]]:
-        """Per-lane :meth:`LaneStats.snapshot`, plus whether the lane thread is alive."""
+        """Per-lane :meth:`LaneStats.snapshot`, plus whether the lane thread is alive and the CPU
+        seconds its thread has used (``cpu_s``; busy time is wall time, so a lane busy 100% of
+        the time on a core it shares with another thread shows about half that in CPU)."""
         out: dict[str, dict[str, Any]] = {}
         for name, lane in self._lanes.items():
             snap: dict[str, Any] = dict(lane.ctx.stats.snapshot())
             snap["alive"] = lane.thread is not None and lane.thread.is_alive()
+            cpu = _lane_cpu_s(lane)
+            if cpu is not None:
+                snap["cpu_s"] = cpu
             out[name] = snap
         return out
 
@@ -760,6 +806,52 @@ def histogram_percentile(counts: dict[str, int], q: float) -> float:
 # --------------------------------------------------------------------------------------------
 # Process placement
 # --------------------------------------------------------------------------------------------
+
+
+def _thread_cpu_clock() -> int | None:
+    """The calling thread's CPU-time clock id, or None where the platform has none."""
+    getter = getattr(time, "pthread_getcpuclockid", None)
+    if getter is None:
+        return None
+    try:
+        return getter(threading.get_ident())
+    except OSError:
+        return None
+
+
+def _lane_cpu_s(lane: _Lane) -> float | None:
+    """CPU seconds of a lane's thread so far (its final figure once it has ended)."""
+    if lane.cpu_s_final is not None:
+        return lane.cpu_s_final
+    if lane.cpu_clock is None:
+        return None
+    try:
+        return time.clock_gettime(lane.cpu_clock)
+    except OSError:  # the thread ended between the check and the read
+        return lane.cpu_s_final
+
+
+def _name_os_thread(lane: str) -> None:
+    """Name the calling thread ``dvla:<lane>`` for the OS (``top -H``, ``ps -L``,
+    ``/proc/<pid>/task/<tid>/comm``; the kernel keeps 15 bytes)."""
+    if _prctl is None:
+        return
+    try:
+        _prctl(15, ctypes.c_char_p(f"dvla:{lane}".encode("utf-8", "replace")[:15]), 0, 0, 0)  # PR_SET_NAME
+    except (OSError, ctypes.ArgumentError):
+        pass
+
+
+def _load_prctl() -> Any:
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        return ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+
+
+_prctl = _load_prctl()
 
 
 def pin_cpus(cpus: Iterable[int]) -> set[int] | None:

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 
+from dvla.config import ROLE_LANES
 from dvla.orchestrator.ports import free_port_block  # noqa: F401  (tests import it from here)
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -77,6 +78,8 @@ def test_up_tiny_end_to_end(tmp_path: Path) -> None:
 
     summaries = {p.stem: json.loads(p.read_text()) for p in (run_dir / "summaries").glob("*.json")}
     assert set(summaries) == ROLES
+    for s in summaries.values():  # the lanes `lane_cpus` may name are the lanes each role runs
+        assert tuple(s["lanes"]) == ROLE_LANES[s["kind"]], (s["name"], list(s["lanes"]))
     actor_version = summaries["actor-node0-0"]["extra"]["published_version"]
     assert actor_version >= 3
     for name in ("rollout-node0-0", "rollout-node0-1"):
@@ -115,4 +118,32 @@ def test_up_with_inline_inference(tmp_path: Path) -> None:
         assert s["policy_version"] >= 2 and s["error"] is None
         lat = s["extra"]["infer_latency_counts"]
         assert sum(lat["swap"].values()) + sum(lat["no_swap"].values()) > 0  # acting is still timed
+    assert pids_of_run(run_dir) == []
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.skipif(not {0, 1} <= os.sched_getaffinity(0), reason="needs cores 0 and 1")
+def test_up_with_the_simulators_pinned_apart(tmp_path: Path) -> None:
+    """`lane_cpus`: every role on core 1 but the rollouts' sim lanes, alone on core 0. The roles
+    report each lane's affinity as the kernel holds it; training still closes its accounting."""
+    topo = tmp_path / "tiny-pinned.yaml"
+    text = (ROOT / "topologies/tiny.yaml").read_text()
+    placed = "        host: localhost\n        roles:\n"
+    assert placed in text and "            count: 2\n" in text
+    text = text.replace(placed, "        host: localhost\n        cpus: [1]\n        roles:\n", 1)
+    text = text.replace("            count: 2\n", "            count: 2\n            lane_cpus: {sim: [0]}\n", 1)
+    topo.write_text(text)
+    runs = tmp_path / "runs"
+    up = dvla("up", str(topo), "--runs", str(runs), "--base-port", str(free_port_block()),
+              "--max-env-steps", "1200", "--quiet", timeout=280)
+    assert up.returncode == 0, up.stdout + up.stderr
+    run_dir = runs / "tiny"
+    result = json.loads((run_dir / "result.json").read_text())
+    assert result["accounting"]["consumed"] > 0 and result["accounting"]["unaccounted"] == 0, result["accounting"]
+    for name in ROLES:
+        s = json.loads((run_dir / "summaries" / f"{name}.json").read_text())
+        placement = s["extra"]["placement"]
+        assert placement["cpus"] == [1], (name, placement)
+        want = {lane: [0] if lane == "sim" and name.startswith("rollout") else [1] for lane in s["lanes"]}
+        assert placement["lanes"] == want, (name, placement)
     assert pids_of_run(run_dir) == []

@@ -80,6 +80,29 @@ def test_role_config_json_round_trip() -> None:
         assert RoleConfig.from_json(p.config.to_json()) == p.config
 
 
+def test_role_and_lane_pinning_reach_each_process() -> None:
+    text = """
+run: pin
+racks:
+  - name: r
+    nodes:
+      - name: n
+        cpus: [1]
+        roles:
+          - {role: actor}
+          - {role: rollout, count: 2, lane_cpus: {sim: [0]}}
+          - {role: evaluator, cpus: [0, 1]}
+"""
+    plan = make_plan(parse_topology(text, "pin.yaml"), "/tmp/run")
+    by = {p.config.name: p.config for p in plan.processes}
+    assert by["actor-n-0"].cpus == (1,) and by["actor-n-0"].lane_cpus is None  # the node's
+    for name in ("rollout-n-0", "rollout-n-1"):
+        assert by[name].cpus == (1,) and by[name].lane_cpus == {"sim": (0,)}
+    assert by["evaluator-n-0"].cpus == (0, 1)  # the role's own cpus win over the node's
+    for cfg in by.values():
+        assert RoleConfig.from_json(cfg.to_json()) == cfg
+
+
 def test_ports_are_unique() -> None:
     plan = make_plan(parse_topology(TWO_RACKS, "two.yaml"), "/tmp/run", base_port=30000)
     eps = [e for p in plan.processes for e in p.config.ctrl.listen + p.config.data.listen]

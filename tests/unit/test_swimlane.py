@@ -431,6 +431,76 @@ def test_pin_cpus_in_a_thread() -> None:
         pin_cpus([])
 
 
+def _thread_table() -> dict[str, str]:
+    """OS thread name -> Cpus_allowed_list of every thread of this process, from /proc."""
+    out = {}
+    for tid in os.listdir("/proc/self/task"):
+        base = f"/proc/self/task/{tid}"
+        try:
+            comm = open(f"{base}/comm").read().strip()
+            status = open(f"{base}/status").read()
+        except OSError:  # the thread ended meanwhile
+            continue
+        out[comm] = status.split("Cpus_allowed_list:")[1].split()[0]
+    return out
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="thread affinity and names are Linux's")
+def test_pinned_lane_gets_its_cores_and_the_other_lanes_keep_the_process_affinity() -> None:
+    allowed = sorted(os.sched_getaffinity(0))
+    core = allowed[-1]
+    started = threading.Barrier(3)
+
+    def parked(ctx: LaneContext) -> None:
+        started.wait(2.0)
+        ctx.stop.wait(5.0)
+
+    sl = Swimlane("rollout-n0-0")
+    sl.lane("simulate", parked)
+    sl.lane("infer", parked)
+    assert sl.affinity() == {"simulate": None, "infer": None}
+    sl.pin({"simulate": [core]})
+    sl.start()
+    try:
+        started.wait(2.0)
+        threads = _thread_table()  # what the kernel says, not what the lane believes
+        assert threads["dvla:simulate"] == str(core)
+        assert threads["dvla:infer"] == threads[open("/proc/self/comm").read().strip()]  # the process's set
+        assert sl.affinity() == {"simulate": [core], "infer": allowed}
+        assert sorted(os.sched_getaffinity(0)) == allowed  # the caller is untouched
+    finally:
+        assert sl.close() == []
+
+
+def test_pin_rejects_unknown_lanes_and_empty_sets_naming_them() -> None:
+    sl = Swimlane("actor-n0-0")
+    sl.lane("learn", _idle)
+    with pytest.raises(ValueError, match=r"'actor-n0-0'.*lane 'lern'.*its lanes: learn"):
+        sl.pin({"lern": [0]})
+    with pytest.raises(ValueError, match="lane_cpus.learn is empty"):
+        sl.pin({"learn": []})
+    sl.start()
+    try:
+        with pytest.raises(RuntimeError, match="after start"):
+            sl.pin({"learn": [0]})
+    finally:
+        sl.close()
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="needs CPU affinity")
+def test_a_lane_pinned_to_a_missing_core_fails_the_role_naming_the_lane() -> None:
+    ran: list[str] = []
+    sl = Swimlane("rollout-n0-0")
+    sl.lane("sim", lambda ctx: ran.append("sim"))
+    sl.lane("ship", _idle)
+    sl.pin({"sim": [os.cpu_count() + 4096]})
+    sl.start()
+    assert sl.wait(5.0)
+    assert sl.join() == []
+    assert sl.error is not None and sl.error.lane == "sim" and "cannot pin" in str(sl.error)
+    assert ran == []  # the lane's body never ran off its cores
+
+
 def test_pin_cpus_unsupported_is_a_warning(monkeypatch: pytest.MonkeyPatch,
                                            caplog: pytest.LogCaptureFixture) -> None:
     monkeypatch.delattr(os, "sched_setaffinity", raising=False)
@@ -541,6 +611,59 @@ def test_role_with_a_failing_lane_exits_with_an_error_naming_the_lane(tmp_path) 
     assert status.lanes["ship"]["alive"] == 0.0, "the healthy lane must have been stopped too"
     summary = json.loads((tmp_path / "summaries" / "rollout-n0-0.json").read_text())
     assert "rollout-n0-0/infer" in summary["error"] and "policy forward failed" in summary["error"]
+
+
+def _role_config(tmp_path, **kw):
+    from dvla.config import PlaneEndpoints, ReplicationConfig, RoleConfig, TaskConfig
+
+    return RoleConfig(
+        name="rollout-n0-0", kind="rollout", run="lanepin", node="n0", rack="r0", seed=1, mode="async",
+        run_dir=str(tmp_path), data=PlaneEndpoints(), ctrl=PlaneEndpoints(mode="peer"),
+        shared_memory=False, parent="actor-n0-0", ancestors=("actor-n0-0",), children=(), actors=(),
+        rollouts=(), task=TaskConfig(), replication=ReplicationConfig(), **kw,
+    )
+
+
+def _host_run(cfg, role):
+    from dvla.fabric import Fabric, plane_config
+    from dvla.roles.runtime import RoleHost
+
+    fabric = Fabric(run=cfg.run, name=cfg.name, ctrl_conf=plane_config(mode="peer", listen=("tcp/127.0.0.1:0",)),
+                    data_conf=None, secret=b"k" * 32)
+    try:
+        host = RoleHost(cfg, fabric, role)
+        return host, host.run(), host.status()
+    finally:
+        fabric.close()
+
+
+class _ShortRole(_FailingRole):
+    """Two lanes that run briefly and return (which stops the role cleanly)."""
+
+    def build(self, sl: Swimlane) -> None:
+        sl.lane("ship", self._brief)
+        sl.lane("infer", self._brief)
+
+    def _brief(self, ctx: LaneContext) -> None:
+        ctx.sleep(0.2)
+
+
+def test_role_host_pins_lanes_from_the_config_and_reports_them(tmp_path) -> None:
+    from dvla.roles.runtime import ExitStatus
+
+    core = max(os.sched_getaffinity(0))
+    host, code, status = _host_run(_role_config(tmp_path, lane_cpus={"infer": (core,)}), _ShortRole())
+    assert code == ExitStatus.OK
+    assert status.extra["placement"]["lanes"] == {"ship": sorted(os.sched_getaffinity(0)), "infer": [core]}
+
+
+def test_role_host_refuses_lane_cpus_for_a_lane_it_does_not_run(tmp_path, caplog) -> None:
+    from dvla.roles.runtime import ExitStatus
+
+    with caplog.at_level(logging.ERROR, logger="dvla.role"):
+        host, code, _status = _host_run(_role_config(tmp_path, lane_cpus={"sim": (0,)}), _ShortRole())
+    assert code == ExitStatus.CONFIG
+    assert any("lane 'sim'" in r.getMessage() and "its lanes: ship, infer" in r.getMessage() for r in caplog.records)
 
 
 def test_stop_joins_every_lane_within_two_seconds_under_load() -> None:
@@ -663,7 +786,8 @@ def test_status_shows_every_lane_utilisation_and_rollout_lag() -> None:
         "actor-node0-0": _status("actor-node0-0", "actor", 6, {"ingest": 0.05, "learn": 0.93},
                                  published_version=9, policy_lag_mean=1.25),
         "rollout-node0-0": _status("rollout-node0-0", "rollout", 7, {"sim": 0.81, "infer": 0.12}),
-        "rollout-node0-1": _status("rollout-node0-1", "rollout", 9, {"sim": 0.5, "infer": 0.2}),
+        "rollout-node0-1": _status("rollout-node0-1", "rollout", 9, {"sim": 0.5, "infer": 0.2},
+                                   placement={"cpus": [1], "lanes": {"sim": [0], "infer": [1]}}),
     }
     table = render_table(statuses, expected=[*statuses, "evaluator-node0-0"])
     rows = {line.split()[0]: line for line in table.splitlines()[1:]}
@@ -673,6 +797,8 @@ def test_status_shows_every_lane_utilisation_and_rollout_lag() -> None:
     assert rows["actor-node0-0"].split()[4:6] == ["9", "~1.2"]
     assert "sim 81%" in rows["rollout-node0-0"] and "infer 12%" in rows["rollout-node0-0"]
     assert "ingest 5%" in rows["actor-node0-0"] and "learn 93%" in rows["actor-node0-0"]
+    # a lane pinned apart from its process shows its cores; one on the process's cores does not
+    assert "sim@0 50%" in rows["rollout-node0-1"] and "infer 20%" in rows["rollout-node0-1"]
     assert "silent" in rows["evaluator-node0-0"]
     doc = json.loads(render_json(statuses))
     by_name = {r["name"]: r for r in doc["roles"]}

@@ -81,7 +81,7 @@ def swimlane(
     balanced_epochs: Annotated[Optional[int], typer.Option(help="PPO epochs of the balanced workload")] = None,
     repeats: Annotated[int, typer.Option(help="runs of each workload's pair (alternating), for the spread")] = 1,
     workload: Annotated[Optional[list[str]], typer.Option(help="default and/or balanced (repeatable; default: both)")] = None,
-    placement: Annotated[str, typer.Option(help="default workload: 'split' (rollouts on core 0; actor, replicator on core 1) or 'file' (as the topology places them)")] = "split",
+    placement: Annotated[str, typer.Option(help="default workload: 'split' (the rollouts' sim lanes alone on core 0, everything else on core 1), 'split-roles' (whole rollout processes on core 0; actor, replicator on core 1) or 'file' (as the topology places them)")] = "split",
     base_port: Annotated[Optional[int], typer.Option(help="first TCP port (default: a free block for each run)")] = None,
     runs: Annotated[Optional[Path], typer.Option(help="keep the runs' directories here (default: a temporary directory)")] = None,
 ) -> None:
@@ -90,7 +90,7 @@ def swimlane(
     weight swaps, policy lag and RSS growth over a steady state."""
     import dataclasses
 
-    from ...bench.swimlane import QUICK, Profile, format_table, run_bench
+    from ...bench.swimlane import PLACEMENTS, QUICK, Profile, format_table, run_bench
 
     profile = QUICK if quick else Profile()
     overrides = {"warmup_s": warmup, "window_s": window, "rss_window_s": rss_window, "balanced_epochs": balanced_epochs}
@@ -98,8 +98,8 @@ def swimlane(
     wl = tuple(workload or ("default", "balanced"))
     if repeats < 1 or any(w not in ("default", "balanced") for w in wl):
         raise fail(f"--repeats must be >= 1 and --workload one of default, balanced (got {repeats}, {list(wl)})")
-    if placement not in ("split", "file"):
-        raise fail(f"--placement must be 'split' or 'file' (got {placement!r})")
+    if placement not in PLACEMENTS:
+        raise fail(f"--placement must be one of {', '.join(PLACEMENTS)} (got {placement!r})")
     try:
         doc = run_bench(topology, profile, base_port=base_port, runs_root=runs, workloads=wl, placement=placement,
                         progress=lambda m: typer.echo(f"[bench] {m}", err=True))

@@ -39,6 +39,8 @@ def plan(
             "actors": list(x.config.actors), "ctrl": {"mode": x.config.ctrl.mode, "listen": list(x.config.ctrl.listen),
             "connect": list(x.config.ctrl.connect)}, "data": {"listen": list(x.config.data.listen),
             "connect": list(x.config.data.connect)},
+            "cpus": list(x.config.cpus) if x.config.cpus else None,
+            "lane_cpus": {k: list(v) for k, v in x.config.lane_cpus.items()} if x.config.lane_cpus else None,
         }
         for x in p.processes
     ]
@@ -49,7 +51,7 @@ def plan(
         return
     typer.echo(f"run {topo.run}: {len(procs)} processes on {len(topo.nodes())} nodes, mode {topo.mode}, emulate {topo.emulate}")
     for x in procs:
-        typer.echo(f"  {x['name']:<28} {x['rack']}/{x['node']:<10} parent={x['parent'] or '-'}")
+        typer.echo(f"  {x['name']:<28} {x['rack']}/{x['node']:<10} parent={x['parent'] or '-'}{_pinning(x)}")
     typer.echo("weight tree:")
     _tree(typer.echo, procs, p.root_actor, "  ")
     typer.echo(
@@ -60,6 +62,16 @@ def plan(
     )
     for w in p.warnings:
         typer.echo(f"warning: {w}", err=True)
+
+
+def _pinning(proc: dict[str, Any]) -> str:
+    """`` cpus=1 sim@0`` for a pinned process (lanes pinned apart after its own cores), else ""."""
+    parts = []
+    if proc["cpus"]:
+        parts.append("cpus=" + ",".join(map(str, proc["cpus"])))
+    for lane, cpus in (proc["lane_cpus"] or {}).items():
+        parts.append(f"{lane}@" + ",".join(map(str, cpus)))
+    return "  " + " ".join(parts) if parts else ""
 
 
 def _tree(echo, procs: list[dict], name: str, indent: str) -> None:
