@@ -5,15 +5,21 @@ Two workloads, each run in two modes on the same topology, env and policy:
 
 * **default**: the topology given (``topologies/local.yaml``) without its evaluator (evaluation
   is not part of the training pipeline). Placement ``split`` (the default where cores 0 and 1
-  exist): the rollouts alone on core 0, the actor and the replicator on core 1, so the learner
-  takes no CPU from the simulators, as on a machine whose learner has its own GPU; ``file``:
-  where the file puts the roles (on two cores, unpinned, the learner's share of the CPU then
-  caps the ratio: ``ceiling_from_learner``). ``sim_only`` (the same
-  rollout processes stepping random actions, nothing inferred, shipped or learned) against
-  ``async`` (training): ``async_over_sim_only`` = learner-consumed env steps/s ÷ simulated env
-  steps/s, where the simulated rate is the mean of the sim_only runs just before and just after
-  the async run (a closing sim_only run follows the last pair). The async run also measures
-  RSS growth over the steady state, policy lag and the inference latency split by weight swaps.
+  exist): the rollouts' ``sim`` lanes alone on core 0, every other thread of every role (the
+  rollouts' inference, shipping, weight sync and Zenoh I/O, the actor, the replicator) on core 1,
+  as on a machine whose policy runs on an accelerator; ``split-roles``: whole rollout processes on
+  core 0, the actor and the replicator on core 1; ``file``: where the file puts the roles (on two
+  cores, unpinned, the learner's share of the CPU then caps the ratio: ``ceiling_from_learner``).
+  ``sim_only`` (the same rollout processes stepping uniform random actions, nothing inferred,
+  shipped or learned) against ``async`` (training): ``async_over_sim_only`` = learner-consumed
+  env steps/s ÷ simulated env steps/s, where the simulated rate is the mean of the sim_only runs
+  just before and just after the async run (a closing sim_only run follows the last pair). The
+  rollouts time their ``env.step`` calls in CPU seconds, so each run also reports what a step
+  costs the simulator in that mode (``env_step_cpu_ms``): a learning policy's steps cost more than
+  random actions' (shorter episodes, so more resets; contacts with the object), and
+  ``async_over_sim_only_equal_step_cost`` is the ratio with that difference taken out. The async
+  run also measures RSS growth over the steady state, policy lag and the inference latency split
+  by weight swaps.
 * **balanced**: the same task with the rollouts (and the replicator) pinned to core 0 and the
   actor to core 1, and PPO epochs chosen so that the learner needs about as long per batch as
   the rollouts need to sample one. ``sync`` (lock-step: sample a batch, ship, learn, publish,
@@ -53,6 +59,8 @@ HEADLINE_KEYS = (
     "async_sps",
     "async_over_sim_only",
     "ceiling_from_learner",
+    "step_cost_ratio",
+    "async_over_sim_only_equal_step_cost",
     "balanced_async_sps",
     "sync_sps",
     "async_over_sync",
@@ -414,6 +422,15 @@ def window_figures(a: dict[str, RoleStatus], b: dict[str, RoleStatus], topo: Top
     steps = sum(x["items"] for x in sims)
     out["sim_cpu_ms_per_step"] = 1e3 * sum(x["cpu_fraction"] * out["window_s"] for x in sims) / steps if sims and steps else None
     out["sim_cpu_cores"] = sum(x["cpu_fraction"] for x in sims) if sims else None
+    # What one env step costs the simulator itself (CPU inside env.step, resets included), and
+    # how often episodes end: a policy that solves the task ends episodes sooner (more resets)
+    # and pushes the object (more contacts) than uniform random actions do.
+    stepped = sum(b[n].env_steps - a[n].env_steps for n in rollouts)
+    step_cpu = sum(float(b[n].extra.get("env_step_cpu_s", 0.0)) - float(a[n].extra.get("env_step_cpu_s", 0.0))
+                   for n in rollouts if "env_step_cpu_s" in b[n].extra)
+    episodes = sum(int(b[n].extra.get("episodes", 0)) - int(a[n].extra.get("episodes", 0)) for n in rollouts)
+    out["env_step_cpu_ms"] = 1e3 * step_cpu / stepped if stepped and step_cpu > 0 else None
+    out["episodes_per_1k_steps"] = 1e3 * episodes / stepped if stepped else None
     lat: dict[str, dict[str, int]] = {"swap": {}, "no_swap": {}, "overlap": {}, "no_overlap": {}}
     for n in rollouts:
         ca = a[n].extra.get("infer_latency_counts", {})
@@ -600,6 +617,12 @@ def _default(base: Topology, profile: Profile, runs_root: Path, port: int | None
     sims = [p["sim_only"].get("produced_sps") for p in pairs] + [closing.get("produced_sps")]
     baselines = [_bracket(sims[i], sims[i + 1]) for i in range(len(pairs))]
     ratios = [_ratio(p["async"].get("consumed_sps"), b) for p, b in zip(pairs, baselines)]
+    # The simulators' step cost in each mode (bracketed like their rate): random actions are
+    # cheaper to simulate than a learning policy's, so the random-action ceiling is above what
+    # any pipeline can reach; the ratio at equal step cost takes that difference out.
+    costs = [p["sim_only"].get("env_step_cpu_ms") for p in pairs] + [closing.get("env_step_cpu_ms")]
+    cost_ratios = [_ratio(p["async"].get("env_step_cpu_ms"), _bracket(costs[i], costs[i + 1])) for i, p in enumerate(pairs)]
+    equal_cost = [r * c if r is not None and c is not None else None for r, c in zip(ratios, cost_ratios)]
     # The learner's share of a core during training: the simulators can have at most the
     # machine's cores minus that share (before inference, shipping and Zenoh take theirs).
     shares = [_learn_share(p["async"]) for p in pairs]
@@ -614,11 +637,19 @@ def _default(base: Topology, profile: Profile, runs_root: Path, port: int | None
         "sim_only_sps": _median(baselines),
         "async_sps": _median([p["async"].get("consumed_sps") for p in pairs]),
         "async_over_sim_only": _median(ratios),
+        "step_cost_ratios": cost_ratios,
+        "step_cost_ratio": _median(cost_ratios),
+        "async_over_sim_only_equal_step_cost": _median(equal_cost),
+        "episodes_per_1k_steps": {
+            "sim_only": _median([p["sim_only"].get("episodes_per_1k_steps") for p in pairs] + [closing.get("episodes_per_1k_steps")]),
+            "async": _median([p["async"].get("episodes_per_1k_steps") for p in pairs]),
+        },
         # Where the gap comes from: the simulators' CPU (cores) and CPU per env step in each mode.
         "sim_cpu": {
             mode: {
                 "cores": _median([r.get("sim_cpu_cores") for r in runs]),
                 "ms_per_step": _median([r.get("sim_cpu_ms_per_step") for r in runs]),
+                "env_step_ms": _median([r.get("env_step_cpu_ms") for r in runs]),
             }
             for mode, runs in (("sim_only", [p["sim_only"] for p in pairs] + [closing]), ("async", [p["async"] for p in pairs]))
         },
@@ -679,6 +710,8 @@ def headline(workloads: dict[str, Any]) -> dict[str, Any]:
         "async_sps": d.get("async_sps"),
         "async_over_sim_only": d.get("async_over_sim_only"),
         "ceiling_from_learner": d.get("ceiling_from_learner"),
+        "step_cost_ratio": d.get("step_cost_ratio"),
+        "async_over_sim_only_equal_step_cost": d.get("async_over_sim_only_equal_step_cost"),
         "balanced_async_sps": b.get("async_sps"),
         "sync_sps": b.get("sync_sps"),
         "async_over_sync": b.get("async_over_sync"),
@@ -707,13 +740,13 @@ def _fmt(v: float | None, digits: int) -> str:
 
 
 def format_table(doc: dict[str, Any]) -> str:
-    lines = [f"{'default_placement':28s} {doc.get('default_placement') or '-'}"]
+    lines = [f"{'default_placement':36s} {doc.get('default_placement') or '-'}"]
     for k in HEADLINE_KEYS + ("learner_batch_s", "rollout_batch_s"):
         v = doc.get(k)
         goal = GOALS.get(k)
         met = doc["goals_met"].get(k)
         g = "" if goal is None else f"   (goal {goal[0]} {goal[1]}: {'-' if met is None else 'met' if met else 'missed'})"
-        lines.append(f"{k:28s} {'-' if v is None else f'{v:.3f}'}{g}")
+        lines.append(f"{k:36s} {'-' if v is None else f'{v:.3f}'}{g}")
     for name, wl in doc["workloads"].items():
         for i, r in enumerate(wl.get("ratios", [])):
             lines.append(f"{name} repeat {i + 1}: ratio {'-' if r is None else f'{r:.3f}'}")
@@ -725,7 +758,10 @@ def format_table(doc: dict[str, Any]) -> str:
                          + ("" if drift is None else f"; last / first {drift:.2f}"))
         cpu = wl.get("sim_cpu") or {}
         if cpu:
-            cells = [f"{mode} {_fmt(c.get('cores'), 2)} cores, {_fmt(c.get('ms_per_step'), 3)} ms CPU per env step"
-                     for mode, c in cpu.items()]
+            cells = [f"{mode} {_fmt(c.get('cores'), 2)} cores, {_fmt(c.get('ms_per_step'), 3)} ms CPU per env step "
+                     f"({_fmt(c.get('env_step_ms'), 3)} of it in env.step)" for mode, c in cpu.items()]
             lines.append(f"{name} sim lanes: " + "; ".join(cells))
+        eps = wl.get("episodes_per_1k_steps") or {}
+        if eps:
+            lines.append(f"{name} episodes per 1000 env steps: " + ", ".join(f"{m} {_fmt(v, 1)}" for m, v in eps.items()))
     return "\n".join(lines)

@@ -168,6 +168,9 @@ class Rollout:
         self.bytes_shipped = 0
         self.episodes = 0
         self.successes = 0
+        #: CPU seconds the sim lane spent inside env.step (resets included): what a step costs the
+        #: simulator itself, apart from acting, recording and hand-offs
+        self.step_cpu_s = 0.0
         self.infer_ms: list[float] = []
         # Inference batch latency (the dual pool promises that a swap costs inference nothing),
         # split two ways. "swap": the batch *started* while a staging write was under way, or is
@@ -294,7 +297,9 @@ class Rollout:
                 with ctx.busy():
                     e = g.envs
                     actions = rng.uniform(e.action_low, e.action_high, (e.n, e.act_dim)).astype(np.float32)
+                    t0 = time.thread_time()
                     step = e.step(actions)
+                    self.step_cpu_s += time.thread_time() - t0
                     g.obs = step.next_obs
                     self.env_steps += e.n
                     self.episodes += int(step.episode_done.sum())
@@ -304,7 +309,9 @@ class Rollout:
         m, t = g.wb.msg, g.t  # the chunk's arrays: views of its wire bytes
         for k, v in obs_as_dict(g.obs).items():
             m.obs[k][t] = v
+        t0 = time.thread_time()
         step = g.envs.step(actions)
+        self.step_cpu_s += time.thread_time() - t0
         m.actions[t] = actions  # as sampled: the log-probs are of these, the env clips
         m.logprobs[t] = logprobs
         m.rewards[t] = step.reward
@@ -404,6 +411,7 @@ class Rollout:
             "chunks_produced": self.chunks_shipped,
             "bytes_produced": self.bytes_shipped,
             "episodes": self.episodes,
+            "env_step_cpu_s": self.step_cpu_s,
             "train_success_rate": self.successes / self.episodes if self.episodes else 0.0,
             "infer_ms_p50": ms[len(ms) // 2] if ms else 0.0,
             "infer_ms_p99": ms[min(len(ms) - 1, int(len(ms) * 0.99))] if ms else 0.0,

@@ -79,7 +79,7 @@ def test_up_tiny_end_to_end(tmp_path: Path) -> None:
     summaries = {p.stem: json.loads(p.read_text()) for p in (run_dir / "summaries").glob("*.json")}
     assert set(summaries) == ROLES
     for s in summaries.values():  # the lanes `lane_cpus` may name are the lanes each role runs
-        assert tuple(s["lanes"]) == ROLE_LANES[s["kind"]], (s["name"], list(s["lanes"]))
+        assert set(s["lanes"]) == set(ROLE_LANES[s["kind"]]), (s["name"], list(s["lanes"]))
     actor_version = summaries["actor-node0-0"]["extra"]["published_version"]
     assert actor_version >= 3
     for name in ("rollout-node0-0", "rollout-node0-1"):

@@ -18,14 +18,17 @@ def test_each_async_run_is_compared_with_the_sim_only_runs_around_it(monkeypatch
     # the host speeds up over the bench: sim_only 800, 1000, 1200 around async 700 and 900
     sims = iter([800.0, 1000.0, 1200.0])
     asyncs = iter([700.0, 900.0])
+    # env.step CPU: random actions 1.0-1.2 ms, the learning policy's 1.32 ms
+    costs = iter([1.0, 1.2, 1.0])
     calls = []
 
     def fake_run(topo, mode, warmup_s, window_s, runs_root, port, progress):
         calls.append(mode)
         if mode == "sim_only":
-            return {"error": None, "produced_sps": next(sims), "consumed_sps": 0.0, "lanes": {}}
-        return {"error": None, "produced_sps": 1.0, "consumed_sps": next(asyncs),
-                "lanes": {"actor-0": {"learn": {"utilisation": 0.3}}}}
+            return {"error": None, "produced_sps": next(sims), "consumed_sps": 0.0, "lanes": {},
+                    "env_step_cpu_ms": next(costs), "episodes_per_1k_steps": 20.0}
+        return {"error": None, "produced_sps": 1.0, "consumed_sps": next(asyncs), "env_step_cpu_ms": 1.32,
+                "episodes_per_1k_steps": 45.0, "lanes": {"actor-0": {"learn": {"utilisation": 0.3}}}}
 
     monkeypatch.setattr(swimlane, "measure_run", fake_run)
     profile = dataclasses.replace(swimlane.QUICK, repeats=2)
@@ -38,6 +41,10 @@ def test_each_async_run_is_compared_with_the_sim_only_runs_around_it(monkeypatch
     # the previous method, each async run against the sim_only run before it, would have
     # reported 0.875 and 0.9: the drift, not the pipeline
     assert out["async_over_sim_only"] == pytest.approx((700 / 900 + 900 / 1100) / 2)
+    # each async run's step cost against the bracketing sim_only runs' mean (1.1 both times)
+    assert out["step_cost_ratios"] == [pytest.approx(1.2), pytest.approx(1.2)]
+    assert out["async_over_sim_only_equal_step_cost"] == pytest.approx(1.2 * (700 / 900 + 900 / 1100) / 2)
+    assert out["episodes_per_1k_steps"] == {"sim_only": 20.0, "async": 45.0}
 
 
 def test_a_failed_sim_only_run_leaves_the_other_as_the_baseline():
@@ -104,11 +111,11 @@ def test_the_balanced_workload_keeps_the_replicator_beside_the_rollouts():
     assert topo.task.ppo.update_epochs == 16 and topo.task.ppo.target_kl is None
 
 
-def _status(name: str, kind: str, t_s: float, steps: int, lanes: dict):
+def _status(name: str, kind: str, t_s: float, steps: int, lanes: dict, **extra):
     from dvla.fabric.messages import RoleStatus
 
     return RoleStatus(name=name, kind=kind, node="n", rack="r", pid=1, state="running", policy_version=0,
-                      env_steps=steps, steps_per_s=0.0, lanes=lanes, extra={}, time_ns=int(t_s * 1e9))
+                      env_steps=steps, steps_per_s=0.0, lanes=lanes, extra=extra, time_ns=int(t_s * 1e9))
 
 
 def test_sim_lane_cpu_per_step_separates_less_cpu_from_dearer_steps():
@@ -119,8 +126,10 @@ def test_sim_lane_cpu_per_step_separates_less_cpu_from_dearer_steps():
                 "infer": {"busy_s": busy / 10, "wait_s": 0.0, "items": items / 2}}  # no cpu_s: not reported
 
     topo = load_topology(ROOT / "topologies" / "local.yaml")
-    a = {f"rollout-{i}": _status(f"rollout-{i}", "rollout", 100.0, 0, lanes(0.0, 1.0, 0)) for i in (0, 1)}
-    b = {f"rollout-{i}": _status(f"rollout-{i}", "rollout", 110.0, 3000, lanes(10.0, 6.0, 3000)) for i in (0, 1)}
+    a = {f"rollout-{i}": _status(f"rollout-{i}", "rollout", 100.0, 0, lanes(0.0, 1.0, 0), env_step_cpu_s=0.5,
+                                 episodes=10) for i in (0, 1)}
+    b = {f"rollout-{i}": _status(f"rollout-{i}", "rollout", 110.0, 3000, lanes(10.0, 6.0, 3000), env_step_cpu_s=4.7,
+                                 episodes=70) for i in (0, 1)}
     out = swimlane.window_figures(a, b, topo)
     sim = out["lanes"]["rollout-0"]["sim"]
     assert sim["utilisation"] == 1.0 and sim["cpu_fraction"] == 0.5
@@ -128,3 +137,5 @@ def test_sim_lane_cpu_per_step_separates_less_cpu_from_dearer_steps():
     assert "cpu_fraction" not in out["lanes"]["rollout-0"]["infer"]
     assert out["sim_cpu_cores"] == pytest.approx(1.0)
     assert out["sim_cpu_ms_per_step"] == pytest.approx(5000 / 3000)
+    assert out["env_step_cpu_ms"] == pytest.approx(4200 / 3000)  # of it inside env.step
+    assert out["episodes_per_1k_steps"] == pytest.approx(20.0)
