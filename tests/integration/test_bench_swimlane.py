@@ -47,11 +47,17 @@ def test_bench_swimlane_quick_writes_every_figure(tmp_path: Path) -> None:
                 "async_over_sync", "infer_p99_ms_no_swap", "learner_batch_s", "rollout_batch_s"):
         assert positive(doc[key]), (key, doc[key])
     assert finite(doc["rss_growth_pct"]) and -50 < doc["rss_growth_pct"] < 500
-    # split placement (two cores here): the learner has core 1 and leaves the simulators all of
-    # core 0; the learner's share of a core is still measured
+    # split placement (two cores here): the simulators alone on core 0, everything else on core 1;
+    # the learner's share of a core is still measured
     assert doc["default_placement"] == "split"
     assert doc["ceiling_from_learner"] == 1.0
     assert 0 < doc["workloads"]["default"]["learner_core_share"] <= 1.05
+    # what a step costs in each mode, and the ratio at equal step cost
+    for mode, cpu in doc["workloads"]["default"]["sim_cpu"].items():
+        assert 0.5 < cpu["cores"] <= 1.05, (mode, cpu)  # two sim threads sharing core 0
+        assert positive(cpu["env_step_ms"]) and cpu["env_step_ms"] <= cpu["ms_per_step"], (mode, cpu)
+    assert positive(doc["step_cost_ratio"])
+    assert doc["async_over_sim_only_equal_step_cost"] == pytest.approx(doc["async_over_sim_only"] * doc["step_cost_ratio"])
     assert finite(doc["policy_lag_mean"]) and doc["policy_lag_mean"] >= 0
     assert finite(doc["policy_lag_p99"]) and doc["policy_lag_p99"] >= doc["policy_lag_mean"] - 1e-9
     # A swap batch needs a version to land inside the short window; when one did, its p99 is real.
@@ -86,6 +92,10 @@ def test_bench_swimlane_quick_writes_every_figure(tmp_path: Path) -> None:
     assert lat["swap"]["n"] + lat["no_swap"]["n"] == lat["overlap"]["n"] + lat["no_overlap"]["n"]
     assert async_default["rss"]["roles"] and all(r["samples"] >= 2 for r in async_default["rss"]["roles"].values())
     assert not any(n.startswith("evaluator") for n in async_default["lanes"])
+    for name, placement in async_default["placement"].items():
+        assert placement["cpus"] == [1], (name, placement)
+        sim_core = [0] if name.startswith("rollout") else [1]
+        assert all(cores == (sim_core if lane == "sim" else [1]) for lane, cores in placement["lanes"].items()), placement
 
     sync = balanced["runs"][0]["sync"]
     assert sync["versions"] >= 1

@@ -96,29 +96,36 @@ def test_up_tiny_end_to_end(tmp_path: Path) -> None:
     assert pids_of_run(run_dir) == []
 
 
+def up_tiny_variant(tmp_path: Path, text: str, max_env_steps: int) -> Path:
+    """`dvla up` a variant of tiny.yaml to its step budget; the run directory, once the run has
+    exited 0 with its chunk accounting closed and no process left."""
+    topo = tmp_path / "tiny-variant.yaml"
+    topo.write_text(text)
+    runs = tmp_path / "runs"
+    up = dvla("up", str(topo), "--runs", str(runs), "--base-port", str(free_port_block()),
+              "--max-env-steps", str(max_env_steps), "--quiet", timeout=280)
+    assert up.returncode == 0, up.stdout + up.stderr
+    run_dir = runs / "tiny"
+    result = json.loads((run_dir / "result.json").read_text())
+    assert result["final_env_steps"] >= max_env_steps
+    assert result["accounting"]["consumed"] > 0 and result["accounting"]["unaccounted"] == 0, result["accounting"]
+    assert pids_of_run(run_dir) == []
+    return run_dir
+
+
 @pytest.mark.timeout(300)
 def test_up_with_inline_inference(tmp_path: Path) -> None:
     """`rollout_infer: inline`: the rollouts act on their sim lane (no infer lane), weights still
     advance, and the chunk accounting closes exactly."""
-    topo = tmp_path / "tiny-inline.yaml"
     text = (ROOT / "topologies/tiny.yaml").read_text()
     assert "  algorithm: ppo\n" in text
-    topo.write_text(text.replace("  algorithm: ppo\n", "  algorithm: ppo\n  rollout_infer: inline\n", 1))
-    runs = tmp_path / "runs"
-    up = dvla("up", str(topo), "--runs", str(runs), "--base-port", str(free_port_block()),
-              "--max-env-steps", "1600", "--quiet", timeout=280)
-    assert up.returncode == 0, up.stdout + up.stderr
-    run_dir = runs / "tiny"
-    result = json.loads((run_dir / "result.json").read_text())
-    assert result["final_env_steps"] >= 1600
-    assert result["accounting"]["consumed"] > 0 and result["accounting"]["unaccounted"] == 0, result["accounting"]
+    run_dir = up_tiny_variant(tmp_path, text.replace("  algorithm: ppo\n", "  algorithm: ppo\n  rollout_infer: inline\n", 1), 1600)
     for name in ("rollout-node0-0", "rollout-node0-1"):
         s = json.loads((run_dir / "summaries" / f"{name}.json").read_text())
         assert "infer" not in s["lanes"] and s["lanes"]["sim"]["items"] > 0, s["lanes"]
         assert s["policy_version"] >= 2 and s["error"] is None
         lat = s["extra"]["infer_latency_counts"]
         assert sum(lat["swap"].values()) + sum(lat["no_swap"].values()) > 0  # acting is still timed
-    assert pids_of_run(run_dir) == []
 
 
 @pytest.mark.timeout(300)
@@ -126,24 +133,15 @@ def test_up_with_inline_inference(tmp_path: Path) -> None:
 def test_up_with_the_simulators_pinned_apart(tmp_path: Path) -> None:
     """`lane_cpus`: every role on core 1 but the rollouts' sim lanes, alone on core 0. The roles
     report each lane's affinity as the kernel holds it; training still closes its accounting."""
-    topo = tmp_path / "tiny-pinned.yaml"
     text = (ROOT / "topologies/tiny.yaml").read_text()
     placed = "        host: localhost\n        roles:\n"
     assert placed in text and "            count: 2\n" in text
     text = text.replace(placed, "        host: localhost\n        cpus: [1]\n        roles:\n", 1)
     text = text.replace("            count: 2\n", "            count: 2\n            lane_cpus: {sim: [0]}\n", 1)
-    topo.write_text(text)
-    runs = tmp_path / "runs"
-    up = dvla("up", str(topo), "--runs", str(runs), "--base-port", str(free_port_block()),
-              "--max-env-steps", "1200", "--quiet", timeout=280)
-    assert up.returncode == 0, up.stdout + up.stderr
-    run_dir = runs / "tiny"
-    result = json.loads((run_dir / "result.json").read_text())
-    assert result["accounting"]["consumed"] > 0 and result["accounting"]["unaccounted"] == 0, result["accounting"]
+    run_dir = up_tiny_variant(tmp_path, text, 1200)
     for name in ROLES:
         s = json.loads((run_dir / "summaries" / f"{name}.json").read_text())
         placement = s["extra"]["placement"]
         assert placement["cpus"] == [1], (name, placement)
         want = {lane: [0] if lane == "sim" and name.startswith("rollout") else [1] for lane in s["lanes"]}
         assert placement["lanes"] == want, (name, placement)
-    assert pids_of_run(run_dir) == []
