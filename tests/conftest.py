@@ -7,6 +7,7 @@ import shutil
 import tempfile
 
 _CACHE: str | None = None
+_BASETEMP: str | None = None
 
 
 def pytest_configure(config: object) -> None:
@@ -16,9 +17,18 @@ def pytest_configure(config: object) -> None:
     if "TORCHINDUCTOR_CACHE_DIR" not in os.environ:
         _CACHE = tempfile.mkdtemp(prefix="dvla-tests-torchinductor-")
         os.environ["TORCHINDUCTOR_CACHE_DIR"] = _CACHE
+    # Every tmp_path (run directories, checkpoints, logs) under one directory of this session,
+    # removed when it ends, instead of pytest's kept /tmp/pytest-of-<user>/pytest-N.
+    global _BASETEMP
+    option = getattr(config, "option", None)
+    if option is not None and getattr(option, "basetemp", None) is None:
+        _BASETEMP = tempfile.mkdtemp(prefix="dvla-tests-")
+        option.basetemp = _BASETEMP
 
 
 def pytest_unconfigure(config: object) -> None:
     if _CACHE is not None:
         shutil.rmtree(_CACHE, ignore_errors=True)
         os.environ.pop("TORCHINDUCTOR_CACHE_DIR", None)
+    if _BASETEMP is not None:
+        shutil.rmtree(_BASETEMP, ignore_errors=True)
