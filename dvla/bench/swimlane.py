@@ -51,6 +51,7 @@ from typing import Any, Callable
 
 from ..config import BudgetConfig, NodeConfig, RackConfig, RolePlacement, Topology
 from ..fabric.messages import RoleStatus
+from ..orchestrator.plan import role_cpus
 from ..orchestrator.ports import free_port_block
 from ..roles.swimlane import histogram_diff, histogram_percentile
 
@@ -194,7 +195,7 @@ def _cores_of(node: NodeConfig, role: RolePlacement, lane: str | None, cpus: int
     """Cores a role's thread runs on: its lane's pinning, else the role's, else the node's."""
     if lane is not None and role.lane_cpus and lane in role.lane_cpus:
         return set(role.lane_cpus[lane])
-    pinned = role.cpus if role.cpus is not None else node.cpus
+    pinned = role_cpus(node, role)
     return set(pinned) if pinned else set(range(cpus))
 
 
@@ -383,6 +384,7 @@ def lane_figures(a: RoleStatus, b: RoleStatus) -> dict[str, dict[str, float]]:
         }
         if "cpu_s" in sb and "cpu_s" in sa:  # the lane thread's own CPU time (busy is wall time)
             cpu = sb["cpu_s"] - sa["cpu_s"]
+            out[lane]["cpu_s"] = cpu
             out[lane]["cpu_fraction"] = round(cpu / dt, 4)
             out[lane]["cpu_ms_per_item"] = round(1e3 * cpu / items, 4) if items else None
     return out
@@ -418,9 +420,9 @@ def window_figures(a: dict[str, RoleStatus], b: dict[str, RoleStatus], topo: Top
     out["rollout_batch_s"] = batch / produced if produced > 0 else None
     # CPU the simulators' threads spend per env step: what separates "the simulators got less
     # CPU" from "each step cost more" (a busy lane's wall time cannot tell them apart).
-    sims = [lanes[n]["sim"] for n in rollouts if "cpu_fraction" in lanes[n].get("sim", {})]
+    sims = [lanes[n]["sim"] for n in rollouts if "cpu_s" in lanes[n].get("sim", {})]
     steps = sum(x["items"] for x in sims)
-    out["sim_cpu_ms_per_step"] = 1e3 * sum(x["cpu_fraction"] * out["window_s"] for x in sims) / steps if sims and steps else None
+    out["sim_cpu_ms_per_step"] = 1e3 * sum(x["cpu_s"] for x in sims) / steps if sims and steps else None
     out["sim_cpu_cores"] = sum(x["cpu_fraction"] for x in sims) if sims else None
     # What one env step costs the simulator itself (CPU inside env.step, resets included), and
     # how often episodes end: a policy that solves the task ends episodes sooner (more resets)

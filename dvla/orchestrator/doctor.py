@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass
 from typing import Callable, Literal
 
 from ..config import Topology
-from .plan import is_local_host, make_plan, pinning_problems
+from .plan import is_local_host, make_plan, pinning_problems, role_cpus
 
 Status = Literal["ok", "warn", "fail", "skip"]
 STATUSES: tuple[Status, ...] = ("ok", "warn", "fail", "skip")
@@ -251,15 +251,15 @@ def check_cpus(topo: Topology | None) -> CheckResult:
     """Every core a local process is pinned to (``cpus``, ``lane_cpus``) exists on this host."""
     if topo is None:
         return skip("cpus", "give a TOPOLOGY to check the cores it pins roles and lanes to")
-    plan = make_plan(topo, run_dir=f"runs/{topo.run}")
-    pinned = [p for p in plan.processes if is_local_host(p.host) and (p.config.cpus or p.config.lane_cpus)]
+    pinned = sum(r.count for _rack, n in topo.nodes() if is_local_host(n.host)
+                 for r in n.roles if role_cpus(n, r) or r.lane_cpus)
     if not pinned:
         return skip("cpus", "no process on this host is pinned")
-    problems = pinning_problems(plan)
+    problems = pinning_problems(topo)
     if problems:
         return outcome("cpus", False, "; ".join(problems), required=True,
                        fix="pin to cores this host has (nproc; taskset -pc $$ shows the usable ones)")
-    return outcome("cpus", True, f"{len(pinned)} pinned process(es): every core exists here", required=True)
+    return outcome("cpus", True, f"{pinned} pinned process(es): every core exists here", required=True)
 
 
 def _run(cmd: list[str]) -> tuple[bool, str]:

@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 import os
 from dataclasses import dataclass
-from typing import Any
 
 from ..config import NodeConfig, PlaneEndpoints, RackConfig, RoleConfig, RolePlacement, Topology
 
@@ -197,7 +196,7 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
             children=tuple(s.children),
             actors=tuple(s.actors),
             rollouts=tuple(s.rollouts),
-            cpus=s.placement.cpus if s.placement.cpus is not None else s.node.cpus,
+            cpus=role_cpus(s.node, s.placement),
             lane_cpus=s.placement.lane_cpus,
             lockstep_steps=_lockstep_steps(topo, s, by_name),
             task=topo.task,
@@ -232,31 +231,33 @@ def _lockstep_steps(topo: Topology, s: _Slot, by_name: dict[str, _Slot]) -> int:
     return -(-topo.task.ppo.batch_steps // n_rollouts)
 
 
-def pinning_problems(plan: Plan, allowed: set[int] | None = None) -> list[str]:
-    """One line per pinned core a process on this machine cannot have: ``cpus`` (node or role)
+def role_cpus(node: NodeConfig, placement: RolePlacement) -> tuple[int, ...] | None:
+    """Cores a role's processes are pinned to: the role's own ``cpus``, else the node's."""
+    return placement.cpus if placement.cpus is not None else node.cpus
+
+
+def pinning_problems(topo: Topology, allowed: set[int] | None = None) -> list[str]:
+    """One line per pinned core a role on this machine cannot have: ``cpus`` (node or role)
     and ``lane_cpus`` checked against this host's usable cores (``os.sched_getaffinity``).
     Remote nodes' cores are theirs to check."""
     if allowed is None:
         if not hasattr(os, "sched_getaffinity"):
             return []
         allowed = set(os.sched_getaffinity(0))
-    have = _core_list(allowed)
     problems: list[str] = []
-    seen: set[tuple[str, str, str]] = set()
-    for p in plan.processes:
-        if not is_local_host(p.host):
+    for _rack, node in topo.nodes():
+        if not is_local_host(node.host):
             continue
-        cfg = p.config
-        pinned = [("cpus", cfg.cpus or ())] + [(f"lane_cpus.{lane}", c) for lane, c in (cfg.lane_cpus or {}).items()]
-        for key, cores in pinned:
-            missing = sorted(set(cores) - allowed)
-            where = (cfg.node, cfg.kind, key)
-            if missing and where not in seen:
-                seen.add(where)
-                problems.append(f"node {cfg.node}, role {cfg.kind}: {key} names core(s) {_core_list(missing)}, "
-                                f"which this host does not have (usable cores: {have})")
+        for placement in node.roles:
+            pinned = [("cpus", role_cpus(node, placement) or ())]
+            pinned += [(f"lane_cpus.{lane}", cores) for lane, cores in (placement.lane_cpus or {}).items()]
+            for key, cores in pinned:
+                missing = set(cores) - allowed
+                if missing:
+                    problems.append(f"node {node.name}, role {placement.role}: {key} names core(s) {_core_list(missing)}, "
+                                    f"which this host does not have (usable cores: {_core_list(allowed)})")
     return problems
 
 
-def _core_list(cores: Any) -> str:
+def _core_list(cores: set[int]) -> str:
     return ",".join(str(c) for c in sorted(cores))

@@ -140,7 +140,7 @@ class Up:
         self.topo = apply_overrides(topo, opts)
         self.opts = opts
         self.on_tick = on_tick
-        pinning = pinning_problems(make_plan(self.topo, "runs"))
+        pinning = pinning_problems(self.topo)
         if pinning:  # caught before anything is created, not as a role that dies on start
             raise ValueError("\n".join(f"{self.topo.source}: {p}" for p in pinning))
         self.run_dir = prepare_run_dir(opts.runs_root, self.topo.run)

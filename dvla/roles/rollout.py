@@ -297,21 +297,24 @@ class Rollout:
                 with ctx.busy():
                     e = g.envs
                     actions = rng.uniform(e.action_low, e.action_high, (e.n, e.act_dim)).astype(np.float32)
-                    t0 = time.thread_time()
-                    step = e.step(actions)
-                    self.step_cpu_s += time.thread_time() - t0
+                    step = self._step(e, actions)
                     g.obs = step.next_obs
                     self.env_steps += e.n
                     self.episodes += int(step.episode_done.sum())
                 ctx.count(e.n)
 
+    def _step(self, envs: EnvGroup, actions: np.ndarray) -> Any:
+        """``envs.step``, its CPU time added to ``step_cpu_s``."""
+        t0 = time.thread_time()
+        step = envs.step(actions)
+        self.step_cpu_s += time.thread_time() - t0
+        return step
+
     def _record_step(self, g: _Group, actions: np.ndarray, logprobs: np.ndarray, version: int) -> None:
         m, t = g.wb.msg, g.t  # the chunk's arrays: views of its wire bytes
         for k, v in obs_as_dict(g.obs).items():
             m.obs[k][t] = v
-        t0 = time.thread_time()
-        step = g.envs.step(actions)
-        self.step_cpu_s += time.thread_time() - t0
+        step = self._step(g.envs, actions)
         m.actions[t] = actions  # as sampled: the log-probs are of these, the env clips
         m.logprobs[t] = logprobs
         m.rewards[t] = step.reward

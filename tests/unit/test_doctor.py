@@ -164,21 +164,21 @@ racks:
 def test_cpus_check_names_the_node_role_and_key_of_a_core_this_host_lacks() -> None:
     import os
 
-    from dvla.orchestrator.plan import make_plan, pinning_problems
+    from dvla.orchestrator.plan import pinning_problems
 
     usable = sorted(os.sched_getaffinity(0))
     good = parse_topology(PINNED.format(node=usable[0], lane=usable[-1]), "pin.yaml")
-    assert pinning_problems(make_plan(good, "runs")) == []  # the remote node's core 63 is not ours to check
+    assert pinning_problems(good) == []  # the remote node's core 63 is not ours to check
     r = check_cpus(good)
     assert r.status == "ok" and r.required and "3 pinned" in r.detail  # the actor and both rollouts
 
     missing = max(usable) + 100
     bad = parse_topology(PINNED.format(node=usable[0], lane=missing), "pin.yaml")
-    problems = pinning_problems(make_plan(bad, "runs"))
+    problems = pinning_problems(bad)
     assert problems == [f"node n0, role rollout: lane_cpus.sim names core(s) {missing}, which this host does not "
                         f"have (usable cores: {','.join(map(str, usable))})"]  # once, not per rollout process
     r = check_cpus(bad)
     assert r.status == "fail" and "lane_cpus.sim" in r.detail and r.fix
-    assert pinning_problems(make_plan(bad, "runs"), allowed={usable[0], missing}) == []
+    assert pinning_problems(bad, allowed={usable[0], missing}) == []
     assert check_cpus(None).status == "skip"
     assert check_cpus(_topo()).status == "skip"  # nothing pinned
