@@ -124,11 +124,12 @@ def _run(cmd: list[str]) -> str:
     return proc.stdout
 
 
-def _ip(*args: str, ns: str | None = None) -> str:
+def ip(*args: str, ns: str | None = None) -> str:
+    """Run ``ip [-n NS] ARGS`` and return its output; a failure raises :class:`NetnsError`."""
     return _run(["ip", *(["-n", ns] if ns else []), *args])
 
 
-def _tbf(ns: str | None, dev: str, gbit: float) -> None:
+def rate_limit(ns: str | None, dev: str, gbit: float) -> None:
     """Limit the egress of `dev` to `gbit` with a token bucket."""
     rate_bit = int(gbit * 1e9)
     # tbf passes a packet whole only if it fits the bucket; a GSO super-packet (up to 64 KiB of
@@ -154,13 +155,13 @@ def _no_ipv6(ns: str | None, dev: str = "all") -> None:
 
 def list_netns() -> list[str]:
     """Names of every named network namespace (``ip netns list``)."""
-    return [line.split()[0] for line in _ip("netns", "list").splitlines() if line.strip()]
+    return [line.split()[0] for line in ip("netns", "list").splitlines() if line.strip()]
 
 
 def list_links(ns: str | None = None) -> list[str]:
     """Interface names in a namespace (root when None), without the ``@peer`` suffix."""
     names = []
-    for line in _ip("-o", "link", "show", ns=ns).splitlines():
+    for line in ip("-o", "link", "show", ns=ns).splitlines():
         parts = line.split(":", 2)
         if len(parts) >= 2:
             names.append(parts[1].strip().split("@")[0])
@@ -174,7 +175,7 @@ def list_links(ns: str | None = None) -> list[str]:
 def _kill_netns_pids(ns: str) -> list[int]:
     """SIGKILL whatever still runs in one of our namespaces (it keeps the namespace alive)."""
     try:
-        pids = [int(p) for p in _ip("netns", "pids", ns).split()]
+        pids = [int(p) for p in ip("netns", "pids", ns).split()]
     except NetnsError:
         return []
     for pid in pids:
@@ -198,12 +199,12 @@ def _remove(names: Iterable[str]) -> list[str]:
     for name in ordered:
         try:
             if name in links:
-                _ip("link", "del", name)
+                ip("link", "del", name)
             elif name in spaces:
                 pids = _kill_netns_pids(name)
                 if pids:
                     log.warning("killed %d leftover process(es) in %s: %s", len(pids), name, pids)
-                _ip("netns", "del", name)
+                ip("netns", "del", name)
             else:
                 continue
         except NetnsError as err:
@@ -247,6 +248,12 @@ def _enter(path: str) -> None:
         _setns(fd)
     finally:
         os.close(fd)
+
+
+def enter_netns(name: str) -> None:
+    """Move the calling thread into the named namespace (``ip netns add NAME``); a process that
+    calls this before it starts threads or opens sockets runs inside that namespace."""
+    _enter(f"/var/run/netns/{name}")
 
 
 @dataclass(frozen=True)
@@ -396,7 +403,7 @@ class NetnsCluster:
 
     def _check_host_routes(self) -> None:
         """The host link adds a connected 10.77.0.0/16 route: refuse if the host already routes it."""
-        routes = _ip("-4", "route", "show", "root", str(SUBNET)) + _ip("-4", "route", "show", "match", str(SUBNET))
+        routes = ip("-4", "route", "show", "root", str(SUBNET)) + ip("-4", "route", "show", "match", str(SUBNET))
         clashes = [r for r in routes.splitlines() if r.strip() and not r.startswith("default")]
         if clashes:
             raise NetnsError(
@@ -405,14 +412,14 @@ class NetnsCluster:
             )
 
     def _add_netns(self, ns: str) -> None:
-        _ip("netns", "add", ns)
+        ip("netns", "add", ns)
         self._created.append(ns)
         _no_ipv6(ns)
-        _ip("link", "set", "lo", "up", ns=ns)
+        ip("link", "set", "lo", "up", ns=ns)
 
     def _add_bridge(self, name: str) -> None:
-        _ip("link", "add", name, "type", "bridge", "stp_state", "0", "forward_delay", "0", ns=self.fabric)
-        _ip("link", "set", name, "up", ns=self.fabric)
+        ip("link", "add", name, "type", "bridge", "stp_state", "0", "forward_delay", "0", ns=self.fabric)
+        ip("link", "set", name, "up", ns=self.fabric)
 
     def _build_fabric(self) -> None:
         self._add_netns(self.fabric)
@@ -420,31 +427,31 @@ class NetnsCluster:
         for ri in range(len(self.topo.racks)):
             self._add_bridge(rack_bridge(ri))
             rack_end, spine_end = uplink_ends(ri)
-            _ip("link", "add", rack_end, "type", "veth", "peer", "name", spine_end, ns=self.fabric)
-            _ip("link", "set", rack_end, "master", rack_bridge(ri), "up", ns=self.fabric)
-            _ip("link", "set", spine_end, "master", SPINE, "up", ns=self.fabric)
+            ip("link", "add", rack_end, "type", "veth", "peer", "name", spine_end, ns=self.fabric)
+            ip("link", "set", rack_end, "master", rack_bridge(ri), "up", ns=self.fabric)
+            ip("link", "set", spine_end, "master", SPINE, "up", ns=self.fabric)
             # egress of the rack end = rack -> spine; egress of the spine end = spine -> rack
-            _tbf(self.fabric, rack_end, self.topo.links.rack_uplink_gbit)
-            _tbf(self.fabric, spine_end, self.topo.links.rack_uplink_gbit)
+            rate_limit(self.fabric, rack_end, self.topo.links.rack_uplink_gbit)
+            rate_limit(self.fabric, spine_end, self.topo.links.rack_uplink_gbit)
 
     def _build_node(self, node: _Node) -> None:
         self._add_netns(node.ns)
         port = node_port(node.rack_index, node.node_index)
-        _ip("link", "add", port, "type", "veth", "peer", "name", NODE_IF, "netns", node.ns, ns=self.fabric)
-        _ip("link", "set", port, "master", rack_bridge(node.rack_index), "up", ns=self.fabric)
-        _ip("addr", "add", f"{node.ip}/{SUBNET.prefixlen}", "dev", NODE_IF, ns=node.ns)
-        _ip("link", "set", NODE_IF, "up", ns=node.ns)
+        ip("link", "add", port, "type", "veth", "peer", "name", NODE_IF, "netns", node.ns, ns=self.fabric)
+        ip("link", "set", port, "master", rack_bridge(node.rack_index), "up", ns=self.fabric)
+        ip("addr", "add", f"{node.ip}/{SUBNET.prefixlen}", "dev", NODE_IF, ns=node.ns)
+        ip("link", "set", NODE_IF, "up", ns=node.ns)
         # egress of eth0 = node upload; egress of the bridge port = node download
-        _tbf(node.ns, NODE_IF, self.topo.links.node_gbit)
-        _tbf(self.fabric, port, self.topo.links.node_gbit)
+        rate_limit(node.ns, NODE_IF, self.topo.links.node_gbit)
+        rate_limit(self.fabric, port, self.topo.links.node_gbit)
 
     def _build_host_link(self) -> None:
-        _ip("link", "add", self.host_link, "type", "veth", "peer", "name", HOST_PORT, "netns", self.fabric)
+        ip("link", "add", self.host_link, "type", "veth", "peer", "name", HOST_PORT, "netns", self.fabric)
         self._created.append(self.host_link)
         _no_ipv6(None, self.host_link)
-        _ip("link", "set", HOST_PORT, "master", SPINE, "up", ns=self.fabric)
-        _ip("addr", "add", f"{HOST_IP}/{SUBNET.prefixlen}", "dev", self.host_link)
-        _ip("link", "set", self.host_link, "up")
+        ip("link", "set", HOST_PORT, "master", SPINE, "up", ns=self.fabric)
+        ip("addr", "add", f"{HOST_IP}/{SUBNET.prefixlen}", "dev", self.host_link)
+        ip("link", "set", self.host_link, "up")
 
     # -- diagnosis -----------------------------------------------------------------------------
 

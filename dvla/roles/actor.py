@@ -22,19 +22,18 @@ import torch
 
 from ..config import RoleConfig, resolve_device
 from ..fabric import Fabric
-from ..fabric.codec import encode
 from ..fabric.fabric import DATA
-from ..fabric.messages import RoleStatus, TrajectoryChunk, WeightSnapshot
+from ..fabric.messages import RoleStatus, TrajectoryChunk
 from ..learn import PPOLearner, compute_gae, make_policy
 from ..learn.dims import probe_spec
 from ..learn.grpo import task_advantages
-from ..replication import ParamLayout, WeightEncoder, flatten, unflatten_into
+from ..replication import ParamLayout, flatten, unflatten_into
 from .checkpoint import load_checkpoint, save_checkpoint
 from .counters import CounterFile, source_key, split_seq
 from .runtime import main
 from .slots import SlotPool
 from .swimlane import LaneContext, Swimlane
-from .weightsync import send_version, snapshot_reply
+from .weightsync import WeightPublisher
 
 log = logging.getLogger("dvla.actor")
 
@@ -58,7 +57,7 @@ class Actor:
         if resumed:
             log.info("resumed from checkpoint: version %d, %d env steps", start, resumed["env_steps"])
         self.resumed = resumed is not None
-        self.encoder = self._make_encoder(start)
+        self.publisher = WeightPublisher(fabric, cfg.name, self.layout, cfg.replication, start)
         n_group = max(1, task.envs_per_rollout - task.envs_per_rollout // 2)
         chunks_per_batch = -(-task.ppo.batch_steps // (task.chunk_steps * max(1, task.envs_per_rollout // 2)))
         self.slots = SlotPool(
@@ -77,8 +76,6 @@ class Actor:
         self.bytes_published = 0
         #: bytes and count of versions sent, split into full versions and deltas
         self.publish_bytes = {"full_versions": 0, "full_bytes": 0, "delta_versions": 0, "delta_bytes": 0}
-        self._snapshot: bytes | None = None
-        self._snapshot_lock = threading.Lock()
         self.receipts = Receipts(CounterFile(cfg.run_dir, cfg.name), fabric, self.slots.n_slots)
         if self.resumed:
             # Before the status queryable exists: status never shows the checkpoint's version
@@ -92,7 +89,7 @@ class Actor:
         self.filled = sl.queue("filled", self.slots.n_slots)  # ingest -> batch: slot ids
         self.batches = sl.queue("batches", 1)  # batch -> learn: one stacked batch
         self.versions = sl.queue("versions", 2)  # learn -> publish: flat weights per version
-        f.serve(keys.snapshot(self.cfg.name), self._serve_snapshot)  # catch-up for children
+        f.serve(keys.snapshot(self.cfg.name), self.publisher.serve_snapshot)  # catch-up for children
         self.max_lag = ppo.max_policy_lag
         sl.lane("ingest", self._ingest)
         sl.lane("batch", self._batch)
@@ -120,11 +117,8 @@ class Actor:
                 time.sleep(0.2)
         if highest > self.published_version:
             log.info("replicas hold v%d > checkpoint v%d: numbering continues from there", highest, self.published_version)
-            self.encoder = self._make_encoder(highest)
+            self.publisher.renumber(highest)
             self.policy_version = self.published_version = highest
-
-    def _make_encoder(self, start_version: int) -> WeightEncoder:
-        return WeightEncoder.from_config(self.layout, self.cfg.replication, start_version=start_version)
 
     def _snapshot_version(self, module: torch.nn.Module) -> np.ndarray:
         flat = np.empty(self.layout.numel, np.float32)
@@ -283,7 +277,6 @@ class Actor:
         }
 
     def _publish(self, ctx: LaneContext) -> None:
-        f, key = self.fabric, self.fabric.keys.weights(self.cfg.name)
         every = 10  # checkpoint cadence (versions); the first version is checkpointed too
         last: np.ndarray | None = None
         while ctx.running:
@@ -291,11 +284,9 @@ class Actor:
             if flat is None:
                 break
             with ctx.busy():
-                with self._snapshot_lock:  # a snapshot being served never sees a half-encoded version
-                    enc = self.encoder.encode(flat)
-                    self._snapshot = None  # rebuilt lazily on the next snapshot query
-                    self.published_version = enc.version
-                sent = send_version(f, key, self.cfg.name, enc)
+                enc = self.publisher.encode(flat)
+                self.published_version = enc.version
+                sent = self.publisher.send(enc)
                 self.bytes_published += sent
                 kind = "full" if enc.encoding == "full" else "delta"
                 self.publish_bytes[f"{kind}_versions"] += 1
@@ -306,21 +297,6 @@ class Actor:
             ctx.count()
         if last is not None:
             self._checkpoint(last)
-
-    def _serve_snapshot(self, req: Any) -> Any:
-        with self._snapshot_lock:
-            return snapshot_reply(self.cfg.name, req, self.encoder.latest, self.layout.hash, self._encoded_snapshot)
-
-    def _encoded_snapshot(self) -> bytes:
-        """The published version, encoded once per version (called under the lock)."""
-        if self._snapshot is None:
-            version, payload, checksum = self.encoder.snapshot()
-            snap = WeightSnapshot(
-                sender=self.cfg.name, version=version, layout_hash=self.layout.hash,
-                checksum=checksum, data=bytes(payload), created_ns=time.time_ns(),
-            )
-            self._snapshot = encode(snap)
-        return self._snapshot
 
     def _checkpoint(self, flat: np.ndarray) -> None:
         """Checkpoint the published version's weights (not the live, possibly mid-update ones)."""
@@ -347,13 +323,9 @@ class Actor:
             "policy_lag_counts": {str(k): v for k, v in sorted(dict(self.ingest_lag_counts).items())},
             "bytes_published": self.bytes_published,
             "publish_bytes": dict(self.publish_bytes),
-            "published_checksum": self._published_checksum(),
+            "published_checksum": self.publisher.checksum,
             "learn": self.learn_stats,
         }
-
-    def _published_checksum(self) -> str:
-        with self._snapshot_lock:
-            return self.encoder.checksum
 
     def close(self) -> None:
         self.receipts.close()

@@ -1,5 +1,6 @@
-"""Receiving weights from a parent in the replication tree: the `sync`/`recv` lane logic shared by
-rollouts, evaluators and replicators.
+"""Weights in the replication tree: :class:`WeightPublisher` originates versions at its root (the
+actor's `publish` lane); :class:`WeightSync` receives them from a parent, the `sync`/`recv` lane
+logic shared by rollouts, evaluators and replicators.
 
 - Listens on the parent's weights key; assembles each version's chunks into a reusable buffer;
   decodes into the staging pool; verifies layout, base version and checksum; only a verified,
@@ -19,7 +20,9 @@ from typing import Any, Callable
 
 import numpy as np
 
+from ..config import ReplicationConfig
 from ..fabric import Fabric
+from ..fabric.codec import encode
 from ..fabric.messages import SnapshotRequest, WeightChunk, WeightManifest, WeightSnapshot
 from ..replication import (
     ChecksumMismatch,
@@ -31,6 +34,7 @@ from ..replication import (
     Snapshot,
     StaleVersion,
     WeightDecoder,
+    WeightEncoder,
 )
 from .swimlane import LaneContext
 
@@ -262,18 +266,66 @@ def snapshot_reply(
     return build()
 
 
-def send_version(fabric: Fabric, key: str, sender: str, enc: EncodedVersion) -> int:
-    """Sign and publish one encoded version on `key`: its manifest, then each chunk in order.
+class WeightPublisher:
+    """The root of the weight tree: encodes each new version (full, or a delta against the last),
+    sends it to the children and answers their snapshot queries with the newest version."""
 
-    Returns the bytes put on the wire. Used by the actor's ``publish`` lane (and by anything else
-    that originates versions, such as the replication benchmark's source).
-    """
-    signed = fabric.keys.weights_signed()  # not `key`: relays forward these envelopes unchanged
-    sent = fabric.publish_ctrl(key, WeightManifest(sender=sender, **enc.to_dict()), weights=True, sign_key=signed)
-    for i, data in enumerate(enc.chunks):
-        msg = WeightChunk(sender=sender, version=enc.version, index=i, n_chunks=enc.n_chunks, data=bytes(data))
-        sent += fabric.publish_ctrl(key, msg, weights=True, sign_key=signed)
-    return sent
+    def __init__(
+        self, fabric: Fabric, sender: str, layout: ParamLayout, replication: ReplicationConfig, start_version: int = 0
+    ) -> None:
+        self.fabric = fabric
+        self.sender = sender
+        self.layout = layout
+        self.replication = replication
+        self.encoder = WeightEncoder.from_config(layout, replication, start_version=start_version)
+        self._lock = threading.Lock()  # a snapshot being served never sees a half-encoded version
+        self._snapshot: bytes | None = None
+
+    def renumber(self, start_version: int) -> None:
+        """Continue numbering after `start_version` (the next version is a full one)."""
+        with self._lock:
+            self.encoder = WeightEncoder.from_config(self.layout, self.replication, start_version=start_version)
+            self._snapshot = None
+
+    def encode(self, flat: np.ndarray) -> EncodedVersion:
+        """Encode the next version from the flat weights; snapshots served from now on are of it."""
+        with self._lock:
+            enc = self.encoder.encode(flat)
+            self._snapshot = None  # rebuilt lazily on the next snapshot query
+        return enc
+
+    def send(self, enc: EncodedVersion) -> int:
+        """Sign and publish one encoded version: its manifest, then each chunk in order.
+        Returns the bytes put on the wire."""
+        f, key = self.fabric, self.fabric.keys.weights(self.sender)
+        signed = f.keys.weights_signed()  # not `key`: relays forward these envelopes unchanged
+        sent = f.publish_ctrl(key, WeightManifest(sender=self.sender, **enc.to_dict()), weights=True, sign_key=signed)
+        for i, data in enumerate(enc.chunks):
+            msg = WeightChunk(sender=self.sender, version=enc.version, index=i, n_chunks=enc.n_chunks, data=bytes(data))
+            sent += f.publish_ctrl(key, msg, weights=True, sign_key=signed)
+        return sent
+
+    @property
+    def checksum(self) -> str:
+        """Checksum of the newest encoded version ("" before the first)."""
+        with self._lock:
+            return self.encoder.checksum
+
+    def serve_snapshot(self, req: Any) -> Any:
+        """The ``snapshot`` queryable's handler: see :func:`snapshot_reply`."""
+        with self._lock:
+            return snapshot_reply(self.sender, req, self.encoder.latest, self.layout.hash, self._encoded_snapshot)
+
+    def _encoded_snapshot(self) -> bytes:
+        """The newest version, encoded once per version (called under the lock)."""
+        if self._snapshot is None:
+            version, payload, checksum = self.encoder.snapshot()
+            snap = WeightSnapshot(
+                sender=self.sender, version=version, layout_hash=self.layout.hash,
+                checksum=checksum, data=bytes(payload), created_ns=time.time_ns(),
+            )
+            self._snapshot = encode(snap)
+        return self._snapshot
 
 
 def manifest_dict(m: WeightManifest) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""Chaos during training on the emulated 8-node cluster (dvla/bench/chaos.py): rollouts, a
+"""Chaos during training on the emulated 8-node cluster (benchmarks/chaos.py): rollouts, a
 replicator and the actor killed with SIGKILL while one rack uplink drops 5% of its packets.
 
 The short profile (one kill of each kind, ~3 minutes) runs in the default suite; the 5-minute
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from dvla.bench.chaos import FULL, QUICK, Profile, iptables_usable, run_chaos
+from benchmarks.chaos import FULL, QUICK, Profile, iptables_usable, run_chaos
 from dvla.orchestrator.netns import list_links, list_netns, run_prefix
 
 from .support import ROOT, free_port_block

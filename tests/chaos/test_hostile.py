@@ -18,9 +18,9 @@ from pathlib import Path
 
 import pytest
 
-from dvla.bench.hostile import FORGED_VERSION, Attacker, rss_kib
 from dvla.fabric.messages import Command
 
+from .hostile import FORGED_VERSION, Attacker, rss_kib
 from .support import free_port_block, harness_fabric, pids_of_run, start_up, state, statuses, wait_for
 
 #: RSS growth allowed per role across the flood: a fraction of its size plus a constant

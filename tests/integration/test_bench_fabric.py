@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from dvla.bench.fabric import HEADLINE_KEYS
+from benchmarks.fabric import HEADLINE_KEYS
 
 ROOT = Path(__file__).resolve().parents[2]
 

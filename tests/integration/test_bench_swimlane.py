@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from dvla.bench.swimlane import HEADLINE_KEYS
+from benchmarks.swimlane import HEADLINE_KEYS
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -1,7 +1,7 @@
 """The weight tree on the emulated 8-node, 2-rack cluster: network namespaces, rate-limited links,
 real TCP, one process per actor / replicator / rollout slot of topologies/8node.yaml (the
-:mod:`dvla.bench.repnode` stand-ins: the real Replicator and the rollouts' WeightSync, without
-simulators).
+:mod:`benchmarks.repnode` processes: the real Replicator, the actor's WeightPublisher and the rollouts'
+WeightSync, without simulators or learning).
 
 One cluster, one story, checked step by step:
 1. every rollout converges on each version with the actor's checksum;
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from dvla.bench.repcluster import RepCluster
+from benchmarks.repcluster import RepCluster
 from dvla.config import LinkConfig
 from dvla.orchestrator.netns import list_netns, run_prefix
 from dvla.orchestrator.topology import load_topology

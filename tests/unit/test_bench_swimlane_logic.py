@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from dvla.bench import swimlane
+from benchmarks import swimlane
 from dvla.orchestrator.topology import load_topology
 
 ROOT = Path(__file__).resolve().parents[2]

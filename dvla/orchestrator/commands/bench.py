@@ -23,7 +23,7 @@ def e2e(
     base_port: Annotated[int, typer.Option(help="first TCP port")] = 19400,
 ) -> None:
     """Train once per seed to the topology's success target; time and steps to get there."""
-    from ...bench.e2e import run_seeds
+    from benchmarks.e2e import run_seeds
 
     try:
         seed_list = [int(s) for s in seeds.split(",") if s.strip()]
@@ -60,7 +60,7 @@ def fabric(
 ) -> None:
     """Fabric chunk throughput against raw Zenoh (64 KiB, 1 MiB) and ctrl request/reply p99 RTT: idle,
     with the data plane flooded, and flooded with data and ctrl on one shared session."""
-    from ...bench.fabric import format_table, run_bench
+    from benchmarks.fabric import format_table, run_bench
 
     try:
         doc = run_bench(quick=quick, links=links, progress=lambda m: typer.echo(f"[bench] {m}", err=True))
@@ -90,7 +90,7 @@ def swimlane(
     weight swaps, policy lag and RSS growth over a steady state."""
     import dataclasses
 
-    from ...bench.swimlane import PLACEMENTS, QUICK, Profile, format_table, run_bench
+    from benchmarks.swimlane import PLACEMENTS, QUICK, Profile, format_table, run_bench
 
     profile = QUICK if quick else Profile()
     overrides = {"warmup_s": warmup, "window_s": window, "rss_window_s": rss_window, "balanced_epochs": balanced_epochs}
@@ -123,7 +123,7 @@ def replication(
 ) -> None:
     """Weight tree vs star broadcast vs link bound on the emulated cluster; bytes per version of each
     encoding in real training, with each run's eval success."""
-    from ...bench.replication import format_table, run_bench
+    from benchmarks.replication import format_table, run_bench
 
     if size_mib <= 0 or versions < 1 or node_gbit <= 0 or uplink_gbit <= 0 or training_steps < 0:
         raise fail("--size-mib, --versions, --node-gbit and --uplink-gbit must be positive, --training-steps >= 0")
@@ -147,7 +147,7 @@ def vla(
     """The rgb + language path: rollout env steps/s and inference p50/p99 of tiny-vla at three sizes
     on rendered ManiSkill3 envs, and image-trajectory bytes/s on the data plane with Zenoh shared
     memory on and off."""
-    from ...bench.vla import format_table, run_bench
+    from benchmarks.vla import format_table, run_bench
 
     try:
         doc = run_bench(quick=quick, progress=lambda m: typer.echo(f"[bench] {m}", err=True))
@@ -168,7 +168,7 @@ def chaos(
     """kill -9 rollouts (every 30 s), a replicator and the actor during training with 5% packet loss on
     a rack uplink; time to detection, restart and latest weights per role kind; replicas bit-identical,
     versions monotonic, chunk accounting exact with every loss within its bound (needs root)."""
-    from ...bench.chaos import FULL, QUICK, format_table, run_chaos
+    from benchmarks.chaos import FULL, QUICK, format_table, run_chaos
 
     try:
         doc = run_chaos(topology, QUICK if quick else FULL, runs, base_port,

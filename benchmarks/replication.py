@@ -4,7 +4,7 @@ emulated cluster, plus the bytes each encoding puts on the wire in real training
 Part 1, transfer (every figure from the same cluster, in the same run):
 
 - ``tree``: the topology's own tree (actor -> rack replicators -> rollouts), real
-  :mod:`dvla.bench.repnode` processes in network namespaces with rate-limited links. For each of
+  :mod:`benchmarks.repnode` processes in network namespaces with rate-limited links. For each of
   ``versions`` full versions of ``size_mib`` MiB: time from the source starting to encode until
   the last rollout holds it, verified (checksum) and swappable. The first version is a warm-up
   (connections, TCP slow start) and is reported but not counted.
@@ -32,10 +32,10 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from ..config import LinkConfig, ReplicationConfig, Topology
-from ..orchestrator.estimate import delivery_estimate
-from ..orchestrator.ports import free_port_block
-from ..orchestrator.topology import dump_topology_yaml, load_topology
+from dvla.config import LinkConfig, Topology
+from dvla.orchestrator.estimate import delivery_estimate
+from dvla.orchestrator.ports import free_port_block
+from dvla.orchestrator.topology import dump_topology_yaml, load_topology
 from .repcluster import RepCluster, without_roles
 
 MIB = 1 << 20
@@ -156,8 +156,7 @@ def run_transfer(
             tree = RepCluster(tree_topo, Path(tmp) / "tree", numel)
             progress(f"tree: starting {len(tree.plan.processes)} processes ({base.emulate})")
             tree.start()
-            netns = tree.netns
-            tree._own_netns = False  # the star reuses the same namespaces and links
+            netns = tree.keep_netns()  # the star reuses the same namespaces and links
             try:
                 est = delivery_estimate(tree.topo, tree.plan, size_bytes)
                 out["predicted_tree_s"], out["predicted_star_s"] = est["tree_s"], est["star_s"]

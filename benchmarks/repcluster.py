@@ -2,7 +2,7 @@
 
 :class:`RepCluster` plans a topology with the orchestrator's planner (same names, ports, parents
 and Zenoh link graph as `dvla up`), builds its network namespaces when the topology asks for
-``emulate: netns``, and starts one :mod:`dvla.bench.repnode` process per actor / replicator /
+``emulate: netns``, and starts one :mod:`benchmarks.repnode` process per actor / replicator /
 rollout slot (source / relay / sink). Evaluators are left out. The driver triggers versions,
 reads every node's status over the control plane, kills and restarts processes.
 
@@ -22,12 +22,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ..config import Topology
-from ..fabric import Fabric, new_secret
-from ..fabric.messages import RoleStatus
-from ..orchestrator.launcher import Launcher, Supervised, log_tail
-from ..orchestrator.plan import Plan, make_plan
-from ..orchestrator.run import tool_fabric
+from dvla.config import Topology
+from dvla.fabric import Fabric, new_secret
+from dvla.fabric.messages import RoleStatus
+from dvla.orchestrator.launcher import Launcher, Supervised, log_tail
+from dvla.orchestrator.plan import Plan, make_plan
+from dvla.orchestrator.run import tool_fabric
 from .repnode import write_trigger
 
 log = logging.getLogger("dvla.repcluster")
@@ -54,7 +54,7 @@ class _RepLauncher(Launcher):
 
     def command(self, sup: Supervised) -> list[str]:
         cfg = sup.proc.config
-        argv = [sys.executable, "-m", "dvla.bench.repnode", "--mode", MODE_OF_KIND[cfg.kind],
+        argv = [sys.executable, "-m", "benchmarks.repnode", "--mode", MODE_OF_KIND[cfg.kind],
                 "--config", str(sup.config_path), "--numel", str(self.numel)]
         for fault in self.faults.get(cfg.name, []):
             argv += ["--fault", fault]
@@ -110,7 +110,7 @@ class RepCluster:
         try:
             if self.topo.emulate == "netns":
                 if self.netns is None:
-                    from ..orchestrator.netns import NetnsCluster
+                    from dvla.orchestrator.netns import NetnsCluster
 
                     self.netns = NetnsCluster(self.topo, self.plan)
                     self.netns.create()
@@ -152,6 +152,11 @@ class RepCluster:
         finally:
             if self._own_netns and self.netns is not None:
                 self.netns.destroy()
+
+    def keep_netns(self) -> Any:
+        """Leave the namespaces standing at close and return them (the caller removes them)."""
+        self._own_netns = False
+        return self.netns
 
     def __enter__(self) -> "RepCluster":
         self.start()

@@ -1,15 +1,15 @@
 """Processes of the replication benchmark and of the emulated-cluster replication tests.
 
-``python -m dvla.bench.repnode --mode source|relay|sink --config ROLE.json --numel N``
+``python -m benchmarks.repnode --mode source|relay|sink --config ROLE.json --numel N``
 
 Each process runs under the same :class:`~dvla.roles.runtime.RoleHost` as a real role (liveliness
 token, status queryable, commands, signals, summary file), with the RoleConfig the orchestrator's
 planner wrote, so it sits in the real link graph and weight tree:
 
-- ``source`` stands where the actor does: it originates versions exactly as the actor's
-  ``publish`` lane does (:class:`~dvla.replication.WeightEncoder` + :func:`send_version`) and
-  serves snapshots. It publishes the next version each time the driver raises the number in its
-  trigger file (``<run_dir>/bench/trigger``), so the driver decides when a transfer starts.
+- ``source`` stands where the actor does: the actor's own
+  :class:`~dvla.roles.weightsync.WeightPublisher` originates the versions and serves snapshots.
+  It publishes the next version each time the driver raises the number in its trigger file
+  (``<run_dir>/bench/trigger``), so the driver decides when a transfer starts.
 - ``relay`` is the real :class:`~dvla.roles.replicator.Replicator`, given the synthetic layout
   instead of building a policy; ``--fault`` injects one fault on the way to its children (a
   corrupted chunk, or a stall in the middle of a transfer): see :class:`FaultyRelay`.
@@ -27,22 +27,20 @@ import dataclasses
 import logging
 import signal
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..config import RoleConfig
-from ..fabric import Fabric
-from ..fabric.codec import encode
-from ..fabric.messages import WeightChunk, WeightManifest, WeightSnapshot
-from ..replication import ParamLayout, WeightEncoder
-from ..roles.replicator import Replicator
-from ..roles.runtime import ExitStatus, RoleHost, open_fabric, setup_logging
-from ..roles.swimlane import LaneContext, Swimlane
-from ..roles.weightsync import WeightSync, send_version, snapshot_reply
+from dvla.config import RoleConfig
+from dvla.fabric import Fabric
+from dvla.fabric.messages import WeightChunk, WeightManifest
+from dvla.replication import ParamLayout
+from dvla.roles.replicator import Replicator
+from dvla.roles.runtime import ExitStatus, RoleHost, open_fabric, setup_logging
+from dvla.roles.swimlane import LaneContext, Swimlane
+from dvla.roles.weightsync import WeightPublisher, WeightSync
 
 log = logging.getLogger("dvla.repnode")
 
@@ -91,42 +89,38 @@ def _trim(d: dict[str, Any]) -> dict[str, Any]:
 
 
 class Source:
-    """The actor's place in the tree: originates versions on trigger, serves snapshots."""
+    """The actor's place in the tree: the actor's WeightPublisher, publishing on trigger."""
 
     def __init__(self, cfg: RoleConfig, fabric: Fabric, layout: ParamLayout) -> None:
         self.cfg = cfg
         self.fabric = fabric
         self.layout = layout
-        self.encoder = WeightEncoder.from_config(layout, cfg.replication)
+        self.publisher = WeightPublisher(fabric, cfg.name, layout, cfg.replication)
         self.rng = np.random.default_rng(cfg.seed)
         self.flat = self.rng.standard_normal(layout.numel, dtype=np.float32)
         self.policy_version = 0
         self.env_steps = 0
         self.published: dict[str, dict[str, Any]] = {}
-        self._snap_lock = threading.Lock()
-        self._snapshot: bytes | None = None
 
     def build(self, sl: Swimlane) -> None:
-        self.fabric.serve(self.fabric.keys.snapshot(self.cfg.name), self._serve_snapshot)
+        self.fabric.serve(self.fabric.keys.snapshot(self.cfg.name), self.publisher.serve_snapshot)  # catch-up
         sl.lane("publish", self._publish)
 
     def _publish(self, ctx: LaneContext) -> None:
-        key, trigger = self.fabric.keys.weights(self.cfg.name), trigger_path(self.cfg.run_dir)
+        trigger = trigger_path(self.cfg.run_dir)
         while ctx.running:
-            if self.encoder.version >= _read_trigger(trigger):
+            if self.policy_version >= _read_trigger(trigger):
                 ctx.sleep(0.005)
                 continue
             with ctx.busy():
                 t0 = time.time_ns()
-                with self._snap_lock:
-                    enc = self.encoder.encode(self.flat)
-                    self._snapshot = None
+                enc = self.publisher.encode(self.flat)
                 t_enc = time.time_ns()
                 # Recorded before sending: a replica may hold the version before the last put returns.
                 entry = {"t0_ns": t0, "encoded_ns": t_enc, "payload_bytes": enc.total_bytes,
                          "encoding": enc.encoding, "checksum": enc.checksum}
                 self.published = _trim({**self.published, str(enc.version): entry})
-                sent = send_version(self.fabric, key, self.cfg.name, enc)
+                sent = self.publisher.send(enc)
                 t1 = time.time_ns()
                 self.policy_version = enc.version
                 self.published[str(enc.version)] = {**entry, "sent_ns": t1, "bytes": sent}
@@ -134,19 +128,6 @@ class Source:
                 # The next version's parameters: a random update, prepared outside the timed part.
                 self.flat += 1e-3 * self.rng.standard_normal(self.layout.numel, dtype=np.float32)
             ctx.count()
-
-    def _serve_snapshot(self, req: Any) -> Any:
-        with self._snap_lock:
-            return snapshot_reply(self.cfg.name, req, self.encoder.latest, self.layout.hash, self._encoded_snapshot)
-
-    def _encoded_snapshot(self) -> bytes:
-        if self._snapshot is None:
-            snap = self.encoder.snapshot()
-            self._snapshot = encode(WeightSnapshot(
-                sender=self.cfg.name, version=snap.version, layout_hash=self.layout.hash,
-                checksum=snap.checksum, data=snap.payload, created_ns=time.time_ns(),
-            ))
-        return self._snapshot
 
     def status_extra(self) -> dict[str, Any]:
         return {"published": self.published}
@@ -218,10 +199,18 @@ class FaultyRelay(Replicator):
         self.faults = {(v, i): (kind, seconds) for kind, v, i, seconds in faults}
         self.injected = 0
 
-    def _cut_through(self, msg: Any, envelope: bytes) -> None:
+    def build(self, sl: Swimlane) -> None:
+        super().build(sl)
+        self.stopping = sl.stop_event
+        # Between receiving and forwarding: the faults go in front of the replicator's own
+        # cut-through, which its WeightSync calls for every verified message.
+        self.cut_through = self.weights.on_message
+        self.weights.on_message = self._inject
+
+    def _inject(self, msg: Any, envelope: bytes) -> None:
         fault = self.faults.get((msg.version, msg.index)) if isinstance(msg, WeightChunk) else None
         if fault is None:
-            super()._cut_through(msg, envelope)
+            self.cut_through(msg, envelope)
             return
         (kind, seconds), version, index = fault, msg.version, msg.index
         if kind == "corrupt":
@@ -231,7 +220,7 @@ class FaultyRelay(Replicator):
             envelope = self.fabric.seal(self.fabric.keys.weights_signed(), msg)  # validly signed, wrong bytes
             self.injected += 1
             log.warning("fault injection: flipped a byte of chunk %d of v%d", index, version)
-        super()._cut_through(msg, envelope)
+        self.cut_through(msg, envelope)
         if kind == "stall":
             self.injected += 1
             log.warning("fault injection: forwarding stalls %.1f s after chunk %d of v%d", seconds, index, version)
@@ -239,7 +228,7 @@ class FaultyRelay(Replicator):
             deadline = time.monotonic() + 5.0
             while self.outbox.depth and time.monotonic() < deadline:
                 time.sleep(0.005)
-            self._stop.wait(seconds)
+            self.stopping.wait(seconds)
 
     def status_extra(self) -> dict[str, Any]:
         return {**super().status_extra(), "faults_injected": self.injected}

@@ -29,7 +29,6 @@ the bench instead of hanging it, and the namespaces are removed whatever happens
 from __future__ import annotations
 
 import contextlib
-import math
 import multiprocessing as mp
 import os
 import queue
@@ -44,6 +43,8 @@ from dataclasses import asdict, dataclass
 from typing import Any, Callable
 
 import numpy as np
+
+from .stats import percentile
 
 RUN = "bench"
 SOURCE, SINK, TOOL = "bench-source", "bench-sink", "bench-tool"
@@ -95,7 +96,7 @@ def endpoint(port: int) -> str:
 
 def make_chunk(name: str, target_bytes: int) -> Any:
     """A TrajectoryChunk whose encoding is about `target_bytes` (a float32 state observation)."""
-    from ..fabric import TrajectoryChunk
+    from dvla.fabric import TrajectoryChunk
 
     T, N, A = 16, 4, 8
     rng = np.random.default_rng(0)
@@ -117,7 +118,7 @@ WIDE = ("seq", "policy_version", "created_ns")
 
 def wire_chunk(target_bytes: int) -> Any:
     """`make_chunk`'s chunk laid out in a WireBuffer, as a rollout ships it."""
-    from ..fabric import WireBuffer
+    from dvla.fabric import WireBuffer
 
     return WireBuffer(make_chunk(SOURCE, target_bytes), wide=WIDE)
 
@@ -125,7 +126,7 @@ def wire_chunk(target_bytes: int) -> Any:
 def payload_size(kind: str, target_bytes: int) -> int:
     """Bytes per message of a throughput kind: the encoded chunk for "encode", the wire
     buffer's bytes for every other kind (raw sends those very bytes)."""
-    from ..fabric import encode
+    from dvla.fabric import encode
 
     if kind == "encode":
         return len(encode(make_chunk(SOURCE, target_bytes)))
@@ -165,7 +166,7 @@ def _probe_until_routed(session: Any, routed: Any, timeout_s: float) -> None:
 
 
 def _open_fabric(name: str, secret: bytes, *, ctrl: Any, data: Any = None, shared: bool = False) -> Any:
-    from ..fabric import Fabric
+    from dvla.fabric import Fabric
 
     fabric = Fabric(run=RUN, name=name, ctrl_conf=ctrl, data_conf=None if shared else data, secret=secret)
     if shared:
@@ -215,7 +216,7 @@ def _throughput_sub(kind: str, port: int, n: int, rounds: int, secret: bytes, re
     """Receives `rounds` x `n` messages; reports the arrival time of each round's last one."""
     import zenoh
 
-    from ..fabric import TrajectoryChunk, plane_config
+    from dvla.fabric import TrajectoryChunk, plane_config
 
     conf = plane_config(mode="peer", listen=[endpoint(port)])
     arrivals = _Arrivals(n)
@@ -269,7 +270,7 @@ def _throughput_pub(kind: str, port: int, n: int, rounds: int, target: int, secr
     """Sends `n` messages per round, each round when told; reports when each round started."""
     import zenoh
 
-    from ..fabric import plane_config
+    from dvla.fabric import plane_config
 
     conf = plane_config(mode="peer", connect=[endpoint(port)])
     if kind == "raw":
@@ -453,20 +454,20 @@ class TwoLinks:
                              data_addr=f"{_DATA_NET}.2", ctrl_addr=f"{_CTRL_NET}.2", gbit=gbit)
 
     def __enter__(self) -> Layout:
-        from ..orchestrator.netns import _ip, _run, _tbf
+        from dvla.orchestrator.netns import ip, rate_limit
 
         try:
             for ns in (self.source_ns, self.sink_ns):
-                _run(["ip", "netns", "add", ns])
-                _ip("link", "set", "lo", "up", ns=ns)
+                ip("netns", "add", ns)
+                ip("link", "set", "lo", "up", ns=ns)
             for i, net in enumerate((_DATA_NET, _CTRL_NET)):
                 # veth pair created in the source namespace, one end moved to the sink's
-                _ip("link", "add", f"l{i}", "type", "veth", "peer", "name", f"p{i}", ns=self.source_ns)
-                _ip("link", "set", f"p{i}", "netns", self.sink_ns, ns=self.source_ns)
+                ip("link", "add", f"l{i}", "type", "veth", "peer", "name", f"p{i}", ns=self.source_ns)
+                ip("link", "set", f"p{i}", "netns", self.sink_ns, ns=self.source_ns)
                 for ns, dev, host in ((self.source_ns, f"l{i}", 1), (self.sink_ns, f"p{i}", 2)):
-                    _ip("addr", "add", f"{net}.{host}/24", "dev", dev, ns=ns)
-                    _ip("link", "set", dev, "up", ns=ns)
-                    _tbf(ns, dev, self.gbit)
+                    ip("addr", "add", f"{net}.{host}/24", "dev", dev, ns=ns)
+                    ip("link", "set", dev, "up", ns=ns)
+                    rate_limit(ns, dev, self.gbit)
         except BaseException:
             self.__exit__()
             raise
@@ -489,9 +490,9 @@ def links_available() -> str | None:
 def _enter_ns(ns: str | None) -> None:
     """Move this (fresh, single-threaded) worker process into `ns` before it opens sockets."""
     if ns is not None:
-        from ..orchestrator.netns import _enter
+        from dvla.orchestrator.netns import enter_netns
 
-        _enter(f"/var/run/netns/{ns}")
+        enter_netns(ns)
 
 
 # --------------------------------------------------------------------------------------------
@@ -499,7 +500,7 @@ def _enter_ns(ns: str | None) -> None:
 
 
 def _status_reply() -> Any:
-    from ..fabric import RoleStatus
+    from dvla.fabric import RoleStatus
 
     return RoleStatus(name=SOURCE, kind="rollout", node="bench", rack="bench", pid=os.getpid(), state="running",
                       policy_version=1, env_steps=0, steps_per_s=0.0)
@@ -515,7 +516,7 @@ def _rtt_sink(layout: Layout, shared: bool, ctrl_port: int, data_port: int, secr
               received: Any, received_bytes: Any, max_s: float) -> None:
     """The actor's side: ctrl router (the tool and the source attach to it) and the traj inbox."""
     _enter_ns(layout.sink_ns)
-    from ..fabric import DATA, TrajectoryChunk, plane_config
+    from dvla.fabric import DATA, TrajectoryChunk, plane_config
 
     fabric = _open_fabric(
         SINK, secret, shared=shared,
@@ -538,7 +539,7 @@ def _rtt_source(layout: Layout, shared: bool, ctrl_port: int, data_port: int, se
                 stop: Any, max_s: float, max_msgs: int) -> None:
     """The rollout's side: answers status queries; floods 1 MiB chunks while `flood` is set."""
     _enter_ns(layout.source_ns)
-    from ..fabric import plane_config
+    from dvla.fabric import plane_config
 
     fabric = _open_fabric(
         SOURCE, secret, shared=shared,
@@ -564,7 +565,7 @@ def _rtt_tool(layout: Layout, shared: bool, ctrl_port: int, secret: bytes, cmds:
               timeout_s: float) -> None:
     """`dvla status`'s side, next to the sink: samples RTTs of signed status queries on demand."""
     _enter_ns(layout.sink_ns)
-    from ..fabric import Fabric, plane_config
+    from dvla.fabric import Fabric, plane_config
 
     tool = Fabric(run=RUN, name=TOOL, secret=secret, data_conf=None, open_timeout_s=START_TIMEOUT_S,
                   ctrl_conf=plane_config(mode="client", connect=[f"tcp/{_ctrl_addr(layout, shared)}:{ctrl_port}"]))
@@ -606,7 +607,7 @@ def _summary(rtts: list[float], misses: int, what: str) -> dict[str, Any]:
     if not rtts:
         raise RuntimeError(f"no reply to any status query ({what})")
     rtts = sorted(rtts)
-    return {"samples": len(rtts), "timeouts": misses, "p50_ms": _pct(rtts, 0.50), "p99_ms": _pct(rtts, 0.99),
+    return {"samples": len(rtts), "timeouts": misses, "p50_ms": percentile(rtts, 50), "p99_ms": percentile(rtts, 99),
             "max_ms": rtts[-1]}
 
 
@@ -703,11 +704,6 @@ def _wait_reachable(tool: Any, key: str) -> None:
 # orchestration
 
 
-def _pct(sorted_values: list[float], q: float) -> float:
-    """Nearest-rank percentile of an ascending list."""
-    return sorted_values[min(len(sorted_values) - 1, max(0, math.ceil(q * len(sorted_values)) - 1))]
-
-
 def _wait_event(event: Any, proc: Any, what: str) -> None:
     deadline = time.monotonic() + START_TIMEOUT_S
     while not event.wait(0.1):
@@ -747,7 +743,7 @@ def _stop(procs: list[Any]) -> None:
 def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: bool = True,
               progress: Callable[[str], None] = lambda _m: None) -> dict[str, Any]:
     """Run every measurement; returns the JSON document (see the module docstring)."""
-    from ..fabric import encode, new_secret
+    from dvla.fabric import encode, new_secret
 
     cfg = cfg or (BenchConfig.quick() if quick else BenchConfig())
     ctx = mp.get_context("spawn")

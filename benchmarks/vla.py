@@ -20,12 +20,14 @@ import platform
 import socket
 import statistics
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
 
-from ..config import TaskConfig
+from dvla.config import TaskConfig
+
+from .stats import percentile
 
 __all__ = ["VLABenchConfig", "run_bench", "format_table"]
 
@@ -63,11 +65,6 @@ def _task(cfg: VLABenchConfig) -> TaskConfig:
     return TaskConfig(env=cfg.env, obs_mode="rgb", image_size=cfg.image_size, max_episode_steps=50, policy="tiny-vla")
 
 
-def _pct(values: list[float], q: float) -> float:
-    s = sorted(values)
-    return s[min(len(s) - 1, int(q * len(s)))]
-
-
 # --- rollout: env steps/s and inference latency --------------------------------------------
 
 
@@ -75,9 +72,9 @@ def measure_rollout(cfg: VLABenchConfig, progress: Callable[[str], None]) -> tup
     """Per size: env steps/s and act() latency; also the sim-only rate and one image chunk."""
     import torch
 
-    from ..learn.envs import EnvGroup, obs_as_dict, obs_to_torch
-    from ..learn.policies import make_policy
-    from ..learn.vla.model import count_parameters
+    from dvla.learn.envs import EnvGroup, obs_as_dict, obs_to_torch
+    from dvla.learn.policies import make_policy
+    from dvla.learn.vla.model import count_parameters
 
     torch.manual_seed(0)
     torch.set_num_threads(1)  # as in a rollout process (dvla up sets OMP_NUM_THREADS=1)
@@ -108,8 +105,8 @@ def measure_rollout(cfg: VLABenchConfig, progress: Callable[[str], None]) -> tup
             out["sizes"][size] = {
                 "parameters": count_parameters(policy),
                 "env_steps_per_s": cfg.envs * cfg.steps / wall,
-                "infer_ms_p50": _pct(act_ms, 0.5),
-                "infer_ms_p99": _pct(act_ms, 0.99),
+                "infer_ms_p50": percentile(act_ms, 50),
+                "infer_ms_p99": percentile(act_ms, 99),
             }
             progress(f"tiny-vla {size}: {out['sizes'][size]}")
     finally:
@@ -129,7 +126,7 @@ def _free_port() -> int:
 
 
 def _chunk(chunk_obs: dict[str, np.ndarray]) -> Any:
-    from ..fabric import TrajectoryChunk
+    from dvla.fabric import TrajectoryChunk
 
     T, N = chunk_obs["rgb"].shape[:2]
     tn = lambda dt: np.zeros((T, N), dt)  # noqa: E731
@@ -143,14 +140,14 @@ def _chunk(chunk_obs: dict[str, np.ndarray]) -> Any:
 
 
 def _fabric(name: str, shm: bool, listen: list[str], connect: list[str]) -> Any:
-    from ..fabric import Fabric, plane_config
+    from dvla.fabric import Fabric, plane_config
 
     data = plane_config(mode="peer", listen=listen, connect=connect, shared_memory=shm)
     return Fabric(run=RUN, name=name, ctrl_conf=plane_config(), data_conf=data, secret=b"bench-vla-secret")
 
 
 def _subscriber(shm: bool, port: int, total: int, ready: Any, done: Any, out: Any) -> None:
-    from ..fabric import TrajectoryChunk
+    from dvla.fabric import TrajectoryChunk
 
     fabric = _fabric("sink", shm, [f"tcp/127.0.0.1:{port}"], [])
     try:

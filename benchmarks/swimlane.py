@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 import platform
 import shutil
@@ -49,11 +48,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from ..config import BudgetConfig, NodeConfig, RackConfig, RolePlacement, Topology
-from ..fabric.messages import RoleStatus
-from ..orchestrator.plan import role_cpus
-from ..orchestrator.ports import free_port_block
-from ..roles.swimlane import histogram_diff, histogram_percentile
+from dvla.config import BudgetConfig, NodeConfig, RackConfig, RolePlacement, Topology
+from dvla.fabric.messages import RoleStatus
+from dvla.orchestrator.plan import role_cpus
+from dvla.orchestrator.ports import free_port_block
+from dvla.roles.swimlane import histogram_diff, histogram_percentile
+
+from .stats import weighted_percentile
 
 HEADLINE_KEYS = (
     "sim_only_sps",
@@ -283,7 +284,7 @@ def measure_run(
 
     ``base_port`` None: a block of ports free at this moment.
     """
-    from ..orchestrator.run import Up, UpOptions
+    from dvla.orchestrator.run import Up, UpOptions
 
     topo = dataclasses.replace(topo, mode=mode)  # type: ignore[arg-type]
     w = _Window(warmup_s, window_s, mode)
@@ -454,13 +455,7 @@ def lag_figures(counts: dict[str, int]) -> dict[str, Any]:
     if total == 0:
         return {"chunks": 0, "mean": None, "p99": None, "max": None, "counts": {}}
     mean = sum(k * v for k, v in items) / total
-    rank, seen, p99 = math.ceil(0.99 * total), 0, items[-1][0]
-    for k, v in items:
-        seen += v
-        if seen >= rank:
-            p99 = k
-            break
-    return {"chunks": total, "mean": mean, "p99": p99, "max": items[-1][0], "counts": {str(k): v for k, v in items}}
+    return {"chunks": total, "mean": mean, "p99": weighted_percentile(dict(items), 99), "max": items[-1][0], "counts": {str(k): v for k, v in items}}
 
 
 def rss_figures(samples: dict[str, list[tuple[float, int]]]) -> dict[str, Any]:
@@ -535,7 +530,7 @@ def run_bench(
     progress: Callable[[str], None] = lambda _m: None,
 ) -> dict[str, Any]:
     """Every run of the bench, in order; the JSON document of the results."""
-    from ..orchestrator.topology import load_topology
+    from dvla.orchestrator.topology import load_topology
 
     base = load_topology(topology)
     t0 = time.monotonic()

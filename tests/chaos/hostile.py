@@ -7,7 +7,7 @@ traffic from the wire (weights, eval results, commands) to replay it later, whic
 replay protection must refuse. Counting what was sent lets a test compare it with what each role
 reports having rejected, per reason, in its status (``planes``).
 
-    from dvla.bench.hostile import Attacker
+    from .hostile import Attacker  # in a test module of tests/chaos
     with Attacker.for_run(run_dir) as atk:
         atk.start_capture()
         ...
@@ -27,10 +27,10 @@ from typing import Any
 
 import zenoh
 
-from ..fabric import plane_config
-from ..fabric.codec import encode
-from ..fabric.keys import KeySpace
-from ..fabric.messages import (
+from dvla.fabric import plane_config
+from dvla.fabric.codec import encode
+from dvla.fabric.keys import KeySpace
+from dvla.fabric.messages import (
     Command,
     EvalResult,
     RoleStatus,
@@ -39,7 +39,7 @@ from ..fabric.messages import (
     WeightManifest,
     WeightSnapshot,
 )
-from ..fabric.signing import Signer
+from dvla.fabric.signing import Signer
 
 #: a version number far above anything a run reaches: applied anywhere, it would show
 FORGED_VERSION = 10**9

@@ -9,7 +9,7 @@ replica holds the actor's latest version bit for bit (same checksum), policy ver
 backwards in any role incarnation, and the run's chunk accounting closes exactly with every loss
 inside its killed incarnation's bound.
 
-    python -m dvla.bench.chaos --json bench-results/chaos.json            # the 5-minute profile
+    python -m benchmarks.chaos --json bench-results/chaos.json            # the 5-minute profile
     dvla bench chaos --quick --json bench-results/chaos-quick.json        # the short CI profile
 
 Needs root (network namespaces, iptables in the emulated fabric's namespace).
@@ -98,7 +98,7 @@ class UplinkLoss:
     """
 
     def __init__(self, run: str, rack: int, probability: float) -> None:
-        from ..orchestrator.netns import fabric_name, uplink_ends
+        from dvla.orchestrator.netns import fabric_name, uplink_ends
 
         self.ns = fabric_name(run)
         self.port = uplink_ends(rack)[0]
@@ -182,9 +182,9 @@ class Watcher:
     """A ctrl-plane client of the run (its own session): liveliness, evals and status rounds."""
 
     def __init__(self, run: str, state: dict[str, Any], obs: Observations) -> None:
-        from ..fabric import load_secret
-        from ..fabric.messages import EvalResult
-        from ..orchestrator.run import tool_fabric
+        from dvla.fabric import load_secret
+        from dvla.fabric.messages import EvalResult
+        from dvla.orchestrator.run import tool_fabric
 
         self.obs = obs
         # Through the relays first (the actor's router is the first entry): killing the actor then
@@ -207,13 +207,13 @@ class Watcher:
                                    "success_once": ev.success_once})
 
     def round(self, timeout: float = 1.5) -> dict[str, dict[str, Any]]:
-        from ..fabric.messages import RoleStatus
+        from dvla.fabric.messages import RoleStatus
 
         replies = self.fabric.query(self.fabric.keys.status_all(), expect=RoleStatus, timeout=timeout)
         return {msg.name: _brief(msg) for _s, msg in replies}
 
     def role(self, name: str, timeout: float = 0.7) -> dict[str, Any] | None:
-        from ..fabric.messages import RoleStatus
+        from dvla.fabric.messages import RoleStatus
 
         replies = self.fabric.query(self.fabric.keys.status(name), expect=RoleStatus, timeout=timeout)
         return _brief(replies[0][1]) if replies else None
@@ -585,7 +585,7 @@ def run_chaos(topology: Path, profile: Profile, runs_root: Path | None = None, b
         for k in cr.kills:
             detection(k, cr.obs)
         acct = result.get("accounting", {})
-        from ..roles.counters import read_counters
+        from dvla.counters import read_counters
 
         # a killed rollout incarnation that produced anything must be listed with its loss (one
         # killed while still starting has produced nothing, possibly not even its counter file)
@@ -650,7 +650,7 @@ def format_table(doc: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m dvla.bench.chaos", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.chaos", description=__doc__.split("\n\n")[0])
     ap.add_argument("--json", type=Path, required=True, help="write the results (JSON) here")
     ap.add_argument("--quick", action="store_true", help="the short profile (one fault of each kind)")
     ap.add_argument("--topology", type=Path, default=ROOT / "topologies" / "8node.yaml")
@@ -664,7 +664,7 @@ def main(argv: list[str] | None = None) -> int:
     except RuntimeError as err:
         print(f"chaos: {err}", file=sys.stderr)
         return 2
-    doc["command"] = "python -m dvla.bench.chaos " + " ".join(argv if argv is not None else sys.argv[1:])
+    doc["command"] = "python -m benchmarks.chaos " + " ".join(argv if argv is not None else sys.argv[1:])
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(doc, indent=1, default=str))
     print(format_table(doc))
