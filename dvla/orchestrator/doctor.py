@@ -22,7 +22,9 @@ from dataclasses import asdict, dataclass
 from typing import Callable, Literal
 
 from ..config import Topology
-from .plan import is_local_host, make_plan, pinning_problems, role_cpus
+from .plan import make_plan, pinning_problems, role_cpus
+from .process import is_local_host
+from .ssh import SshError, check_host, remote_targets
 
 Status = Literal["ok", "warn", "fail", "skip"]
 STATUSES: tuple[Status, ...] = ("ok", "warn", "fail", "skip")
@@ -301,8 +303,6 @@ def check_netns(needs: Needs) -> CheckResult:
 def check_ssh(topo: Topology | None, needs: Needs) -> list[CheckResult]:
     if not needs.remote_nodes or topo is None:
         return [skip("ssh", "no remote nodes" if needs.topology else "give a TOPOLOGY to check its remote nodes")]
-    from .ssh import SshError, check_host, remote_targets
-
     results = []
     for node, target in remote_targets(topo).items():
         fix = (f"key login must work without a prompt: ssh-copy-id -p {target.ssh.port} {target.destination}; "

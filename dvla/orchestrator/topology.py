@@ -48,6 +48,8 @@ from dvla.config import (
     grpo_layout_problems,
 )
 
+from .process import is_local_host
+
 __all__ = [
     "Problem",
     "TopologyError",
@@ -802,7 +804,7 @@ def _check_lane_cpus(p: _Partial, ctx: _Context) -> None:
 
 def _is_remote(host: Any) -> bool:
     """A host that is not this machine (its roles start over SSH)."""
-    return isinstance(host, str) and bool(host.strip()) and host not in LOCAL_HOSTS + ("::1", os.uname().nodename)
+    return isinstance(host, str) and bool(host.strip()) and not is_local_host(host)
 
 
 def _check_remote_addresses(p: _Partial, ctx: _Context) -> None:

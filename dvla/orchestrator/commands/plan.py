@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any, Optional
 
@@ -12,16 +11,11 @@ import typer
 from ..estimate import delivery_estimate
 from ..plan import make_plan
 from ..topology import topology_to_dict
-from .common import topology_or_exit
+from .common import Format, topology_or_exit
 
 
 #: weights size assumed without --param-mb: about the default MLP policy's (1.1 MB)
 DEFAULT_PARAM_MB = 1.1
-
-
-class Format(str, Enum):
-    table = "table"
-    json = "json"
 
 
 def plan(
