@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from ..config import BudgetConfig, Topology
+from ..config import TlsConfig, Topology
 from ..fabric import Fabric, load_secret, new_secret, plane_config
 from ..fabric.messages import Command
 from .accounting import run_accounting
@@ -68,16 +68,15 @@ class UpOptions:
 
 
 def apply_overrides(topo: Topology, opts: UpOptions) -> Topology:
-    b = topo.task.budget
-    budget = BudgetConfig(
-        max_env_steps=opts.max_env_steps if opts.max_env_steps is not None else b.max_env_steps,
-        until_success=opts.until_success if opts.until_success is not None else b.until_success,
-        consecutive=b.consecutive,
-        max_wall_s=opts.max_wall_s if opts.max_wall_s is not None else b.max_wall_s,
-    )
+    """The topology with the options that are set (not None) in place of its own values."""
+
+    def given(**values: Any) -> dict[str, Any]:
+        return {k: v for k, v in values.items() if v is not None}
+
+    budget = dataclasses.replace(topo.task.budget, **given(max_env_steps=opts.max_env_steps,
+                                                           until_success=opts.until_success, max_wall_s=opts.max_wall_s))
     task = dataclasses.replace(topo.task, budget=budget)
-    seed = opts.seed if opts.seed is not None else topo.seed
-    return dataclasses.replace(topo, task=task, mode=opts.mode or topo.mode, seed=seed)  # type: ignore[arg-type]
+    return dataclasses.replace(topo, task=task, **given(mode=opts.mode, seed=opts.seed))
 
 
 def prepare_run_dir(root: Path, run: str) -> Path:
@@ -124,14 +123,9 @@ def resolve_secret(topo: Topology, run_dir: Path) -> tuple[str, str]:
     return secret, str(path)
 
 
-def ctrl_tls(topo: Topology) -> Any:
+def ctrl_tls(topo: Topology) -> TlsConfig | None:
     """The TLS files a tool needs to reach the ctrl plane (None when it is plain TCP)."""
     return topo.tls if topo.tls is not None and "ctrl" in topo.tls.planes else None
-
-
-def ctrl_tls_dict(topo: Topology) -> dict[str, Any] | None:
-    tls = ctrl_tls(topo)
-    return None if tls is None else {"root_ca": tls.root_ca, "cert": tls.cert, "key": tls.key, "mtls": tls.mtls}
 
 
 def tool_fabric(run: str, entry: tuple[str, ...], secret: bytes, name: str = "orchestrator", tls: Any = None,
@@ -172,11 +166,13 @@ class Up:
         self._interrupted.set()
 
     def _write_state(self) -> None:
+        tls = ctrl_tls(self.topo)
         state = {
             "run": self.topo.run,
             "pid": os.getpid(),
             "ctrl_entry": list(self.plan.ctrl_entry),
-            "ctrl_tls": ctrl_tls_dict(self.topo),
+            # what `dvla status` needs to reach the ctrl plane (fabric.TlsFiles' fields)
+            "ctrl_tls": None if tls is None else {"root_ca": tls.root_ca, "cert": tls.cert, "key": tls.key, "mtls": tls.mtls},
             "secret_file": self.secret_source if self.secret_source != "DVLA_SECRET" else None,
             "children": self.launcher.pids(),
             "restarts": {n: c.restarts for n, c in self.launcher.children.items()},
