@@ -18,7 +18,7 @@ import json
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from ..counters import read_counters
 
@@ -100,9 +100,8 @@ def accounting_from_counters(run_dir: Path) -> dict[str, Any] | None:
     }
 
 
-@dataclass
-class _Received:
-    """What one actor incarnation received of one rollout incarnation."""
+class _Received(NamedTuple):
+    """What one actor incarnation received of one rollout incarnation (seqs within it)."""
 
     actor: int
     first: int
@@ -127,7 +126,7 @@ class _Missing:
 def _missing(produced: int, received: list[_Received]) -> _Missing:
     if not received:
         return _Missing(inner=0, between=[], tail=produced, last_actor=None)
-    received = sorted(received, key=lambda x: (x.actor, x.first, x.last, x.got))
+    received = sorted(received)
     inner = sum(x.last - x.first + 1 - x.got for x in received)
     # chunks before the first receipt went missing in the absence of an actor: count them with
     # the first actor incarnation's predecessor (the one that died), else as mid-stream

@@ -17,7 +17,7 @@ import sys
 import time
 from pathlib import Path
 
-from .process import CommandWrapper, Process, Supervised
+from .process import CommandWrapper, Process, Supervised, endpoint_address
 
 log = logging.getLogger("dvla.launcher")
 
@@ -207,6 +207,12 @@ class Launcher:
         return {n: s.popen.pid for n, s in self.children.items() if s.popen is not None and s.alive()}
 
 
+def last_line(text: str) -> str:
+    """The last non-empty line of `text`, stripped (for one-line error reports)."""
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return lines[-1] if lines else "(no output)"
+
+
 def log_tail(path: Path, n: int = 15, indent: str = "") -> str:
     """The last `n` lines of a role's log, each prefixed with `indent` (for error reports)."""
     try:
@@ -230,11 +236,7 @@ def _close_stdin(sup: Supervised) -> None:
 
 def _wait_listening(sup: Supervised, timeout_s: float) -> bool:
     """True once a TCP connection to one of `sup`'s ctrl listen endpoints succeeds."""
-    addrs = []
-    for locator in sup.proc.config.ctrl.listen:
-        host, _, port = locator.split("/", 1)[-1].rpartition(":")
-        if port.isdigit():
-            addrs.append((host.strip("[]"), int(port)))
+    addrs = [endpoint_address(locator) for locator in sup.proc.config.ctrl.listen]
     if not addrs:
         return True
     deadline = time.monotonic() + timeout_s
@@ -252,8 +254,13 @@ def _wait_listening(sup: Supervised, timeout_s: float) -> bool:
 
 
 def _signal(sup: Supervised, sig: int) -> None:
+    # The child leads its own session: signal the group so helpers it spawned go too.
+    killpg(sup.popen.pid, sig)  # type: ignore[union-attr]
+
+
+def killpg(pid: int, sig: int) -> None:
+    """Signal the process group led by `pid`, if it still exists."""
     try:
-        # The child leads its own session: signal the group so helpers it spawned go too.
-        os.killpg(sup.popen.pid, sig)  # type: ignore[union-attr]
+        os.killpg(pid, sig)
     except (ProcessLookupError, PermissionError):
         pass

@@ -22,6 +22,12 @@ def is_local_host(host: str) -> bool:
     return host in ("localhost", LOOPBACK, "::1", os.uname().nodename)
 
 
+def endpoint_address(locator: str) -> tuple[str, int]:
+    """(host, port) of a Zenoh locator such as ``tcp/10.77.0.10:17400`` or ``tls/[::1]:17400``."""
+    host, _, port = locator.split("/", 1)[-1].rpartition(":")
+    return host.strip("[]"), int(port)
+
+
 @dataclass(frozen=True, kw_only=True)
 class Process:
     """A process to start: its resolved config and where it runs."""

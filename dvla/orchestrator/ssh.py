@@ -45,7 +45,7 @@ from typing import Any
 import dvla
 
 from ..config import SshConfig, Topology
-from .launcher import die_with_parent
+from .launcher import die_with_parent, killpg, last_line
 from .process import CommandWrapper, Process, Supervised, is_local_host
 
 log = logging.getLogger("dvla.ssh")
@@ -114,11 +114,6 @@ class SshTarget:
         return " ".join(shlex.quote(a) for a in (self.ssh.python, *args))
 
 
-def _last_line(text: str) -> str:
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    return lines[-1] if lines else "(no output)"
-
-
 def check_host(target: SshTarget, timeout_s: float | None = None) -> dict[str, Any]:
     """Log in once and ask the remote Python about itself; raise :class:`SshError` (one line) if
     the host, the login or the remote dvla fails. Returns what the remote side reported."""
@@ -131,16 +126,16 @@ def check_host(target: SshTarget, timeout_s: float | None = None) -> dict[str, A
     except subprocess.TimeoutExpired:
         raise SshError(f"ssh {target.label()}: no answer in {timeout:.0f} s") from None
     if proc.returncode == SSH_FAILED:
-        raise SshError(f"ssh {target.label()} failed: {_last_line(proc.stderr)}")
+        raise SshError(f"ssh {target.label()} failed: {last_line(proc.stderr)}")
     if proc.returncode != 0:
         raise SshError(
             f"ssh {target.label()}: remote python {target.ssh.python!r} cannot run dvla "
-            f"(exit {proc.returncode}): {_last_line(proc.stderr)}"
+            f"(exit {proc.returncode}): {last_line(proc.stderr)}"
         )
     try:
-        return json.loads(_last_line(proc.stdout))
+        return json.loads(last_line(proc.stdout))
     except ValueError:
-        raise SshError(f"ssh {target.label()}: unexpected probe answer {_last_line(proc.stdout)!r}") from None
+        raise SshError(f"ssh {target.label()}: unexpected probe answer {last_line(proc.stdout)!r}") from None
 
 
 def remote_targets(topo: Topology) -> dict[str, SshTarget]:
@@ -236,7 +231,7 @@ class SshWrapper(CommandWrapper):
 
 def _last_log_line(path: Path) -> str:
     try:
-        return _last_line(path.read_text(errors="replace")[-4000:])
+        return last_line(path.read_text(errors="replace")[-4000:])
     except OSError:
         return "(no log)"
 
@@ -361,10 +356,10 @@ def serve(stdin: Any = None, stdout: Any = None) -> int:
             now = time.monotonic()
             if stop_sent is None:
                 print("--- hang-up from the orchestrator: stopping the role", file=sys.stderr, flush=True)
-                _killpg(child.pid, signal.SIGTERM)
+                killpg(child.pid, signal.SIGTERM)
                 stop_sent = now
             elif now - stop_sent > REMOTE_STOP_GRACE_S:
-                _killpg(child.pid, signal.SIGKILL)
+                killpg(child.pid, signal.SIGKILL)
         time.sleep(0.1)
     code = child.returncode
     try:
@@ -373,13 +368,6 @@ def serve(stdin: Any = None, stdout: Any = None) -> int:
     except (BrokenPipeError, OSError):
         pass  # the orchestrator is gone: nobody to send results to
     return code if code >= 0 else 128 - code
-
-
-def _killpg(pid: int, sig: int) -> None:
-    try:
-        os.killpg(pid, sig)
-    except (ProcessLookupError, PermissionError):
-        pass
 
 
 def probe() -> int:

@@ -10,6 +10,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from ..launcher import killpg
 from ..netns import destroy_names
 from ..run import pid_alive
 from .common import RUNS_ROOT, find_run
@@ -33,10 +34,7 @@ def down(
             os.kill(pid, signal.SIGKILL)
     for child in state.get("children", {}).values():
         if pid_alive(int(child)):
-            try:
-                os.killpg(int(child), signal.SIGKILL)
-            except (ProcessLookupError, PermissionError):
-                pass
+            killpg(int(child), signal.SIGKILL)
     leftovers = state.get("netns") or []
     if leftovers:
         removed = destroy_names(run_id, leftovers)
