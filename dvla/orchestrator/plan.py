@@ -171,7 +171,6 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
 
     entry = [ep(root, "ctrl")] + [ep(s, "ctrl") for s in slots if s.kind == "replicator"]
     return Plan(
-        topology=topo,
         processes=tuple(processes),
         ctrl_entry=tuple(entry),
         addresses=addresses,

@@ -12,7 +12,7 @@ import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..config import RoleConfig, Topology
+from ..config import RoleConfig
 
 LOOPBACK = "127.0.0.1"
 
@@ -42,7 +42,6 @@ class Process:
 class Plan:
     """Every process of a run, in start order (actors, replicators, then leaves)."""
 
-    topology: Topology
     processes: tuple[Process, ...]
     #: ctrl endpoints a tool (orchestrator, `dvla status`) connects to, nearest-to-root first
     ctrl_entry: tuple[str, ...]

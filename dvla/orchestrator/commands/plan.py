@@ -38,7 +38,8 @@ def plan(
         }
         for x in p.processes
     ]
-    estimate = broadcast_estimate(topo, p, param_mb)
+    mb = param_mb if param_mb is not None else DEFAULT_PARAM_MB
+    estimate = {"param_mb": mb, "param_mb_assumed": param_mb is None, **delivery_estimate(topo, p, int(mb * 1e6))}
     if format == Format.json:
         doc = {"topology": topology_to_dict(topo), "processes": procs, "warnings": list(p.warnings), "broadcast": estimate}
         typer.echo(json.dumps(doc, indent=1, sort_keys=True))
@@ -74,9 +75,3 @@ def _tree(echo, procs: list[dict], name: str, indent: str) -> None:
         if x["parent"] == name:
             _tree(echo, procs, x["name"], indent + "  ")
 
-
-def broadcast_estimate(topo, p, param_mb: float | None) -> dict[str, Any]:
-    """Predicted delivery of one version (see dvla/orchestrator/estimate.py), in MB of weights."""
-    mb = param_mb if param_mb is not None else DEFAULT_PARAM_MB
-    est = delivery_estimate(topo, p, int(mb * 1e6))
-    return {"param_mb": mb, "param_mb_assumed": param_mb is None, **est}
