@@ -11,17 +11,18 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import types
+import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-ROLE_KINDS = ("actor", "rollout", "replicator", "evaluator")
+RoleKind = Literal["actor", "rollout", "replicator", "evaluator"]
+ROLE_KINDS: tuple[str, ...] = typing.get_args(RoleKind)
 """Every role a topology may place. ``evaluator`` is a rollout that runs deterministic eval episodes."""
 
 ENCODINGS = ("full", "delta-bf16", "delta-topk")
 COMPRESSIONS = ("none", "zstd")
 """Weight encodings of the replication tree (see docs/replication.md)."""
-
-RoleKind = Literal["actor", "rollout", "replicator", "evaluator"]
 
 ROLE_LANES: dict[str, tuple[str, ...]] = {
     "actor": ("ingest", "batch", "learn", "publish"),
@@ -425,44 +426,24 @@ class RoleConfig:
         return json.dumps(dataclasses.asdict(self), indent=1, sort_keys=True)
 
     @staticmethod
-    def from_json(text: str) -> "RoleConfig":
-        raw = json.loads(text)
-        return RoleConfig(
-            **{
-                **raw,
-                "data": _plane_from_dict(raw["data"]),
-                "ctrl": _plane_from_dict(raw["ctrl"]),
-                "ancestors": tuple(raw["ancestors"]),
-                "children": tuple(raw["children"]),
-                "actors": tuple(raw["actors"]),
-                "rollouts": tuple(raw["rollouts"]),
-                "cpus": tuple(raw["cpus"]) if raw.get("cpus") is not None else None,
-                "lane_cpus": {k: tuple(v) for k, v in raw["lane_cpus"].items()} if raw.get("lane_cpus") is not None else None,
-                "task": task_from_dict(raw["task"]),
-                "replication": ReplicationConfig(**raw["replication"]),
-            }
-        )
+    def from_json(text: str) -> RoleConfig:
+        return _from_plain(RoleConfig, json.loads(text))
 
 
-def _plane_from_dict(raw: dict[str, Any]) -> PlaneEndpoints:
-    tls = raw.get("tls")
-    return PlaneEndpoints(**{**_tuples(raw), "tls": TlsConfig(**_tuples(tls)) if tls is not None else None})
-
-
-def _tuples(d: dict[str, Any]) -> dict[str, Any]:
-    return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
-
-
-def task_from_dict(raw: dict[str, Any]) -> TaskConfig:
-    """Rebuild a TaskConfig from `dataclasses.asdict` output (trusted input)."""
-    return TaskConfig(
-        **{
-            **raw,
-            "ppo": PPOConfig(**raw["ppo"]),
-            "eval": EvalConfig(**raw["eval"]),
-            "budget": BudgetConfig(**raw["budget"]),
-        }
-    )
+def _from_plain(hint: Any, value: Any) -> Any:
+    """A value of type `hint` rebuilt from its `dataclasses.asdict` JSON form (trusted input)."""
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):  # X | None
+        if value is None:
+            return None
+        hint = next(a for a in typing.get_args(hint) if a is not type(None))
+    if dataclasses.is_dataclass(hint):
+        hints = typing.get_type_hints(hint)
+        return hint(**{name: _from_plain(hints[name], v) for name, v in value.items()})
+    if typing.get_origin(hint) is tuple:
+        return tuple(_from_plain(typing.get_args(hint)[0], v) for v in value)
+    if typing.get_origin(hint) is dict:
+        return {k: _from_plain(typing.get_args(hint)[1], v) for k, v in value.items()}
+    return value
 
 
 def resolve_device(name: str) -> str:

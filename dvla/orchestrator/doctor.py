@@ -22,7 +22,10 @@ from dataclasses import asdict, dataclass
 from typing import Callable, Literal
 
 from ..config import Topology
-from .plan import is_local_host, make_plan, pinning_problems, role_cpus
+from .launcher import last_line
+from .plan import make_plan, pinning_problems, role_cpus
+from .process import endpoint_address, is_local_host
+from .ssh import SshError, check_host, remote_targets
 
 Status = Literal["ok", "warn", "fail", "skip"]
 STATUSES: tuple[Status, ...] = ("ok", "warn", "fail", "skip")
@@ -107,11 +110,6 @@ def _python_probe(code: str, timeout: float = PROBE_TIMEOUT_S) -> tuple[int, str
     return p.returncode, p.stdout, p.stderr
 
 
-def _last(text: str) -> str:
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    return lines[-1] if lines else "(no output)"
-
-
 def parse_device_summary(text: str) -> list[str]:
     """Names of the render devices SAPIEN marks ``Supported: 1`` in `get_device_summary()`."""
     devices, current = [], None
@@ -146,9 +144,9 @@ def check_torch(needs: Needs) -> list[CheckResult]:
             " 'n': torch.cuda.device_count()}))")
     rc, out, err = _python_probe(code)
     if rc != 0:
-        return [outcome("torch", False, f"import failed: {_last(err)}", fix=SETUP_PYTHON, required=True),
+        return [outcome("torch", False, f"import failed: {last_line(err)}", fix=SETUP_PYTHON, required=True),
                 skip("cuda", "torch unavailable")]
-    info = json.loads(_last(out))
+    info = json.loads(last_line(out))
     torch_ok = outcome("torch", True, f"torch {info['v']}", required=True)
     if info["cuda"]:
         cuda = outcome("cuda", True, f"{info['n']} CUDA device(s)", required=needs.cuda)
@@ -186,7 +184,7 @@ def check_vulkan(needs: Needs) -> CheckResult:
     devices = parse_device_summary(out) if rc == 0 else []
     if devices:
         return outcome("vulkan", True, "SAPIEN render device: " + ", ".join(devices), required=needs.simulator)
-    why = f"SAPIEN found no supported device ({_last(err) if rc != 0 else 'none listed'})"
+    why = f"SAPIEN found no supported device ({last_line(err) if rc != 0 else 'none listed'})"
     if shutil.which("vulkaninfo"):
         try:
             p = subprocess.run(["vulkaninfo", "--summary"], capture_output=True, text=True, timeout=30)
@@ -200,22 +198,21 @@ def check_vulkan(needs: Needs) -> CheckResult:
 
 def check_maniskill(needs: Needs) -> CheckResult:
     rc, out, err = _python_probe("import mani_skill; print(mani_skill.__version__)")
-    detail = f"mani_skill {_last(out)}" if rc == 0 else f"import failed: {_last(err)}"
+    detail = f"mani_skill {last_line(out)}" if rc == 0 else f"import failed: {last_line(err)}"
     return outcome("maniskill", rc == 0, detail, fix=SETUP_PYTHON, required=needs.simulator)
 
 
 def _bind_error(endpoint: str) -> tuple[str, int, int | None]:
     """(address, port, errno or None) of trying to listen on a ``tcp/ADDR:PORT`` endpoint."""
-    addr, port = endpoint.split("/", 1)[1].rsplit(":", 1)
-    addr = addr.strip("[]")
+    addr, port = endpoint_address(endpoint)
     family = socket.AF_INET6 if ":" in addr else socket.AF_INET
     try:
         with socket.socket(family, socket.SOCK_STREAM) as s:
-            s.bind((addr, int(port)))
+            s.bind((addr, port))
             s.listen(1)
     except OSError as err:
-        return addr, int(port), err.errno
-    return addr, int(port), None
+        return addr, port, err.errno
+    return addr, port, None
 
 
 def check_ports(needs: Needs) -> CheckResult:
@@ -267,7 +264,7 @@ def _run(cmd: list[str]) -> tuple[bool, str]:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=30)
     except (OSError, subprocess.TimeoutExpired) as err:
         return False, f"`{' '.join(cmd)}`: {err}"
-    return p.returncode == 0, f"`{' '.join(cmd)}`: {_last(p.stderr)}"
+    return p.returncode == 0, f"`{' '.join(cmd)}`: {last_line(p.stderr)}"
 
 
 def check_netns(needs: Needs) -> CheckResult:
@@ -301,8 +298,6 @@ def check_netns(needs: Needs) -> CheckResult:
 def check_ssh(topo: Topology | None, needs: Needs) -> list[CheckResult]:
     if not needs.remote_nodes or topo is None:
         return [skip("ssh", "no remote nodes" if needs.topology else "give a TOPOLOGY to check its remote nodes")]
-    from .ssh import SshError, check_host, remote_targets
-
     results = []
     for node, target in remote_targets(topo).items():
         fix = (f"key login must work without a prompt: ssh-copy-id -p {target.ssh.port} {target.destination}; "
@@ -327,7 +322,7 @@ def check_clock() -> CheckResult:
         return skip("clock", "timedatectl did not answer")
     synced = parse_ntp(p.stdout) if p.returncode == 0 else None
     if synced is None:
-        return skip("clock", f"NTP status unknown ({_last(p.stderr)})")
+        return skip("clock", f"NTP status unknown ({last_line(p.stderr)})")
     return outcome("clock", synced, "NTP synchronised" if synced else "clock not NTP-synchronised",
                    fix="timedatectl set-ntp true (or install chrony)", required=False)
 

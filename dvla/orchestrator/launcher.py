@@ -15,46 +15,22 @@ import socket
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
-from .plan import Process
+from .process import CommandWrapper, Process, Supervised, endpoint_address
 
 log = logging.getLogger("dvla.launcher")
 
 _PR_SET_PDEATHSIG = 1
 
 
-def _child_setup() -> None:
-    """Runs in the child between fork and exec: die with the parent."""
+def die_with_parent() -> None:
+    """Runs in a child between fork and exec: the kernel kills it when its parent dies."""
     try:
         libc = ctypes.CDLL("libc.so.6", use_errno=True)
         libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
     except OSError:
         pass
-
-
-@dataclass
-class Supervised:
-    """One role process and its restart history."""
-
-    proc: Process
-    config_path: Path
-    log_path: Path
-    popen: subprocess.Popen | None = None
-    restarts: int = 0
-    exit_codes: list[int] = field(default_factory=list)
-    next_start: float = 0.0
-    started_at: float = 0.0
-    failed: bool = False
-    finished: bool = False
-
-    @property
-    def name(self) -> str:
-        return self.proc.config.name
-
-    def alive(self) -> bool:
-        return self.popen is not None and self.popen.poll() is None
 
 
 class Launcher:
@@ -67,13 +43,13 @@ class Launcher:
         *,
         max_restarts: int = 3,
         backoff_s: float = 1.0,
-        wrap: "CommandWrapper | None" = None,
+        wrap: CommandWrapper | None = None,
     ) -> None:
         self.run_dir = run_dir
         self.env = env
         self.max_restarts = max_restarts
         self.backoff_s = backoff_s
-        self.wrap = wrap
+        self.wrap = wrap or CommandWrapper()
         self.children: dict[str, Supervised] = {}
 
     def add(self, proc: Process) -> Supervised:
@@ -88,14 +64,13 @@ class Launcher:
         return sup
 
     def command(self, sup: Supervised) -> list[str]:
-        argv = [sys.executable, "-m", f"dvla.roles.{sup.proc.config.kind}", "--config", str(sup.config_path)]
-        return self.wrap(sup.proc, argv) if self.wrap is not None else argv
+        """The command line that starts `sup`, wrapped to run in its namespace or on its host."""
+        return self.wrap(sup.proc, _role_argv(sup))
 
     def start(self, sup: Supervised) -> None:
         argv = self.command(sup)
-        plain = [sys.executable, "-m", f"dvla.roles.{sup.proc.config.kind}", "--config", str(sup.config_path)]
-        payload = self.wrap.stdin_payload(sup.proc, plain) if self.wrap is not None else None
-        out_path = self.wrap.output_path(sup) if self.wrap is not None else None
+        payload = self.wrap.stdin_payload(sup.proc, _role_argv(sup))
+        out_path = self.wrap.output_path(sup)
         logf = open(sup.log_path, "ab", buffering=0)
         outf = None
         try:
@@ -112,7 +87,7 @@ class Launcher:
                 stderr=logf if outf is not None else subprocess.STDOUT,
                 env=self.env,
                 start_new_session=True,
-                preexec_fn=_child_setup,
+                preexec_fn=die_with_parent,
             )
         finally:
             logf.close()
@@ -131,7 +106,7 @@ class Launcher:
     def _exited(self, sup: Supervised, code: int) -> list[str]:
         """Bookkeeping after a child exited: release its stdin, let the wrapper collect its output."""
         _close_stdin(sup)
-        note = self.wrap.finished(sup, code) if self.wrap is not None else None
+        note = self.wrap.finished(sup, code)
         return [note] if note else []
 
     def start_all(self, ready_timeout_s: float = 30.0) -> None:
@@ -232,6 +207,12 @@ class Launcher:
         return {n: s.popen.pid for n, s in self.children.items() if s.popen is not None and s.alive()}
 
 
+def last_line(text: str) -> str:
+    """The last non-empty line of `text`, stripped (for one-line error reports)."""
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return lines[-1] if lines else "(no output)"
+
+
 def log_tail(path: Path, n: int = 15, indent: str = "") -> str:
     """The last `n` lines of a role's log, each prefixed with `indent` (for error reports)."""
     try:
@@ -239,6 +220,10 @@ def log_tail(path: Path, n: int = 15, indent: str = "") -> str:
     except OSError:
         return f"{indent}(no log)"
     return "\n".join(indent + line for line in lines[-n:])
+
+
+def _role_argv(sup: Supervised) -> list[str]:
+    return [sys.executable, "-m", f"dvla.roles.{sup.proc.config.kind}", "--config", str(sup.config_path)]
 
 
 def _close_stdin(sup: Supervised) -> None:
@@ -251,11 +236,7 @@ def _close_stdin(sup: Supervised) -> None:
 
 def _wait_listening(sup: Supervised, timeout_s: float) -> bool:
     """True once a TCP connection to one of `sup`'s ctrl listen endpoints succeeds."""
-    addrs = []
-    for locator in sup.proc.config.ctrl.listen:
-        host, _, port = locator.split("/", 1)[-1].rpartition(":")
-        if port.isdigit():
-            addrs.append((host.strip("[]"), int(port)))
+    addrs = [endpoint_address(locator) for locator in sup.proc.config.ctrl.listen]
     if not addrs:
         return True
     deadline = time.monotonic() + timeout_s
@@ -273,28 +254,13 @@ def _wait_listening(sup: Supervised, timeout_s: float) -> bool:
 
 
 def _signal(sup: Supervised, sig: int) -> None:
+    # The child leads its own session: signal the group so helpers it spawned go too.
+    killpg(sup.popen.pid, sig)  # type: ignore[union-attr]
+
+
+def killpg(pid: int, sig: int) -> None:
+    """Signal the process group led by `pid`, if it still exists."""
     try:
-        # The child leads its own session: signal the group so helpers it spawned go too.
-        os.killpg(sup.popen.pid, sig)  # type: ignore[union-attr]
+        os.killpg(pid, sig)
     except (ProcessLookupError, PermissionError):
         pass
-
-
-class CommandWrapper:
-    """Turns a role's argv into one run elsewhere (a network namespace, an SSH host)."""
-
-    def __call__(self, proc: Process, argv: list[str]) -> list[str]:  # pragma: no cover - interface
-        raise NotImplementedError
-
-    def stdin_payload(self, proc: Process, argv: list[str]) -> bytes | None:
-        """Bytes written to the process's stdin at start (None: stdin is /dev/null). `argv` is the
-        unwrapped role command. The pipe then stays open; closing it asks the process to stop."""
-        return None
-
-    def output_path(self, sup: Supervised) -> Path | None:
-        """File for the process's stdout (None: stdout and stderr both go to the role's log)."""
-        return None
-
-    def finished(self, sup: Supervised, code: int) -> str | None:
-        """Called once the process has exited; returns an event line for the run's log, or None."""
-        return None

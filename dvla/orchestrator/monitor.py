@@ -13,6 +13,7 @@ from typing import Any
 from ..config import BudgetConfig
 from ..fabric import Fabric
 from ..fabric.messages import EvalResult, RoleStatus
+from .view import latest_version
 
 
 @dataclass
@@ -77,7 +78,7 @@ class Monitor:
         produced = sum(s.env_steps for s in statuses.values() if s.kind == "rollout")
         if self.last is not None:
             env_steps = max(env_steps, self.last.env_steps)  # a restarting actor answers late
-        version = max((s.extra.get("published_version", s.policy_version) for s in actors), default=0)
+        version = latest_version(statuses)
         t = self.now()
         if self.first_step_s is None and produced > 0:
             self.first_step_s = t
@@ -86,7 +87,7 @@ class Monitor:
         elif t - self._rate_mark[0] >= 3.0:
             self._rate = (env_steps - self._rate_mark[1]) / (t - self._rate_mark[0])
             self._rate_mark = (t, env_steps)
-        snap = Snapshot(t, statuses, env_steps, produced, self._rate, int(version))
+        snap = Snapshot(t, statuses, env_steps, produced, self._rate, version)
         lag = actors[0].extra.get("policy_lag_mean", 0.0) if actors else 0.0
         rollouts = [s.extra for s in statuses.values() if s.kind == "rollout"]
         p50 = max((float(e.get("infer_ms_p50", 0.0)) for e in rollouts), default=0.0)

@@ -31,8 +31,7 @@ from dataclasses import dataclass
 from typing import Iterable
 
 from ..config import Topology
-from .launcher import CommandWrapper
-from .plan import Plan, Process
+from .process import CommandWrapper, Plan, Process
 
 log = logging.getLogger("dvla.netns")
 

@@ -16,41 +16,8 @@ import os
 from dataclasses import dataclass
 
 from ..config import NodeConfig, PlaneEndpoints, RackConfig, RoleConfig, RolePlacement, Topology
-
-LOOPBACK = "127.0.0.1"
-
-
-@dataclass(frozen=True, kw_only=True)
-class Process:
-    """A process to start: its resolved config and where it runs."""
-
-    config: RoleConfig
-    host: str
-    #: network namespace to run in (emulate: netns), else None
-    netns: str | None = None
-
-
-@dataclass(frozen=True, kw_only=True)
-class Plan:
-    """Every process of a run, in start order (actors, replicators, then leaves)."""
-
-    topology: Topology
-    processes: tuple[Process, ...]
-    #: ctrl endpoints a tool (orchestrator, `dvla status`) connects to, nearest-to-root first
-    ctrl_entry: tuple[str, ...]
-    #: node name -> address its planes bind to
-    addresses: dict[str, str]
-    warnings: tuple[str, ...] = ()
-
-    def by_name(self, name: str) -> Process:
-        for p in self.processes:
-            if p.config.name == name:
-                return p
-        raise KeyError(name)
-
-    @property
-    def root_actor(self) -> str:
-        return next(p.config.name for p in self.processes if p.config.kind == "actor")
+from .netns import netns_name, node_ip
+from .process import LOOPBACK, Plan, Process, is_local_host
 
 
 @dataclass
@@ -77,8 +44,6 @@ def node_address(topo: Topology, rack_index: int, node_index: int, node: NodeCon
     if not is_local_host(node.host):  # remote (SSH): its own name, resolved by Zenoh on both ends
         return node.host
     if topo.emulate == "netns":
-        from .netns import node_ip  # local import: only netns runs need it
-
         return node_ip(rack_index, node_index)
     return LOOPBACK
 
@@ -123,7 +88,6 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
             warnings.append(
                 f"{s.name} has {len(s.children)} children, above fanout {topo.replication.fanout}: add a replicator on its rack"
             )
-    # Non-root actors learn in a torch.distributed group; they need no weights.
     # Data plane: every rollout feeds one actor, same node first, then round robin.
     rr = 0
     for s in slots:
@@ -202,25 +166,16 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
             task=topo.task,
             replication=topo.replication,
         )
-        netns = None
-        if topo.emulate == "netns":
-            from .netns import netns_name
-
-            netns = netns_name(topo.run, s.node.name)
+        netns = netns_name(topo.run, s.node.name) if topo.emulate == "netns" else None
         processes.append(Process(config=cfg, host=s.node.host, netns=netns))
 
     entry = [ep(root, "ctrl")] + [ep(s, "ctrl") for s in slots if s.kind == "replicator"]
     return Plan(
-        topology=topo,
         processes=tuple(processes),
         ctrl_entry=tuple(entry),
         addresses=addresses,
         warnings=tuple(warnings),
     )
-
-
-def is_local_host(host: str) -> bool:
-    return host in ("localhost", LOOPBACK, "::1", os.uname().nodename)
 
 
 def _lockstep_steps(topo: Topology, s: _Slot, by_name: dict[str, _Slot]) -> int:

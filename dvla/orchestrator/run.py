@@ -15,16 +15,22 @@ import signal
 import sys
 import threading
 import time
+import traceback
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from ..config import BudgetConfig, Topology
+from ..config import TlsConfig, Topology
 from ..fabric import Fabric, load_secret, new_secret, plane_config
 from ..fabric.messages import Command
+from .accounting import run_accounting
 from .launcher import Launcher, log_tail
 from .monitor import Monitor
-from .plan import Plan, is_local_host, make_plan, pinning_problems
+from .netns import NetnsCluster
+from .plan import make_plan, pinning_problems
+from .plots import plot_run
+from .process import Plan, is_local_host
+from .ssh import SshWrapper
 from .topology import dump_topology_yaml
 
 log = logging.getLogger("dvla.up")
@@ -62,16 +68,15 @@ class UpOptions:
 
 
 def apply_overrides(topo: Topology, opts: UpOptions) -> Topology:
-    b = topo.task.budget
-    budget = BudgetConfig(
-        max_env_steps=opts.max_env_steps if opts.max_env_steps is not None else b.max_env_steps,
-        until_success=opts.until_success if opts.until_success is not None else b.until_success,
-        consecutive=b.consecutive,
-        max_wall_s=opts.max_wall_s if opts.max_wall_s is not None else b.max_wall_s,
-    )
+    """The topology with the options that are set (not None) in place of its own values."""
+
+    def given(**values: Any) -> dict[str, Any]:
+        return {k: v for k, v in values.items() if v is not None}
+
+    budget = dataclasses.replace(topo.task.budget, **given(max_env_steps=opts.max_env_steps,
+                                                           until_success=opts.until_success, max_wall_s=opts.max_wall_s))
     task = dataclasses.replace(topo.task, budget=budget)
-    seed = opts.seed if opts.seed is not None else topo.seed
-    return dataclasses.replace(topo, task=task, mode=opts.mode or topo.mode, seed=seed)  # type: ignore[arg-type]
+    return dataclasses.replace(topo, task=task, **given(mode=opts.mode, seed=opts.seed))
 
 
 def prepare_run_dir(root: Path, run: str) -> Path:
@@ -83,7 +88,7 @@ def prepare_run_dir(root: Path, run: str) -> Path:
             pid = json.loads(state.read_text()).get("pid")
         except (OSError, ValueError):
             pid = None
-        if pid and _pid_alive(pid) and pid != os.getpid():
+        if pid and pid_alive(pid) and pid != os.getpid():
             raise RuntimeError(f"run {run!r} is already up (pid {pid}); `dvla down {run}` first")
     if run_dir.exists():
         shutil.rmtree(run_dir)
@@ -91,12 +96,17 @@ def prepare_run_dir(root: Path, run: str) -> Path:
     return run_dir
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether process `pid` exists and has not exited (a zombie has)."""
     try:
         os.kill(pid, 0)
-        return True
     except (ProcessLookupError, PermissionError):
         return False
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[-1].split()[0] != "Z"
+    except OSError:
+        return True
 
 
 def resolve_secret(topo: Topology, run_dir: Path) -> tuple[str, str]:
@@ -113,14 +123,9 @@ def resolve_secret(topo: Topology, run_dir: Path) -> tuple[str, str]:
     return secret, str(path)
 
 
-def ctrl_tls(topo: Topology) -> Any:
+def ctrl_tls(topo: Topology) -> TlsConfig | None:
     """The TLS files a tool needs to reach the ctrl plane (None when it is plain TCP)."""
     return topo.tls if topo.tls is not None and "ctrl" in topo.tls.planes else None
-
-
-def ctrl_tls_dict(topo: Topology) -> dict[str, Any] | None:
-    tls = ctrl_tls(topo)
-    return None if tls is None else {"root_ca": tls.root_ca, "cert": tls.cert, "key": tls.key, "mtls": tls.mtls}
 
 
 def tool_fabric(run: str, entry: tuple[str, ...], secret: bytes, name: str = "orchestrator", tls: Any = None,
@@ -150,7 +155,7 @@ class Up:
         self.reason: str | None = None
         self.monitor: Monitor | None = None
         self._interrupted = threading.Event()
-        self.netns = None
+        self.netns: NetnsCluster | None = None
         env = dict(os.environ)
         env["DVLA_SECRET"] = self.secret
         env.setdefault("PYTHONUNBUFFERED", "1")
@@ -161,11 +166,13 @@ class Up:
         self._interrupted.set()
 
     def _write_state(self) -> None:
+        tls = ctrl_tls(self.topo)
         state = {
             "run": self.topo.run,
             "pid": os.getpid(),
             "ctrl_entry": list(self.plan.ctrl_entry),
-            "ctrl_tls": ctrl_tls_dict(self.topo),
+            # what `dvla status` needs to reach the ctrl plane (fabric.TlsFiles' fields)
+            "ctrl_tls": None if tls is None else {"root_ca": tls.root_ca, "cert": tls.cert, "key": tls.key, "mtls": tls.mtls},
             "secret_file": self.secret_source if self.secret_source != "DVLA_SECRET" else None,
             "children": self.launcher.pids(),
             "restarts": {n: c.restarts for n, c in self.launcher.children.items()},
@@ -182,14 +189,10 @@ class Up:
         for w in self.plan.warnings:
             self.events.append(f"warning: {w}")
         if self.topo.emulate == "netns":
-            from .netns import NetnsCluster
-
             self.netns = NetnsCluster(self.topo, self.plan)
             self.netns.create()
             self.launcher.wrap = self.netns.wrapper()
-        if any(not is_local_host(p.host) for p in self.plan.processes):
-            from .ssh import SshWrapper
-
+        if not self._all_local():
             ssh = SshWrapper(self.topo, self.secret, self.launcher.env, local=self.launcher.wrap)
             ssh.check_all()  # one clear line naming the host, before anything starts
             self.launcher.wrap = ssh
@@ -261,14 +264,8 @@ class Up:
                 self.launcher.stop(left, timeout=5.0)
         self.launcher.poll(stopping=True)
 
-    def _accounting(self) -> dict[str, Any]:
-        """Exact across kills from the counter files when every role ran on this host (remote
-        roles write theirs on their own host); from the clean-exit summaries otherwise."""
-        if all(is_local_host(p.host) for p in self.plan.processes):
-            acct = accounting_from_counters(self.run_dir)
-            if acct is not None:
-                return acct
-        return accounting_from_summaries(self.run_dir)
+    def _all_local(self) -> bool:
+        return all(is_local_host(p.host) for p in self.plan.processes)
 
     def _report(self, code: int) -> None:
         assert self.monitor is not None
@@ -279,219 +276,15 @@ class Up:
                 "reason": self.reason,
                 "exit_code": code,
                 "restarts": {n: s.restarts for n, s in self.launcher.children.items()},
-                "accounting": self._accounting(),
+                # remote roles write their counter files on their own hosts
+                "accounting": run_accounting(self.run_dir, counters_complete=self._all_local()),
             }
         )
         (self.run_dir / "result.json").write_text(json.dumps(res, indent=1, default=str))
         try:
-            from .plots import plot_run
-
             plot_run(self.run_dir)
         except Exception as err:  # a missing plot must not hide the run's result
             self.events.append(f"plot failed: {err}")
-
-
-def accounting_from_summaries(run_dir: Path) -> dict[str, Any]:
-    """produced = consumed + dropped + rejected + unaccounted, from the roles' final summaries."""
-    produced = consumed = dropped = rejected = 0
-    for path in sorted((run_dir / "summaries").glob("*.json")):
-        doc = json.loads(path.read_text())
-        if doc["kind"] == "rollout":
-            produced += int(doc["extra"].get("chunks_produced", 0))
-        elif doc["kind"] == "actor":
-            data = doc["planes"].get("data", {})
-            consumed += int(data.get("consumed", 0))
-            dropped += int(data.get("dropped", 0))
-            rejected += int(data.get("rejected", 0))
-    return {
-        "produced": produced,
-        "consumed": consumed,
-        "dropped": dropped,
-        "rejected": rejected,
-        "unaccounted": produced - consumed - dropped - rejected,
-    }
-
-
-#: bytes a killed sender's Zenoh may hold unsent: the data priority's tx queue (2 batches, Zenoh's
-#: default) plus the batch being filled, of at most 64 KiB each
-ZENOH_TX_BYTES = 3 * 65535
-
-
-def _tcp_buffer_max(name: str) -> int:
-    """The kernel's largest TCP buffer of one direction (net.ipv4.tcp_rmem / tcp_wmem, third field)."""
-    try:
-        return int(Path(f"/proc/sys/net/ipv4/{name}").read_text().split()[2])
-    except (OSError, ValueError, IndexError):
-        return 6 << 20
-
-
-def accounting_from_counters(run_dir: Path) -> dict[str, Any] | None:
-    """produced = consumed + dropped + rejected + lost, exactly, across kills (None without counter files).
-
-    Every rollout and actor incarnation leaves a counter file (dvla/roles/counters.py) even when
-    killed. `lost` lists, per killed incarnation, the chunks that died with it and the bound its
-    in-flight window puts on them: for a rollout its ship queue (+ the chunk being shipped) and
-    what its Zenoh had not sent yet; for the actor its slots and inbox, plus
-    what was in the live rollouts' Zenoh queues and the TCP buffers of their links when it died.
-    A missing chunk that no kill explains is `unaccounted`.
-    """
-    from ..roles.counters import read_counters
-
-    docs = read_counters(run_dir)
-    rollouts = [d for d in docs if d.get("kind") == "rollout"]
-    actors = [d for d in docs if d.get("kind") == "actor"]
-    if not rollouts and not actors:
-        return None
-    consumed = 0
-    dropped: dict[str, int] = {}
-    rejected: dict[str, int] = {}
-    got: dict[str, int] = {}  # rollout incarnation -> chunks that left some actor's inbox
-    fabric_bp: dict[str, int] = {}  # rollout name -> the fabric's backpressure drops
-    fabric_rej: dict[str, int] = {}  # rollout name -> chunks the fabric could not decode
-    lost: list[dict[str, Any]] = []
-    ranges: dict[str, list[tuple[int, int, int, int]]] = {}  # rollout incarnation -> (actor inc, first, last, got)
-    killed_actors: dict[int, dict[str, Any]] = {}
-    notes: list[str] = []
-    unaccounted = 0
-
-    def bump(d: dict[str, int], k: str, n: int) -> None:
-        if n:
-            d[k] = d.get(k, 0) + n
-
-    for a in actors:
-        held = 0
-        own_rej: dict[str, int] = {}
-        for src, c in a.get("sources", {}).items():
-            got[src] = got.get(src, 0) + c["got"]
-            ranges.setdefault(src, []).append((a["incarnation"], c["first"], c["last"], c["got"]))
-            settled = 0
-            for k, v in c.items():
-                if k == "consumed":
-                    consumed += v
-                elif k.startswith("dropped."):
-                    bump(dropped, k[len("dropped."):], v)
-                elif k.startswith("rejected."):
-                    bump(rejected, k[len("rejected."):], v)
-                    bump(own_rej, src.rsplit("#", 1)[0], v)
-                else:
-                    continue
-                settled += v
-            held += c["got"] - settled
-        for peer, f in a.get("fabric", {}).items():
-            bump(fabric_bp, peer, f.get("backpressure", 0))
-            bump(fabric_rej, peer, f.get("rejected", 0) - own_rej.get(peer, 0))
-        if a.get("clean"):
-            if held:
-                unaccounted += held
-                notes.append(f"{a['file']}: {held} chunks held at a clean exit")
-        else:
-            killed_actors[a["incarnation"]] = {
-                "role": a["role"], "incarnation": a["incarnation"], "pid": a["pid"], "where": "actor",
-                "died_ns": a["updated_ns"], "lost": held, "in_actor": held, "in_transit": 0,
-                "lost_bound": a["slots"] + 2 + a["inbox_cap"], "_transit_bound": 0}
-            lost.append(killed_actors[a["incarnation"]])
-
-    produced = sum(r.get("produced", 0) for r in rollouts)
-    foreign = 0
-    window = ZENOH_TX_BYTES + _tcp_buffer_max("tcp_wmem") + _tcp_buffer_max("tcp_rmem")
-    by_name: dict[str, list[dict[str, Any]]] = {}
-    for r in rollouts:
-        by_name.setdefault(r["role"], []).append(r)
-    shipped_all = sum(r.get("shipped", 0) for r in rollouts)
-    # a rollout killed before it shipped anything: size its window with the run's mean chunk
-    mean_bytes = sum(r.get("bytes", 0) for r in rollouts) / shipped_all if shipped_all else 1.0
-    for name, incs in sorted(by_name.items()):
-        # Where each incarnation's missing chunks are, from the seq ranges every actor
-        # incarnation received: inside one actor's range (the fabric dropped or could not decode
-        # them), between two actor incarnations (died with the first), or after the last one
-        # received (died with the rollout, or with the actor at the end).
-        parts = {r["incarnation"]: _missing_parts(r, ranges.get(f"{name}#{r['incarnation']}", [])) for r in incs}
-        bp, rej = fabric_bp.get(name, 0), fabric_rej.get(name, 0)
-        inner = sum(max(0, pt["inner"]) for pt in parts.values())
-        use_bp = min(bp, inner)
-        use_rej = min(rej, inner - use_bp)
-        bump(dropped, "backpressure", use_bp)
-        bump(rejected, "undecodable", use_rej)
-        foreign += bp + rej - use_bp - use_rej  # rejects beyond what is missing were never produced: forged
-        explain = use_bp + use_rej
-        for r in incs:
-            pt = parts[r["incarnation"]]
-            take = max(0, min(explain, pt["inner"]))
-            pt["inner"] -= take
-            explain -= take
-            chunk_bytes = r.get("bytes", 0) / r["shipped"] if r.get("shipped") else mean_bytes
-            if pt["inner"]:
-                unaccounted += pt["inner"]
-                notes.append(f"{r['file']}: {pt['inner']} chunks missing mid-stream")
-            for a, n in pt["between"]:  # died with actor incarnation `a` (or in its absence)
-                if n and a in killed_actors:
-                    k = killed_actors[a]
-                    k["lost"] += n
-                    k["in_transit"] += n
-                    k["_transit_bound"] += -(-window // max(1, int(chunk_bytes))) + 1
-                elif n:
-                    unaccounted += n
-                    notes.append(f"{r['file']}: {n} chunks missing across a clean actor restart")
-            tail, last_actor = pt["tail"], pt["last_actor"]
-            if not r.get("clean"):
-                in_queue = r.get("produced", 0) - r.get("shipped", 0)
-                lost.append({"role": name, "incarnation": r["incarnation"], "pid": r["pid"], "where": "rollout",
-                             "died_ns": r["updated_ns"], "lost": tail, "in_queue": in_queue, "in_transit": tail - in_queue,
-                             "lost_bound": r.get("queue_cap", 0) + 1 + -(-ZENOH_TX_BYTES // max(1, int(chunk_bytes))) + 1})
-            elif tail and last_actor in killed_actors and killed_actors[last_actor]["died_ns"] >= r["updated_ns"] - 10**9:
-                k = killed_actors[last_actor]
-                k["lost"] += tail
-                k["in_transit"] += tail
-            elif tail:
-                unaccounted += tail
-                notes.append(f"{r['file']}: {tail} chunks missing at the end of a clean incarnation")
-    for peer in set(fabric_bp) | set(fabric_rej):  # traffic under names no rollout ever had
-        if peer not in by_name:
-            foreign += fabric_bp.get(peer, 0) + fabric_rej.get(peer, 0)
-    for a in lost:
-        if a["where"] == "actor":
-            a["lost_bound"] += a.pop("_transit_bound")
-    total_lost = sum(x["lost"] for x in lost)
-    total_dropped = sum(dropped.values())
-    total_rejected = sum(rejected.values())
-    residual = produced - consumed - total_dropped - total_rejected - total_lost
-    if residual != unaccounted:  # the two ways of counting must agree; say so if they do not
-        notes.append(f"identity residual {residual} != {unaccounted} chunks found missing or held")
-    return {
-        "produced": produced,
-        "consumed": consumed,
-        "dropped": total_dropped,
-        "dropped_by_reason": dropped,
-        "rejected": total_rejected,
-        "rejected_by_reason": rejected,
-        "lost": total_lost,
-        "lost_by_incarnation": sorted(lost, key=lambda x: x["died_ns"]),
-        "lost_within_bounds": all(0 <= x["lost"] <= x["lost_bound"] for x in lost),
-        "foreign_rejected": foreign,
-        "unaccounted": residual,
-        "notes": notes,
-        "incarnations": {"rollout": len(rollouts), "actor": len(actors)},
-    }
-
-
-def _missing_parts(r: dict[str, Any], ranges: list[tuple[int, int, int, int]]) -> dict[str, Any]:
-    """Split a rollout incarnation's missing chunks (produced - received) by where they went
-    missing, from the seq ranges (actor incarnation, first, last, got) the actors received."""
-    produced = r.get("produced", 0)
-    ranges = sorted(ranges)
-    if not ranges:
-        return {"inner": 0, "between": [], "tail": produced, "last_actor": None}
-    inner = sum(last - first + 1 - n for _a, first, last, n in ranges)
-    # chunks before the first receipt went missing in the absence of an actor: count them with
-    # the first actor incarnation's predecessor (the one that died), else as mid-stream
-    between = []
-    head = ranges[0][1]
-    if head:
-        between.append((ranges[0][0] - 1, head))
-    for (a, _f, last, _n), (_b, first, _l, _m) in zip(ranges, ranges[1:]):
-        between.append((a, first - last - 1))
-    tail = produced - 1 - ranges[-1][2]
-    return {"inner": inner, "between": between, "tail": tail, "last_actor": ranges[-1][0]}
 
 
 def install_sigint(up: Up) -> None:
@@ -531,8 +324,6 @@ def start_detached(up: Up, body: Callable[[], int]) -> int | None:
             install_sigint(up)
             code = body()
         except BaseException:  # anything at all: report it in the log, never return into the CLI
-            import traceback
-
             traceback.print_exc()
         finally:
             try:
@@ -552,7 +343,7 @@ def start_detached(up: Up, body: Callable[[], int]) -> int | None:
     while time.monotonic() < deadline:
         if state.exists():
             return pid
-        if not _pid_alive(pid) or _zombie(pid):
+        if not pid_alive(pid):
             return None
         time.sleep(0.1)
     return pid  # still starting (e.g. a slow netns build): it is running, the log says more
@@ -567,11 +358,3 @@ def _redirect_std(log_path: Path) -> None:
     os.dup2(out, 2)
     os.close(out)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
-
-
-def _zombie(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[-1].split()[0] == "Z"
-    except OSError:
-        return False

@@ -28,7 +28,9 @@ import io
 import json
 import logging
 import os
+import platform
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -38,14 +40,13 @@ import time
 import uuid
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
-from typing import TYPE_CHECKING, Any
+from typing import Any
+
+import dvla
 
 from ..config import SshConfig, Topology
-from .launcher import CommandWrapper
-
-if TYPE_CHECKING:  # only for annotations: the remote half must import as little as possible
-    from .launcher import Supervised
-    from .plan import Process
+from .launcher import die_with_parent, killpg, last_line
+from .process import CommandWrapper, Process, Supervised, is_local_host
 
 log = logging.getLogger("dvla.ssh")
 
@@ -113,11 +114,6 @@ class SshTarget:
         return " ".join(shlex.quote(a) for a in (self.ssh.python, *args))
 
 
-def _last_line(text: str) -> str:
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    return lines[-1] if lines else "(no output)"
-
-
 def check_host(target: SshTarget, timeout_s: float | None = None) -> dict[str, Any]:
     """Log in once and ask the remote Python about itself; raise :class:`SshError` (one line) if
     the host, the login or the remote dvla fails. Returns what the remote side reported."""
@@ -130,22 +126,20 @@ def check_host(target: SshTarget, timeout_s: float | None = None) -> dict[str, A
     except subprocess.TimeoutExpired:
         raise SshError(f"ssh {target.label()}: no answer in {timeout:.0f} s") from None
     if proc.returncode == SSH_FAILED:
-        raise SshError(f"ssh {target.label()} failed: {_last_line(proc.stderr)}")
+        raise SshError(f"ssh {target.label()} failed: {last_line(proc.stderr)}")
     if proc.returncode != 0:
         raise SshError(
             f"ssh {target.label()}: remote python {target.ssh.python!r} cannot run dvla "
-            f"(exit {proc.returncode}): {_last_line(proc.stderr)}"
+            f"(exit {proc.returncode}): {last_line(proc.stderr)}"
         )
     try:
-        return json.loads(_last_line(proc.stdout))
+        return json.loads(last_line(proc.stdout))
     except ValueError:
-        raise SshError(f"ssh {target.label()}: unexpected probe answer {_last_line(proc.stdout)!r}") from None
+        raise SshError(f"ssh {target.label()}: unexpected probe answer {last_line(proc.stdout)!r}") from None
 
 
 def remote_targets(topo: Topology) -> dict[str, SshTarget]:
     """Node name -> SSH target, for every node of `topo` whose host is not this machine."""
-    from .plan import is_local_host
-
     return {n.name: SshTarget(n.host, topo.ssh_for(n)) for _r, n in topo.nodes() if not is_local_host(n.host)}
 
 
@@ -157,12 +151,12 @@ class SshWrapper(CommandWrapper):
         self.targets = remote_targets(topo)
         self.secret_hex = secret_hex
         self.env = {k: env[k] for k in FORWARDED_ENV if k in env}
-        self.local = local
+        self.local = local or CommandWrapper()
         # One token per `dvla up`: the first role of a run to reach a node wipes what an earlier
         # run of the same id left in the remote run directory (a stale checkpoint would be resumed).
         self.token = uuid.uuid4().hex
 
-    def target(self, proc: "Process") -> SshTarget | None:
+    def target(self, proc: Process) -> SshTarget | None:
         return self.targets.get(proc.config.node)
 
     def remote_run_dir(self, target: SshTarget) -> str:
@@ -190,16 +184,16 @@ class SshWrapper(CommandWrapper):
 
     # -- CommandWrapper ------------------------------------------------------------------------
 
-    def __call__(self, proc: "Process", argv: list[str]) -> list[str]:
+    def __call__(self, proc: Process, argv: list[str]) -> list[str]:
         target = self.target(proc)
         if target is None:
-            return self.local(proc, argv) if self.local is not None else argv
+            return self.local(proc, argv)
         return target.argv(target.python_command("-m", "dvla.orchestrator.ssh", "serve"))
 
-    def stdin_payload(self, proc: "Process", argv: list[str]) -> bytes | None:
+    def stdin_payload(self, proc: Process, argv: list[str]) -> bytes | None:
         target = self.target(proc)
         if target is None:
-            return self.local.stdin_payload(proc, argv) if self.local is not None else None
+            return self.local.stdin_payload(proc, argv)
         module = argv[argv.index("-m") + 1]  # the same entry point as a local launch
         header = {
             "module": module,
@@ -212,15 +206,15 @@ class SshWrapper(CommandWrapper):
         }
         return (json.dumps(header) + "\n").encode()
 
-    def output_path(self, sup: "Supervised") -> Path | None:
+    def output_path(self, sup: Supervised) -> Path | None:
         if self.target(sup.proc) is None:
-            return self.local.output_path(sup) if self.local is not None else None
+            return self.local.output_path(sup)
         return sup.log_path.parent.parent / "remote" / f"{sup.name}.tar"
 
-    def finished(self, sup: "Supervised", code: int) -> str | None:
+    def finished(self, sup: Supervised, code: int) -> str | None:
         target = self.target(sup.proc)
         if target is None:
-            return self.local.finished(sup, code) if self.local is not None else None
+            return self.local.finished(sup, code)
         path = self.output_path(sup)
         assert path is not None
         note = None
@@ -237,7 +231,7 @@ class SshWrapper(CommandWrapper):
 
 def _last_log_line(path: Path) -> str:
     try:
-        return _last_line(path.read_text(errors="replace")[-4000:])
+        return last_line(path.read_text(errors="replace")[-4000:])
     except OSError:
         return "(no log)"
 
@@ -275,16 +269,6 @@ def unpack_results(path: Path, run_dir: Path) -> list[str]:
 # remote half: `python -m dvla.orchestrator.ssh serve|probe`
 
 
-def _die_with_parent() -> None:
-    """In the role, between fork and exec: die if the serving process dies (PR_SET_PDEATHSIG)."""
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)
-    except OSError:
-        pass
-
-
 def _prepare_run_dir(run_dir: Path, token: str) -> None:
     """Create the remote run directory; empty it first if an earlier run (another token) left it."""
     run_dir.parent.mkdir(parents=True, exist_ok=True)
@@ -295,8 +279,6 @@ def _prepare_run_dir(run_dir: Path, token: str) -> None:
         current = token_path.read_text().strip() if token_path.exists() else None
         if current != token:
             if run_dir.exists():
-                import shutil
-
                 shutil.rmtree(run_dir)
             run_dir.mkdir(parents=True)
             token_path.write_text(token + "\n")
@@ -365,7 +347,7 @@ def serve(stdin: Any = None, stdout: Any = None) -> int:
     print(f"--- {os.uname().nodename}: {' '.join(argv)}", file=sys.stderr, flush=True)
     child = subprocess.Popen(
         argv, stdin=subprocess.DEVNULL, stdout=sys.stderr.fileno(), stderr=sys.stderr.fileno(), env=env,
-        cwd=run_dir, start_new_session=True, preexec_fn=_die_with_parent,
+        cwd=run_dir, start_new_session=True, preexec_fn=die_with_parent,
     )
     threading.Thread(target=watch_stdin, name="stdin-watch", daemon=True).start()
     stop_sent = None
@@ -374,10 +356,10 @@ def serve(stdin: Any = None, stdout: Any = None) -> int:
             now = time.monotonic()
             if stop_sent is None:
                 print("--- hang-up from the orchestrator: stopping the role", file=sys.stderr, flush=True)
-                _killpg(child.pid, signal.SIGTERM)
+                killpg(child.pid, signal.SIGTERM)
                 stop_sent = now
             elif now - stop_sent > REMOTE_STOP_GRACE_S:
-                _killpg(child.pid, signal.SIGKILL)
+                killpg(child.pid, signal.SIGKILL)
         time.sleep(0.1)
     code = child.returncode
     try:
@@ -388,19 +370,8 @@ def serve(stdin: Any = None, stdout: Any = None) -> int:
     return code if code >= 0 else 128 - code
 
 
-def _killpg(pid: int, sig: int) -> None:
-    try:
-        os.killpg(pid, sig)
-    except (ProcessLookupError, PermissionError):
-        pass
-
-
 def probe() -> int:
     """Print what `dvla up` needs to know about this host, as one JSON line."""
-    import platform
-
-    import dvla
-
     print(json.dumps({"host": os.uname().nodename, "python": platform.python_version(), "dvla": dvla.__file__}))
     return 0
 

@@ -48,6 +48,8 @@ from dvla.config import (
     grpo_layout_problems,
 )
 
+from .process import is_local_host
+
 __all__ = [
     "Problem",
     "TopologyError",
@@ -120,6 +122,8 @@ class _Context:
 
     def __init__(self, source: str) -> None:
         self.source = source
+        #: directory relative paths in the file are resolved against ("<memory>": the working dir)
+        self.base_dir = os.getcwd() if source.startswith("<") else os.path.dirname(os.path.abspath(source))
         self.problems: list[Problem] = []
         self.lines: dict[str, int] = {"": 1}
 
@@ -677,12 +681,6 @@ def _check_netns_hosts(p: _Partial, ctx: _Context) -> None:
             )
 
 
-def _check_env(p: _Partial, ctx: _Context) -> None:
-    env = p.get("env")
-    if isinstance(env, str) and not env.strip():
-        ctx.report(p.where("env"), "empty env (expected an env id like 'PushCube-v1' or 'module:function')")
-
-
 # --- vision-language observations and GRPO ---------------------------------------------------
 
 #: registered policies and the observations they read (user "module:Class" policies: any)
@@ -699,9 +697,6 @@ def _check_obs_and_policy(p: _Partial, ctx: _Context) -> None:
     wanted = _POLICY_OBS.get(policy) if isinstance(policy, str) else None
     if wanted and isinstance(obs_mode, str) and obs_mode in OBS_MODES and obs_mode != wanted:
         ctx.report(p.where("policy"), f"policy {policy!r} reads {wanted!r} observations, but obs_mode is {obs_mode!r}")
-    instruction = p.get("instruction")
-    if isinstance(instruction, str) and not instruction.strip():
-        ctx.report(p.where("instruction"), "empty instruction (expected words, or null for the task's default)")
 
 
 def _check_grpo(p: _Partial, ctx: _Context) -> None:
@@ -732,14 +727,6 @@ def _check_encoding(p: _Partial, ctx: _Context) -> None:
 def _check_rack_nodes(p: _Partial, ctx: _Context) -> None:
     if p.get("nodes") == ():
         ctx.report(p.where("nodes"), "rack has no nodes (expected at least one node)")
-
-
-def _check_addresses(p: _Partial, ctx: _Context) -> None:
-    host, address = p.get("host"), p.get("address")
-    if isinstance(host, str) and not host.strip():
-        ctx.report(p.where("host"), "empty host (expected a host name; localhost for this machine)")
-    if isinstance(address, str) and not address.strip():
-        ctx.report(p.where("address"), "empty address (expected an IP address, or null to derive it)")
 
 
 def _check_node_roles(p: _Partial, ctx: _Context) -> None:
@@ -802,7 +789,7 @@ def _check_lane_cpus(p: _Partial, ctx: _Context) -> None:
 
 def _is_remote(host: Any) -> bool:
     """A host that is not this machine (its roles start over SSH)."""
-    return isinstance(host, str) and bool(host.strip()) and host not in LOCAL_HOSTS + ("::1", os.uname().nodename)
+    return isinstance(host, str) and bool(host.strip()) and not is_local_host(host)
 
 
 def _check_remote_addresses(p: _Partial, ctx: _Context) -> None:
@@ -824,32 +811,9 @@ def _check_remote_addresses(p: _Partial, ctx: _Context) -> None:
 
 
 def _check_ssh(p: _Partial, ctx: _Context) -> None:
-    for name in ("python", "workdir"):
-        value = p.get(name)
-        if isinstance(value, str) and not value.strip():
-            ctx.report(p.where(name), f"empty {name} (expected a non-empty string)")
     user = p.get("user")
     if isinstance(user, str) and (not user.strip() or any(c in user for c in "@: \t")):
         ctx.report(p.where("user"), f"invalid user {user!r} (expected a login name without '@', ':' or spaces)")
-
-
-def _resolve_ssh_paths(topo: _Partial, base_dir: str, ctx: _Context) -> None:
-    """Make SSH key and known_hosts paths absolute (relative to the topology file); the key must exist."""
-    configs = [topo.get("ssh")] + [n.get("ssh") for n in _placed_nodes(topo)[0]]
-    for ssh in configs:
-        if not isinstance(ssh, _Partial):
-            continue
-        for name in ("identity_file", "known_hosts_file"):
-            value = ssh.get(name)
-            if not isinstance(value, str):
-                continue
-            if not value.strip():
-                ctx.report(ssh.where(name), f"empty {name} (expected a path, or null for ssh's default)")
-                continue
-            resolved = os.path.abspath(os.path.join(base_dir, os.path.expanduser(value)))
-            ssh.values[name] = resolved
-            if name == "identity_file" and not os.path.isfile(resolved):
-                ctx.report(ssh.where(name), f"identity file not found: {resolved}")
 
 
 def _check_tls(p: _Partial, ctx: _Context) -> None:
@@ -863,42 +827,61 @@ def _check_tls(p: _Partial, ctx: _Context) -> None:
                 ctx.report(p.where("planes"), f"repeated plane in {named}")
 
 
-def _resolve_tls_paths(topo: _Partial, base_dir: str, ctx: _Context) -> None:
-    """Make the TLS file paths absolute (relative to the topology file); each must exist."""
-    tls = topo.get("tls")
-    if not isinstance(tls, _Partial):
-        return
-    for name in ("root_ca", "cert", "key"):
-        value = tls.get(name)
-        if not isinstance(value, str):
-            continue
-        if not value.strip():
-            ctx.report(tls.where(name), f"empty {name} (expected a PEM file path)")
-            continue
-        resolved = os.path.abspath(os.path.join(base_dir, os.path.expanduser(value)))
-        tls.values[name] = resolved
-        if not os.path.isfile(resolved):
-            ctx.report(tls.where(name), f"TLS file not found: {resolved}")
-
-
 _CHECKS: dict[type, list[Callable[[_Partial, _Context], None]]] = {
     Topology: [
         _check_run_id, _check_has_racks, _check_names, _check_required_roles, _check_netns_hosts, _check_remote_addresses,
     ],
     SshConfig: [_check_ssh],
     TlsConfig: [_check_tls],
-    TaskConfig: [_check_env, _check_obs_and_policy, _check_grpo],
+    TaskConfig: [_check_obs_and_policy, _check_grpo],
     BudgetConfig: [_check_stop_condition],
     ReplicationConfig: [_check_encoding],
     RackConfig: [_check_rack_nodes],
-    NodeConfig: [_check_addresses, _check_node_roles, _check_cpus],
+    NodeConfig: [_check_node_roles, _check_cpus],
     RolePlacement: [_check_cpus, _check_lane_cpus],
 }
+
+
+#: string fields that may not be empty, and what is expected instead
+_NOT_EMPTY: dict[type, dict[str, str]] = {
+    Topology: {"secret_file": "a path, or null for a per-run secret"},
+    TaskConfig: {"env": "an env id like 'PushCube-v1' or 'module:function'",
+                 "instruction": "words, or null for the task's default"},
+    NodeConfig: {"host": "a host name; localhost for this machine", "address": "an IP address, or null to derive it"},
+    SshConfig: {"python": "a non-empty string", "workdir": "a non-empty string",
+                "identity_file": "a path, or null for ssh's default", "known_hosts_file": "a path, or null for ssh's default"},
+    TlsConfig: {"root_ca": "a PEM file path", "cert": "a PEM file path", "key": "a PEM file path"},
+}
+
+#: file paths (resolved against the topology file's directory, "~" expanded), and what a missing
+#: one is called (None: it need not exist here)
+_FILES: dict[type, dict[str, str | None]] = {
+    Topology: {"secret_file": "secret file"},
+    SshConfig: {"identity_file": "identity file", "known_hosts_file": None},
+    TlsConfig: {"root_ca": "TLS file", "cert": "TLS file", "key": "TLS file"},
+}
+
+
+def _check_strings(p: _Partial, ctx: _Context) -> None:
+    """Reject empty strings; make file paths absolute and require the files that must exist."""
+    for name, expected in _NOT_EMPTY.get(p.cls, {}).items():
+        value = p.get(name)
+        if isinstance(value, str) and not value.strip():
+            ctx.report(p.where(name), f"empty {name} (expected {expected})")
+    for name, what in _FILES.get(p.cls, {}).items():
+        value = p.get(name)
+        if not isinstance(value, str) or not value.strip():
+            continue
+        resolved = os.path.abspath(os.path.join(ctx.base_dir, os.path.expanduser(value)))
+        p.values[name] = resolved
+        if what is not None and not os.path.isfile(resolved):
+            ctx.report(p.where(name), f"{what} not found: {resolved}")
 
 
 def _check_tree(value: Any, ctx: _Context) -> None:
     if isinstance(value, _Partial):
         _check_ranges(value, ctx)
+        _check_strings(value, ctx)
         for check in _CHECKS.get(value.cls, ()):
             check(value, ctx)
         for child in value.values.values():
@@ -906,27 +889,6 @@ def _check_tree(value: Any, ctx: _Context) -> None:
     elif isinstance(value, tuple):
         for child in value:
             _check_tree(child, ctx)
-
-
-def _resolve_secret_file(topo: _Partial, base_dir: str, ctx: _Context) -> None:
-    """Make ``secret_file`` absolute (relative to the topology file) and require it to exist."""
-    secret = topo.get("secret_file")
-    if not isinstance(secret, str):
-        return
-    if not secret.strip():
-        ctx.report(topo.where("secret_file"), "empty secret_file (expected a path, or null for a per-run secret)")
-        return
-    resolved = os.path.abspath(os.path.join(base_dir, os.path.expanduser(secret)))
-    topo.values["secret_file"] = resolved
-    if not os.path.isfile(resolved):
-        ctx.report(topo.where("secret_file"), f"secret file not found: {resolved}")
-
-
-def _base_dir(source: str) -> str:
-    """Directory relative paths in a file are resolved against ("<memory>": the working dir)."""
-    if source.startswith("<"):
-        return os.getcwd()
-    return os.path.dirname(os.path.abspath(source))
 
 
 # --------------------------------------------------------------------------------------------
@@ -959,9 +921,6 @@ def parse_topology(text: str, source: str = "<memory>") -> Topology:
         ctx.lines[""] = _line(root_node)
         root = _convert(root_node, Topology, "", ctx)
         if isinstance(root, _Partial):
-            _resolve_secret_file(root, _base_dir(source), ctx)
-            _resolve_ssh_paths(root, _base_dir(source), ctx)
-            _resolve_tls_paths(root, _base_dir(source), ctx)
             _check_tree(root, ctx)
             root.values["source"] = source
             topo = _build(root, ctx)

@@ -10,12 +10,6 @@ from typing import Any
 from ..fabric.messages import RoleStatus
 
 
-def status_dict(s: RoleStatus) -> dict[str, Any]:
-    d = dataclasses.asdict(s)
-    d["policy_lag"] = policy_lag(s)
-    return d
-
-
 def policy_lag(s: RoleStatus, latest: int | None = None) -> int | None:
     """Versions a rollout (or evaluator) is behind the newest published one; None for others."""
     if s.kind not in ("rollout", "evaluator") or latest is None:

@@ -29,7 +29,7 @@ from ..learn.dims import probe_spec
 from ..learn.grpo import task_advantages
 from ..replication import ParamLayout, flatten, unflatten_into
 from .checkpoint import load_checkpoint, save_checkpoint
-from .counters import CounterFile, source_key, split_seq
+from ..counters import CounterFile, source_key, split_seq
 from .runtime import main
 from .slots import SlotPool
 from .swimlane import LaneContext, Swimlane

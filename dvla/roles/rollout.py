@@ -35,7 +35,7 @@ from ..learn.envs import obs_as_dict, obs_to_torch
 from ..learn.grpo import grpo_envs
 from ..replication import ParamLayout, bind_flat, unflatten_into
 from .chunkpool import ChunkPool, chunk_template
-from .counters import INCARNATION_SHIFT, CounterFile
+from ..counters import INCARNATION_SHIFT, CounterFile
 from .runtime import main
 from .swimlane import LaneContext, LatencyHistogram, Swimlane
 from .weightsync import WeightSync

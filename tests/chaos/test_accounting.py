@@ -1,4 +1,4 @@
-"""The chunk accounting across kills (dvla/orchestrator/run.py `accounting_from_counters`) on
+"""The chunk accounting across kills (dvla/orchestrator/accounting.py) on
 counter files written as the roles write them (dvla/counters.py), for the cases a run can
 produce: clean, a killed rollout, a killed actor, a silent mid-stream loss, forged trajectories."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from dvla.orchestrator.run import accounting_from_counters
 from dvla.counters import INCARNATION_SHIFT, CounterFile, read_counters, source_key, split_seq
+from dvla.orchestrator.accounting import accounting_from_counters
 
 T0 = 1_000_000_000_000
 

@@ -1,15 +1,28 @@
-"""Helpers shared by commands: loading a topology with one-line errors, finding a run."""
+"""Helpers shared by commands: loading a topology with one-line errors, finding a run, the
+output format option."""
 
 from __future__ import annotations
 
 import json
 import os
+from enum import Enum
 from pathlib import Path
 
 import typer
 
 from ...config import Topology
+from ...fabric import load_secret
 from ..topology import TopologyError, load_topology
+
+#: directory of run directories (DVLA_RUNS overrides it)
+RUNS_ROOT = Path(os.environ.get("DVLA_RUNS", "runs"))
+
+
+class Format(str, Enum):
+    """`--format` of the commands that render: a table for people, JSON for programs."""
+
+    table = "table"
+    json = "json"
 
 
 def fail(message: str, code: int = 2) -> typer.Exit:
@@ -28,7 +41,7 @@ def topology_or_exit(path: Path) -> Topology:
 
 
 def find_run(run: str | None, runs_root: Path) -> tuple[str, dict]:
-    """The named run, or the only live one under `runs_root`; returns (run id, state.json)."""
+    """The named run, or the newest live one under `runs_root`; returns (run id, state.json)."""
     if run is not None:
         if run.endswith((".yaml", ".yml")) and Path(run).exists():
             run = topology_or_exit(Path(run)).run
@@ -43,12 +56,7 @@ def find_run(run: str | None, runs_root: Path) -> tuple[str, dict]:
 
 
 def secret_for(state: dict) -> bytes:
-    from ...fabric import load_secret
-
     try:
         return load_secret(state.get("secret_file"))
     except (OSError, ValueError) as err:
         raise fail(str(err))
-
-
-RUNS_ROOT = Path(os.environ.get("DVLA_RUNS", "runs"))

@@ -3,19 +3,13 @@
 from __future__ import annotations
 
 import os
-from enum import Enum
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
 
 from ..doctor import CHECK_NAMES, exit_code, format_json, format_text, run_checks
-from .common import fail, topology_or_exit
-
-
-class Format(str, Enum):
-    table = "table"
-    json = "json"
+from .common import Format, fail, topology_or_exit
 
 
 def doctor(

@@ -10,6 +10,9 @@ from typing import Annotated, Optional
 
 import typer
 
+from ..launcher import killpg
+from ..netns import destroy_names
+from ..run import pid_alive
 from .common import RUNS_ROOT, find_run
 
 
@@ -21,24 +24,19 @@ def down(
     """Ask the run's orchestrator to stop (as Ctrl-C would); kill and clean up after `timeout`."""
     run_id, state = find_run(run, runs)
     pid = int(state.get("pid", 0))
-    if pid and _alive(pid):
+    if pid and pid_alive(pid):
         os.kill(pid, signal.SIGTERM)
         deadline = time.monotonic() + timeout
-        while _alive(pid) and time.monotonic() < deadline:
+        while pid_alive(pid) and time.monotonic() < deadline:
             time.sleep(0.1)
-        if _alive(pid):
+        if pid_alive(pid):
             typer.echo(f"dvla: orchestrator {pid} did not stop in {timeout:.0f} s: killing", err=True)
             os.kill(pid, signal.SIGKILL)
-    for name, child in state.get("children", {}).items():
-        if _alive(int(child)):
-            try:
-                os.killpg(int(child), signal.SIGKILL)
-            except (ProcessLookupError, PermissionError):
-                pass
+    for child in state.get("children", {}).values():
+        if pid_alive(int(child)):
+            killpg(int(child), signal.SIGKILL)
     leftovers = state.get("netns") or []
     if leftovers:
-        from ..netns import destroy_names
-
         removed = destroy_names(run_id, leftovers)
         if removed:
             typer.echo(f"dvla: removed {', '.join(removed)}")
@@ -47,14 +45,3 @@ def down(
         state_file.unlink()
     typer.echo(f"dvla: run {run_id} is down")
 
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except (ProcessLookupError, PermissionError):
-        return False
-    try:  # a zombie is not alive
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().split(")")[-1].split()[0] != "Z"
-    except OSError:
-        return True

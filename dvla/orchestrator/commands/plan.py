@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any, Optional
 
@@ -12,16 +11,11 @@ import typer
 from ..estimate import delivery_estimate
 from ..plan import make_plan
 from ..topology import topology_to_dict
-from .common import topology_or_exit
+from .common import Format, topology_or_exit
 
 
 #: weights size assumed without --param-mb: about the default MLP policy's (1.1 MB)
 DEFAULT_PARAM_MB = 1.1
-
-
-class Format(str, Enum):
-    table = "table"
-    json = "json"
 
 
 def plan(
@@ -44,7 +38,8 @@ def plan(
         }
         for x in p.processes
     ]
-    estimate = broadcast_estimate(topo, p, param_mb)
+    mb = param_mb if param_mb is not None else DEFAULT_PARAM_MB
+    estimate = {"param_mb": mb, "param_mb_assumed": param_mb is None, **delivery_estimate(topo, p, int(mb * 1e6))}
     if format == Format.json:
         doc = {"topology": topology_to_dict(topo), "processes": procs, "warnings": list(p.warnings), "broadcast": estimate}
         typer.echo(json.dumps(doc, indent=1, sort_keys=True))
@@ -80,9 +75,3 @@ def _tree(echo, procs: list[dict], name: str, indent: str) -> None:
         if x["parent"] == name:
             _tree(echo, procs, x["name"], indent + "  ")
 
-
-def broadcast_estimate(topo, p, param_mb: float | None) -> dict[str, Any]:
-    """Predicted delivery of one version (see dvla/orchestrator/estimate.py), in MB of weights."""
-    mb = param_mb if param_mb is not None else DEFAULT_PARAM_MB
-    est = delivery_estimate(topo, p, int(mb * 1e6))
-    return {"param_mb": mb, "param_mb_assumed": param_mb is None, **est}

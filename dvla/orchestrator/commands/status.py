@@ -6,7 +6,6 @@ for the entry endpoints and the secret, collects every status reply, then render
 
 from __future__ import annotations
 
-from enum import Enum
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -16,12 +15,7 @@ from ...fabric import TlsFiles
 from ...fabric.messages import RoleStatus
 from ..run import tool_fabric
 from ..view import render_json, render_table
-from .common import RUNS_ROOT, fail, find_run, secret_for
-
-
-class Format(str, Enum):
-    table = "table"
-    json = "json"
+from .common import Format, RUNS_ROOT, fail, find_run, secret_for
 
 
 def status(
