@@ -103,7 +103,7 @@ class Source:
         self.published: dict[str, dict[str, Any]] = {}
 
     def build(self, sl: Swimlane) -> None:
-        self.fabric.serve(self.fabric.keys.snapshot(self.cfg.name), self.publisher.serve_snapshot)  # catch-up
+        self.publisher.serve()  # catch-up for children
         sl.lane("publish", self._publish)
 
     def _publish(self, ctx: LaneContext) -> None:

@@ -4,7 +4,7 @@
 The distributed run samples 25-step trajectory chunks on rollout processes that hold slightly
 stale weights, and the actor learns one policy version per ``batch_steps`` transitions. This
 tool reproduces that on one core: an EnvGroup of ``--envs`` envs yields chunks acted on by the
-policy of ``--lag`` versions ago, ``batch_from_chunks`` + ``PPOLearner`` learn from them, and a
+policy of ``--lag`` versions ago, ``gae_batch`` + ``PPOLearner`` learn from them, and a
 separate eval group plays ``--eval-episodes`` deterministic episodes every ``--eval-every``
 versions. It stops once eval success_once >= ``--target`` for ``--consecutive`` evals in a row
 (or at ``--max-steps`` / ``--max-wall``) and prints a final ``RESULT {json}`` line.
@@ -39,7 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from dvla.config import PPOConfig, TaskConfig  # noqa: E402
 from dvla.learn.envs import EnvGroup, run_eval_episodes  # noqa: E402
 from dvla.learn.policies import make_policy  # noqa: E402
-from dvla.learn.ppo import PPOLearner, batch_from_chunks  # noqa: E402
+from dvla.learn.ppo import PPOLearner, Trajectories, gae_batch  # noqa: E402
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -97,7 +97,17 @@ def ppo_config(a: argparse.Namespace) -> PPOConfig:
         max_grad_norm=a.max_grad_norm,
         target_kl=a.target_kl if a.target_kl > 0 else None,
         reward_scale=a.reward_scale,
+        terminal_bootstrap=a.terminations == "bootstrap",
     )
+
+
+def side_by_side(chunks: list[dict[str, np.ndarray]]) -> Trajectories:
+    """Chunks stacked along the env axis, as the actor's slots stack them."""
+    out = {k: torch.as_tensor(np.concatenate([c[k] for c in chunks], axis=0 if k == "next_obs" else 1))
+           for k in chunks[0]}
+    for k in ("obs", "final_obs", "next_obs"):
+        out[k] = {"state": out[k].float()}
+    return Trajectories.of(out)
 
 
 class ChunkSampler:
@@ -171,7 +181,7 @@ class Run:
         a = self.a
         self.behaviour.load_state_dict(self.history[0])
         chunks = [self.sampler.chunk(self.behaviour) for _ in range(a.batch_steps // self.per_chunk)]
-        batch = batch_from_chunks(self.policy, chunks, self.cfg, bootstrap_terminated=a.terminations == "bootstrap")
+        batch = gae_batch(self.policy, side_by_side(chunks), self.cfg)
         stats = self.learner.update(batch)
         self.history.append(copy.deepcopy(self.policy.state_dict()))
         return stats

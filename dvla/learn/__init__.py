@@ -5,7 +5,7 @@ The simulator is imported lazily, so importing this package is cheap.
 
 from dvla.learn.envs import EnvGroup, StepResult, make_env, run_eval_episodes
 from dvla.learn.policies import MLPPolicy, Policy, make_policy, register_policy
-from dvla.learn.ppo import PPOLearner, batch_from_chunks, chunk_advantages, compute_gae, grpo_advantages
+from dvla.learn.ppo import PPOLearner, Trajectories, compute_gae, gae_batch
 
 __all__ = [
     "EnvGroup",
@@ -17,8 +17,7 @@ __all__ = [
     "make_policy",
     "register_policy",
     "PPOLearner",
-    "batch_from_chunks",
-    "chunk_advantages",
+    "Trajectories",
     "compute_gae",
-    "grpo_advantages",
+    "gae_batch",
 ]

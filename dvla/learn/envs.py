@@ -34,7 +34,7 @@ from dvla.config import TaskConfig
 
 __all__ = [
     "make_env", "resolve_sim_backend", "ArraySpec", "ObsSpec", "EnvGroup", "StepResult", "run_eval_episodes",
-    "obs_as_dict", "obs_to_torch",
+    "obs_as_dict", "obs_to_torch", "probe_spec",
 ]
 
 
@@ -398,6 +398,18 @@ def _structured_spec(space: Any, n_tokens: int, vocab: int) -> ObsSpec:
         "proprio": ArraySpec((n_proprio,), "float32"),
         "tokens": ArraySpec((n_tokens,), "int32", vocab=vocab),
     }
+
+
+def probe_spec(task: TaskConfig) -> tuple[ObsSpec, int]:
+    """(observation spec, act_dim) of ``task``'s env, for processes that build a policy without
+    stepping envs (actor, replicator): one env is made, read and closed."""
+    group = EnvGroup(task, 1, 0)
+    try:
+        if group.obs_spec is None:
+            group.reset()
+        return dict(group.obs_spec), group.act_dim
+    finally:
+        group.close()
 
 
 # --- evaluation -------------------------------------------------------------------------------

@@ -16,8 +16,7 @@ No critic is used. Two advantages (``task.grpo_baseline``):
   (``task.grpo_gamma``) minus the mean reward-to-go from t of the G episodes of its group, over
   their std at t. Still group-relative and critic-free, but an action is no longer credited
   with the rewards collected before it, which only add noise.
-* ``"episode"``: every step gets the episode's group-normalised return
-  (:func:`~dvla.learn.ppo.grpo_advantages`).
+* ``"episode"``: every step gets the episode's group-normalised return (:func:`grpo_advantages`).
 
 Either way the std is floored at ``task.grpo_std_floor`` so groups whose episodes barely differ
 do not turn noise into full-size advantages. With ``task.reward: success`` the return is 1 for
@@ -32,13 +31,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..config import TaskConfig, env_group_sizes, grpo_layout_problems
-from .ppo import grpo_advantages
+from ..config import TaskConfig
+from .ppo import Trajectories
 
-__all__ = [
-    "grpo_envs", "grpo_layout_problems", "episode_steps", "group_advantages", "task_advantages", "group_stats",
-    "env_group_sizes",
-]
+__all__ = ["grpo_envs", "episode_steps", "grpo_batch", "group_advantages", "grpo_advantages", "group_stats"]
 
 
 def episode_steps(task: TaskConfig) -> int:
@@ -53,12 +49,18 @@ def grpo_envs(task: TaskConfig) -> dict[str, Any]:
     return {"group_size": task.group_size, "ignore_terminations": True}
 
 
-def task_advantages(task: TaskConfig, rewards: torch.Tensor, terminated: torch.Tensor, truncated: torch.Tensor) -> torch.Tensor:
-    """:func:`group_advantages` with the GRPO settings of ``task`` (rewards already scaled)."""
-    return group_advantages(
-        rewards, terminated, truncated, task.group_size,
+def grpo_batch(b: Trajectories, task: TaskConfig) -> dict[str, Any]:
+    """The training batch of ``b`` with the GRPO advantages of ``task`` (:func:`group_advantages`).
+
+    No critic: the value head is trained towards 0 (returns = 0), which costs little and keeps
+    the batch format of PPO.
+    """
+    adv = group_advantages(
+        b.rewards * task.ppo.reward_scale, b.terminated, b.truncated, task.group_size,
         baseline=task.grpo_baseline, gamma=task.grpo_gamma, std_floor=task.grpo_std_floor,
     )
+    zeros = torch.zeros(b.steps, device=adv.device)
+    return b.training_batch(adv, zeros, zeros)
 
 
 def group_advantages(
@@ -104,6 +106,30 @@ def group_advantages(
     std = groups.std(2, unbiased=False, keepdim=True).clamp(min=std_floor)
     adv = (groups - mean) / (std + 1e-8)
     return adv.reshape(steps, n).to(rewards.dtype)
+
+
+def grpo_advantages(episode_returns, group_ids, std_floor: float = 0.0):
+    """Group-relative advantages: ``(R - mean_g) / (max(std_g, std_floor) + 1e-8)`` within each group.
+
+    ``episode_returns`` and ``group_ids`` are 1-D (numpy or torch); episodes sharing a group id
+    started from the same initial state. A group of one gets advantage 0. The population std is
+    used, so the result does not depend on an arbitrary degrees-of-freedom choice. ``std_floor``
+    keeps groups whose returns barely differ from getting full-size advantages out of noise.
+    """
+    is_torch = isinstance(episode_returns, torch.Tensor)
+    r = episode_returns.detach().cpu().numpy() if is_torch else np.asarray(episode_returns)
+    r = r.astype(np.float64).reshape(-1)
+    ids = group_ids.detach().cpu().numpy() if isinstance(group_ids, torch.Tensor) else np.asarray(group_ids)
+    if ids.reshape(-1).shape != r.shape:
+        raise ValueError(f"{r.shape[0]} returns but {ids.size} group ids")
+    _, inverse = np.unique(ids.reshape(-1), return_inverse=True)
+    counts = np.bincount(inverse)
+    mean = np.bincount(inverse, weights=r) / counts
+    var = np.bincount(inverse, weights=(r - mean[inverse]) ** 2) / counts
+    adv = (r - mean[inverse]) / (np.maximum(np.sqrt(var[inverse]), std_floor) + 1e-8)
+    if is_torch:
+        return torch.as_tensor(adv, dtype=episode_returns.dtype, device=episode_returns.device)
+    return adv.astype(np.float32)
 
 
 def group_stats(rewards: np.ndarray, group_size: int) -> dict[str, float]:

@@ -25,7 +25,7 @@ output ``[B]``:
   before it updates (e.g. to keep running normalisation statistics in buffers).
 * optional ``sample(obs, deterministic=False) -> (action, logprob)``: ``act`` without the value,
   which rollouts and the evaluator discard; called instead of ``act`` when present. Worth having
-  when the critic is a separate network (the MLP policy's critic is ~40% of its ``act``).
+  when the critic is a separate network (as in the MLP policy).
 
 Register a class with ``@register_policy("name")`` to make it addressable by name.
 """
@@ -170,12 +170,11 @@ class _SigmoidTanh(torch.autograd.Function):
 class Tanh(nn.Tanh):
     """``nn.Tanh`` that is faster for large CPU batches (the learner's minibatches).
 
-    PyTorch's CPU tanh kernel takes ~4.5 ns per element on an AVX2 core, more than three
-    times its sigmoid; for a 400 x 256 activation ``2 * sigmoid(2x) - 1`` is about twice as fast
-    (464 -> 220 µs, one thread), which is a tenth of a PPO update of the default MLP. The two
-    agree to float32 rounding (absolute error below 1e-6). Small inputs (a rollout's inference
-    batch) and other devices use ``torch.tanh``: there the extra kernels or the autograd
-    function's Python overhead would cost more than they save.
+    PyTorch's CPU tanh kernel is several times slower than its sigmoid, so for a minibatch-sized
+    activation ``2 * sigmoid(2x) - 1`` is faster, by a noticeable share of a PPO update of the
+    default MLP. The two agree to float32 rounding (absolute error below 1e-6). Small inputs (a
+    rollout's inference batch) and other devices use ``torch.tanh``: there the extra kernels or
+    the autograd function's Python overhead would cost more than they save.
     """
 
     #: elements from which the sigmoid form is used on the CPU
@@ -277,8 +276,8 @@ class MLPPolicy(nn.Module):
 
         The Gaussian is written out instead of built as a ``Normal``: a = mean + std * eps,
         log p(a) = sum(-eps^2 / 2 - log_std - log(2 pi) / 2), the same value `evaluate`'s
-        ``Normal.log_prob`` gives the learner. For a small batch the distribution object cost a
-        third of the call (175 -> 118 µs for two observations, one torch thread).
+        ``Normal.log_prob`` gives the learner. For a small batch the distribution object is a
+        large share of the call.
         """
         mean = self.actor(self._normalise(obs))
         log_std = self.log_std.expand_as(mean)

@@ -1,9 +1,9 @@
 """The learning algorithm: advantage estimation (GAE, GRPO) and the PPO update.
 
 Data reaches the actor as trajectory *chunks*: ``T`` consecutive steps of ``N`` envs acted on by
-one (possibly slightly stale) policy version. :func:`batch_from_chunks` turns chunks into a flat
-training batch with advantages computed by the learner's current critic, and
-:class:`PPOLearner` runs the clipped-surrogate update on it.
+one (possibly slightly stale) policy version. The actor stacks chunks side by side into
+:class:`Trajectories`; :func:`gae_batch` (or :func:`~dvla.learn.grpo.grpo_batch`) turns them
+into a flat training batch, and :class:`PPOLearner` runs the clipped-surrogate update on it.
 
 Stale data: every transition carries the log-probability of the *behaviour* policy that acted.
 By default the learner uses decoupled PPO: the trust region is clipped around the policy at the
@@ -17,7 +17,8 @@ from __future__ import annotations
 
 import copy
 import time
-from typing import Any, Mapping, Sequence
+from dataclasses import dataclass, fields
+from typing import Any, Mapping
 
 import numpy as np
 import torch
@@ -25,7 +26,7 @@ from torch import Tensor, nn
 
 from dvla.config import PPOConfig
 
-__all__ = ["compute_gae", "grpo_advantages", "chunk_advantages", "batch_from_chunks", "PPOLearner", "CHUNK_KEYS"]
+__all__ = ["compute_gae", "Trajectories", "gae_batch", "PPOLearner"]
 
 
 # --- advantages -------------------------------------------------------------------------------
@@ -60,114 +61,84 @@ def compute_gae(rewards, values, next_values, terminated, episode_end, gamma: fl
     return advantages, advantages + values
 
 
-def grpo_advantages(episode_returns, group_ids, std_floor: float = 0.0):
-    """Group-relative advantages: ``(R - mean_g) / (max(std_g, std_floor) + 1e-8)`` within each group.
+@dataclass
+class Trajectories:
+    """Steps of N env columns side by side: what the actor stacks from its slots for one update.
 
-    ``episode_returns`` and ``group_ids`` are 1-D (numpy or torch); episodes sharing a group id
-    started from the same initial state. A group of one gets advantage 0. The population std is
-    used, so the result does not depend on an arbitrary degrees-of-freedom choice. ``std_floor``
-    keeps groups whose returns barely differ from getting full-size advantages out of noise.
+    Observations are dicts of tensors, one per observation key (``{"state"}`` for flat ones).
+    Shapes: ``obs``, ``final_obs`` [T, N, ...]; ``actions`` [T, N, A]; ``logprobs`` (of the
+    behaviour policy), ``rewards``, ``terminated``, ``truncated`` [T, N]; ``next_obs`` [N, ...].
+    ``final_obs`` is the pre-reset observation where an episode ended (zeros elsewhere),
+    ``next_obs`` the observation after the last step (for bootstrapping).
     """
-    is_torch = isinstance(episode_returns, Tensor)
-    r = episode_returns.detach().cpu().numpy() if is_torch else np.asarray(episode_returns)
-    r = r.astype(np.float64).reshape(-1)
-    ids = group_ids.detach().cpu().numpy() if isinstance(group_ids, Tensor) else np.asarray(group_ids)
-    if ids.reshape(-1).shape != r.shape:
-        raise ValueError(f"{r.shape[0]} returns but {ids.size} group ids")
-    _, inverse = np.unique(ids.reshape(-1), return_inverse=True)
-    counts = np.bincount(inverse)
-    mean = np.bincount(inverse, weights=r) / counts
-    var = np.bincount(inverse, weights=(r - mean[inverse]) ** 2) / counts
-    adv = (r - mean[inverse]) / (np.maximum(np.sqrt(var[inverse]), std_floor) + 1e-8)
-    if is_torch:
-        return torch.as_tensor(adv, dtype=episode_returns.dtype, device=episode_returns.device)
-    return adv.astype(np.float32)
 
+    obs: dict[str, Tensor]
+    actions: Tensor
+    logprobs: Tensor
+    rewards: Tensor
+    terminated: Tensor
+    truncated: Tensor
+    final_obs: dict[str, Tensor]
+    next_obs: dict[str, Tensor]
 
-CHUNK_KEYS = ("obs", "actions", "logprobs", "rewards", "terminated", "truncated", "final_obs", "next_obs")
-"""Arrays of one trajectory chunk, as :func:`batch_from_chunks` reads them:
+    @classmethod
+    def of(cls, arrays: Mapping[str, Any]) -> "Trajectories":
+        """The fields of ``arrays`` (other keys, such as ``success``, are ignored)."""
+        return cls(**{f.name: arrays[f.name] for f in fields(cls)})
 
-obs [T,N,D], actions [T,N,A], logprobs [T,N] (behaviour policy), rewards [T,N],
-terminated [T,N], truncated [T,N], final_obs [T,N,D] (pre-reset obs where an episode ended),
-next_obs [N,D] (observation after the chunk's last step, for bootstrapping)."""
+    @property
+    def steps(self) -> int:
+        """Transitions held (T * N)."""
+        return self.rewards.numel()
 
-
-def _values(policy: nn.Module, obs: np.ndarray, device: torch.device) -> Tensor:
-    flat = torch.as_tensor(obs, dtype=torch.float32, device=device).reshape(-1, obs.shape[-1])
-    return policy.value(flat).reshape(obs.shape[:-1])
-
-
-def _bootstrap_terminated(cfg: PPOConfig, override: bool | None) -> bool:
-    return cfg.terminal_bootstrap if override is None else override
+    def training_batch(self, advantages: Tensor, returns: Tensor, values: Tensor) -> dict[str, Any]:
+        """The flat ``[T*N, ...]`` batch :meth:`PPOLearner.update` takes."""
+        n = self.steps
+        return {
+            "obs": _policy_obs(self.obs, 2),
+            "actions": self.actions.reshape(n, -1),
+            "logprobs": self.logprobs.reshape(n),
+            "advantages": advantages.reshape(n),
+            "returns": returns.reshape(n),
+            "values": values.reshape(n),
+        }
 
 
 @torch.no_grad()
-def chunk_advantages(
-    policy: nn.Module,
-    chunk: Mapping[str, np.ndarray],
-    cfg: PPOConfig,
-    device: Any = "cpu",
-    bootstrap_terminated: bool | None = None,
-) -> dict[str, Tensor]:
-    """Training tensors ``[T*N, ...]`` of one chunk, with GAE from ``policy``'s critic.
+def gae_batch(policy: nn.Module, b: Trajectories, cfg: PPOConfig) -> dict[str, Any]:
+    """The PPO batch of ``b``, with GAE from ``policy``'s critic.
 
     Values are recomputed with the learner's critic rather than taken from the rollout: the
     rollout's critic is stale, and the bootstrap values must come from the same function as the
     baseline. Rewards are multiplied by ``cfg.reward_scale``.
 
-    ``bootstrap_terminated`` (default: ``cfg.terminal_bootstrap``) bootstraps terminated
-    episodes from ``V(final_obs)`` like truncated ones; the episode still ends there. ManiSkill
-    tasks terminate on *success* while their dense reward keeps paying near the goal, so without
-    the bootstrap reaching the goal is worth less than hovering next to it (PushCube learns
-    markedly slower). Pass False for tasks whose terminations really are terminal.
+    ``cfg.terminal_bootstrap`` bootstraps terminated episodes from ``V(final_obs)`` like
+    truncated ones; the episode still ends there. ManiSkill tasks terminate on *success* while
+    their dense reward keeps paying near the goal, so without the bootstrap reaching the goal is
+    worth less than hovering next to it. Set it False for tasks whose terminations really are
+    terminal.
     """
-    device = torch.device(device)
-    missing = [k for k in CHUNK_KEYS if k not in chunk]
-    if missing:
-        raise KeyError(f"chunk lacks {missing}")
-    obs = np.asarray(chunk["obs"], dtype=np.float32)
-    steps, n = obs.shape[:2]
-    ended = np.asarray(chunk["terminated"], bool) | np.asarray(chunk["truncated"], bool)
-    values = _values(policy, obs, device)
+    T, N = b.rewards.shape
+    ended = b.terminated | b.truncated
+    values = policy.value(_policy_obs(b.obs, 2)).reshape(T, N)
     next_values = torch.empty_like(values)
     next_values[:-1] = values[1:]
-    next_values[-1] = _values(policy, np.asarray(chunk["next_obs"], dtype=np.float32), device)
-    if ended.any():
-        final = np.asarray(chunk["final_obs"], dtype=np.float32)[ended]
-        next_values[torch.as_tensor(ended, device=device)] = _values(policy, final, device)
-    rewards = torch.as_tensor(np.asarray(chunk["rewards"], np.float32), device=device) * cfg.reward_scale
-    terminated = torch.as_tensor(np.asarray(chunk["terminated"], bool), device=device)
-    if _bootstrap_terminated(cfg, bootstrap_terminated):
-        terminated = torch.zeros_like(terminated)
+    next_values[-1] = policy.value(_policy_obs(b.next_obs, 1)).reshape(N)
+    rows = ended.reshape(-1).nonzero().squeeze(1)
+    if rows.numel():  # V(final_obs) only where an episode ended (elsewhere final_obs is zeros)
+        next_values.view(-1)[rows] = policy.value(_take(_policy_obs(b.final_obs, 2), rows))
+    no_bootstrap = torch.zeros_like(b.terminated) if cfg.terminal_bootstrap else b.terminated
     adv, ret = compute_gae(
-        rewards, values, next_values, terminated, torch.as_tensor(ended, device=device), cfg.gamma, cfg.gae_lambda
+        b.rewards * cfg.reward_scale, values, next_values, no_bootstrap, ended, cfg.gamma, cfg.gae_lambda
     )
-    actions = np.asarray(chunk["actions"], dtype=np.float32)
-    return {
-        "obs": torch.as_tensor(obs, device=device).reshape(steps * n, -1),
-        "actions": torch.as_tensor(actions, device=device).reshape(steps * n, -1),
-        "logprobs": torch.as_tensor(np.asarray(chunk["logprobs"], np.float32), device=device).reshape(-1),
-        "advantages": adv.reshape(-1),
-        "returns": ret.reshape(-1),
-        "values": values.reshape(-1),
-    }
+    return b.training_batch(adv, ret, values)
 
 
-def batch_from_chunks(
-    policy: nn.Module,
-    chunks: Sequence[Mapping[str, np.ndarray]],
-    cfg: PPOConfig,
-    device: Any = "cpu",
-    bootstrap_terminated: bool | None = None,
-) -> dict[str, Tensor]:
-    """One PPO batch (the dict :meth:`PPOLearner.update` takes) from several chunks.
-
-    See :func:`chunk_advantages` for how advantages are computed.
-    """
-    if not chunks:
-        raise ValueError("no chunks to learn from")
-    parts = [chunk_advantages(policy, c, cfg, device, bootstrap_terminated) for c in chunks]
-    return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+def _policy_obs(obs: Mapping[str, Tensor], lead: int) -> Any:
+    """Observations as the policy takes them: the ``lead`` leading axes ([T, N] or [N]) merged
+    into one; the bare tensor for flat observations, the dict for structured ones."""
+    flat = {k: v.reshape(-1, *v.shape[lead:]) for k, v in obs.items()}
+    return flat["state"] if set(flat) == {"state"} else flat
 
 
 # --- the update --------------------------------------------------------------------------------
@@ -310,9 +281,9 @@ class PPOLearner:
 def make_adam(params: Any, **kwargs: Any) -> torch.optim.Adam:
     """Adam with the fused kernel where this PyTorch has it for the parameters' device.
 
-    Same algorithm, one kernel for all parameters instead of a dozen small ops per tensor: a
-    step of the default MLP policy takes 0.4 ms instead of 2.0 ms on one CPU core (32 steps per
-    PPO update). Falls back to the default implementation where fused is not supported.
+    Same algorithm, one kernel for all parameters instead of a dozen small ops per tensor, which
+    matters on a CPU learner taking many small steps per update. Falls back to the default
+    implementation where fused is not supported.
     """
     params = list(params)
     try:

@@ -81,8 +81,8 @@ def checksum(flat: np.ndarray) -> str:
 
     A fast non-cryptographic hash is enough here: it detects a replica that differs from what
     the actor published (lost or damaged chunks, a decoding bug); forgery is stopped earlier by
-    the HMAC signature of every manifest and chunk. At ~10 GB/s it costs nothing next to the
-    transfer (blake2b, at ~0.35 GB/s, cost a 64 MiB version more CPU than its decoding).
+    the HMAC signature of every manifest and chunk. A cryptographic hash would cost a large
+    version more CPU than decoding it.
     """
     if not flat.flags.c_contiguous:
         raise ValueError("checksum needs a C-contiguous array")
@@ -182,7 +182,7 @@ def _unplanes(planes: np.ndarray, width: int) -> np.ndarray:
 def deflate_delta(encoding: str, payload: memoryview, level: int = 1) -> bytes:
     """Compress a delta payload losslessly. The words are split into byte planes first (the sign
     and exponent bytes of small deltas are nearly constant), and top-k indices become gaps
-    (sorted indices differ by little): ~0.68x for bf16 deltas, ~0.5x for top-k payloads."""
+    (sorted indices differ by little)."""
     if encoding == "delta-bf16":
         words = np.frombuffer(payload, dtype=_U16)
         planes = _planes(words, 2)
@@ -545,7 +545,7 @@ class WeightDecoder:
             raise ValueError("layout holds no elements")
         self.layout = layout
         # Written once here so every page is mapped now: np.zeros alone maps them lazily, and
-        # the first two versions would pay the page faults (~140 ms for 64 MiB) mid-transfer.
+        # the first two versions would pay the page faults mid-transfer.
         self._bufs = (np.empty(layout.numel, dtype=np.float32), np.empty(layout.numel, dtype=np.float32))
         for buf in self._bufs:
             buf.fill(0.0)
@@ -579,11 +579,6 @@ class WeightDecoder:
     def pending_version(self) -> int | None:
         """Version verified in staging and not yet swapped in, if any."""
         return None if self._pending is None else self._pending[0]
-
-    @property
-    def latest_version(self) -> int:
-        """Newest verified version held (pending or active)."""
-        return self.version if self._pending is None else self._pending[0]
 
     def reset(self) -> None:
         """Forget everything held (e.g. when the actor restarts its version numbering)."""
@@ -718,11 +713,6 @@ class ChunkAssembler:
         self._received = 0
         self.reset(n_chunks, total_bytes)
 
-    @classmethod
-    def for_manifest(cls, m: Manifest, max_bytes: int) -> "ChunkAssembler":
-        """An assembler sized for ``max_bytes`` and expecting the payload of ``m``."""
-        return cls(m.n_chunks, m.total_bytes, max_bytes)
-
     def reset(self, n_chunks: int, total_bytes: int) -> None:
         """Start assembling a new payload (the buffer is reused, not reallocated)."""
         if not all(isinstance(x, int) and not isinstance(x, bool) for x in (n_chunks, total_bytes)):
@@ -740,11 +730,6 @@ class ChunkAssembler:
     def complete(self) -> bool:
         """Whether every chunk has arrived."""
         return self._received == self.n_chunks
-
-    @property
-    def received(self) -> int:
-        """Number of distinct chunks received."""
-        return self._received
 
     def missing(self) -> list[int]:
         """Indices of chunks not received yet (for repair requests)."""

@@ -11,7 +11,6 @@ Lanes (and what flows between them):
 from __future__ import annotations
 
 import logging
-import queue
 import threading
 import time
 from pathlib import Path
@@ -20,16 +19,16 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..config import RoleConfig, resolve_device
+from ..config import RoleConfig, env_group_sizes, resolve_device
 from ..fabric import Fabric
 from ..fabric.fabric import DATA
 from ..fabric.messages import RoleStatus, TrajectoryChunk
-from ..learn import PPOLearner, compute_gae, make_policy
-from ..learn.dims import probe_spec
-from ..learn.grpo import task_advantages
+from ..learn import PPOLearner, Trajectories, gae_batch, make_policy
+from ..learn.envs import probe_spec
+from ..learn.grpo import grpo_batch
 from ..replication import ParamLayout, flatten, unflatten_into
 from .checkpoint import load_checkpoint, save_checkpoint
-from ..counters import CounterFile, source_key, split_seq
+from .counters import CounterFile, source_key, split_seq
 from .runtime import main
 from .slots import SlotPool
 from .swimlane import LaneContext, Swimlane
@@ -58,10 +57,10 @@ class Actor:
             log.info("resumed from checkpoint: version %d, %d env steps", start, resumed["env_steps"])
         self.resumed = resumed is not None
         self.publisher = WeightPublisher(fabric, cfg.name, self.layout, cfg.replication, start)
-        n_group = max(1, task.envs_per_rollout - task.envs_per_rollout // 2)
-        chunks_per_batch = -(-task.ppo.batch_steps // (task.chunk_steps * max(1, task.envs_per_rollout // 2)))
+        groups = env_group_sizes(task.envs_per_rollout)  # a chunk holds one env group's columns
+        chunks_per_batch = -(-task.ppo.batch_steps // (task.chunk_steps * min(groups)))
         self.slots = SlotPool(
-            n_slots=3 * chunks_per_batch + 8, T=task.chunk_steps, n_max=n_group,
+            n_slots=3 * chunks_per_batch + 8, T=task.chunk_steps, n_max=max(groups),
             obs_spec=self.obs_spec, act_dim=self.act_dim, pin=self.device.type == "cuda",
         )
         self.policy_version = start
@@ -84,12 +83,12 @@ class Actor:
 
     # -- wiring -------------------------------------------------------------------------------
     def build(self, sl: Swimlane) -> None:
-        f, keys, ppo = self.fabric, self.fabric.keys, self.cfg.task.ppo
+        f, ppo = self.fabric, self.cfg.task.ppo
         self.inbox = f.subscribe_traj(maxsize=INBOX, expect=TrajectoryChunk)  # rollouts -> ingest
         self.filled = sl.queue("filled", self.slots.n_slots)  # ingest -> batch: slot ids
-        self.batches = sl.queue("batches", 1)  # batch -> learn: one stacked batch
+        self.batches = sl.queue("batches", 1)  # batch -> learn: one stacked Trajectories
         self.versions = sl.queue("versions", 2)  # learn -> publish: flat weights per version
-        f.serve(keys.snapshot(self.cfg.name), self.publisher.serve_snapshot)  # catch-up for children
+        self.publisher.serve()  # catch-up for children: the published version
         self.max_lag = ppo.max_policy_lag
         sl.lane("ingest", self._ingest)
         sl.lane("batch", self._batch)
@@ -188,7 +187,7 @@ class Actor:
                 held, steps = [], 0
                 if not keep:
                     continue
-                batch = self.slots.stack(keep, self.device)
+                batch = Trajectories.of(self.slots.stack(keep, self.device))
                 for s in keep:
                     self.fabric.accounting.add(DATA, "consumed", self.slots.rollout(s))
                     self.receipts.release(s, "consumed")
@@ -205,16 +204,19 @@ class Actor:
             self.slots.release(s)
 
     def _learn(self, ctx: LaneContext) -> None:
-        ppo = self.cfg.task.ppo
+        task = self.cfg.task
         while ctx.running:
             batch = self.batches.get(ctx.stop, stats=ctx.stats)
             if batch is None:
                 return
             with ctx.busy():
                 t0 = time.perf_counter()
-                data = self._advantages(batch, ppo)
+                if task.algorithm == "grpo":
+                    data = grpo_batch(batch, task)
+                else:
+                    data = gae_batch(self.policy, batch, task.ppo)
                 stats = self.learner.update(data)
-                self.env_steps += int(batch["steps"])
+                self.env_steps += batch.steps
                 self.policy_version += 1
                 stats["learn_s"] = time.perf_counter() - t0
                 self.learn_stats = {k: float(v) for k, v in stats.items()}
@@ -223,58 +225,6 @@ class Actor:
                     flatten(self.policy.state_dict(), self.layout, out=flat)
             self.versions.put(flat, ctx.stop, stats=ctx.stats)
             ctx.count()
-
-    def _advantages(self, b: dict[str, Any], ppo: Any) -> dict[str, Any]:
-        """Values of the current critic and GAE over [T, N] (N = envs of every slot stacked)."""
-        T, N = b["rewards"].shape
-        obs = _policy_obs(b["obs"], 2)
-        if self.cfg.task.algorithm == "grpo":
-            return self._grpo_advantages(b, obs, ppo)
-        ended = b["terminated"] | b["truncated"]
-        with torch.no_grad():
-            values = self.policy.value(obs).reshape(T, N)
-            # V(final_obs) only where an episode ended (elsewhere final_obs is zeros)
-            final_v = torch.zeros_like(values)
-            rows = ended.reshape(-1).nonzero().squeeze(1)
-            if rows.numel():
-                final = _policy_obs(b["final_obs"], 2)
-                final = {k: v[rows] for k, v in final.items()} if isinstance(final, dict) else final[rows]
-                final_v.view(-1)[rows] = self.policy.value(final)
-            last_v = self.policy.value(_policy_obs(b["next_obs"], 1)).reshape(N)
-        next_values = torch.empty_like(values)
-        next_values[:-1] = values[1:]
-        next_values[-1] = last_v
-        next_values = torch.where(ended, final_v, next_values)
-        no_bootstrap = torch.zeros_like(b["terminated"]) if ppo.terminal_bootstrap else b["terminated"]
-        adv, ret = compute_gae(
-            b["rewards"] * ppo.reward_scale, values, next_values, no_bootstrap, ended, ppo.gamma, ppo.gae_lambda
-        )
-        return {
-            "obs": obs,
-            "actions": b["actions"].reshape(T * N, -1),
-            "logprobs": b["logprobs"].reshape(T * N),
-            "advantages": adv.reshape(T * N),
-            "returns": ret.reshape(T * N),
-            "values": values.reshape(T * N),
-        }
-
-    def _grpo_advantages(self, b: dict[str, Any], obs: Any, ppo: Any) -> dict[str, Any]:
-        """GRPO: each column is one whole episode, G adjacent columns one group (dvla/learn/grpo.py).
-
-        No critic: the value head is trained towards 0 (returns = 0), which costs little and keeps
-        the batch format of PPO.
-        """
-        T, N = b["rewards"].shape
-        adv = task_advantages(self.cfg.task, b["rewards"] * ppo.reward_scale, b["terminated"], b["truncated"])
-        zeros = torch.zeros(T * N, device=adv.device)
-        return {
-            "obs": obs,
-            "actions": b["actions"].reshape(T * N, -1),
-            "logprobs": b["logprobs"].reshape(T * N),
-            "advantages": adv.reshape(T * N),
-            "returns": zeros,
-            "values": zeros,
-        }
 
     def _publish(self, ctx: LaneContext) -> None:
         every = 10  # checkpoint cadence (versions); the first version is checkpointed too
@@ -398,13 +348,6 @@ class Receipts:
     def close(self) -> None:
         self._write(clean=True)
         self.file.close()
-
-
-def _policy_obs(obs: dict[str, torch.Tensor], lead: int) -> Any:
-    """Stacked observations as the policy takes them: the ``lead`` leading axes ([T, N] or [N])
-    merged into one; the bare tensor for flat observations, the dict for structured ones."""
-    flat = {k: v.reshape(-1, *v.shape[lead:]) for k, v in obs.items()}
-    return flat["state"] if set(flat) == {"state"} else flat
 
 
 if __name__ == "__main__":

@@ -15,7 +15,6 @@ import time
 from typing import Any
 
 import numpy as np
-import torch
 
 from ..config import RoleConfig
 from ..fabric import Fabric
@@ -39,7 +38,9 @@ class Evaluator:
         self.layout = ParamLayout.from_state_dict(self.policy.state_dict())
         self.policy_version = -1
         self.env_steps = 0
-        self.latest: tuple[int, np.ndarray] | None = None
+        #: sync -> eval: the newest verified version (a copy) and its number; replaced, not queued
+        self._latest = np.empty(0, np.float32)
+        self._latest_version = -1
         self._lock = threading.Lock()
         self._new = threading.Event()
         self.results: list[dict[str, float]] = []
@@ -53,7 +54,7 @@ class Evaluator:
 
     def _on_version(self, version: int, flat: np.ndarray) -> None:
         with self._lock:
-            self.latest = (version, flat.copy())
+            self._latest, self._latest_version = flat.copy(), version
         self._new.set()
 
     def _sync(self, ctx: LaneContext) -> None:
@@ -68,7 +69,7 @@ class Evaluator:
                 if not self._new.wait(0.1):
                     continue
             with self._lock:
-                version, flat = self.latest  # type: ignore[misc]
+                version, flat = self._latest_version, self._latest
                 self._new.clear()
             if version < evaluated + every:
                 continue

@@ -15,22 +15,29 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from ..config import RoleConfig
 from ..fabric import Fabric
-from ..fabric.codec import encode
-from ..fabric.messages import WeightChunk, WeightManifest, WeightSnapshot
+from ..fabric.messages import WeightChunk, WeightManifest
 from ..learn import make_policy
-from ..learn.dims import probe_dims
-from ..replication import ParamLayout, checksum
+from ..learn.envs import probe_spec
+from ..replication import ParamLayout, Snapshot
 from .runtime import main
 from .swimlane import LaneContext, Swimlane
-from .weightsync import WeightSync, snapshot_reply
+from .weightsync import WeightSync, serve_snapshots
 
 log = logging.getLogger("dvla.replicator")
+
+
+class Forward(NamedTuple):
+    """recv -> forward: one signed weight message to send on to the children."""
+
+    version: int
+    envelope: bytes
+    received_ns: int
 
 
 class Replicator:
@@ -38,17 +45,16 @@ class Replicator:
         self.cfg = cfg
         self.fabric = fabric
         if layout is None:  # the task's policy defines it (as on the actor and the rollouts)
-            obs_dim, act_dim = probe_dims(cfg.task)
-            policy = make_policy(cfg.task.policy, obs_dim, act_dim, **cfg.task.policy_kwargs)
+            obs_spec, act_dim = probe_spec(cfg.task)
+            policy = make_policy(cfg.task.policy, obs_spec, act_dim, **cfg.task.policy_kwargs)
             layout = ParamLayout.from_state_dict(policy.state_dict())
         self.layout = layout
         self.policy_version = -1
         self.env_steps = 0
         self.forwarded = 0
         self.bytes_forwarded = 0
+        #: held while the verified version below changes, so a snapshot never mixes two
         self._snap_lock = threading.Lock()
-        self._snapshot: bytes | None = None
-        self._snap_version = -1
         self._flat: np.ndarray | None = None
         #: checksum of the newest verified weights (status: replicas compared with the actor's)
         self.held_checksum = ""
@@ -56,12 +62,14 @@ class Replicator:
         self.timing: dict[int, dict[str, Any]] = {}
 
     def build(self, sl: Swimlane) -> None:
-        f, keys = self.fabric, self.fabric.keys
-        self.outbox = sl.queue("forward", 256)  # recv -> forward: envelopes to send on
+        f = self.fabric
+        self.outbox = sl.queue("forward", 256)  # recv -> forward: Forward (signed envelopes)
         self.weights = WeightSync(  # parent -> recv (ancestors as fallback)
             f, self.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version, on_message=self._cut_through
         )
-        f.serve(keys.snapshot(self.cfg.name), self._serve_snapshot)  # children's catch-up
+        serve_snapshots(  # children's catch-up: the verified active version
+            f, self.cfg.name, self.layout.hash, self._snap_lock, lambda: self.policy_version, self._held_snapshot
+        )
         self._stop = sl.stop_event
         sl.lane("recv", self._recv)
         sl.lane("forward", self._forward)
@@ -70,15 +78,16 @@ class Replicator:
         # Forwarded as received: the actor signed it for every hop (keys.weights_signed()), so
         # the relay neither re-encodes nor re-signs, and its children verify the actor's tag.
         if isinstance(msg, (WeightManifest, WeightChunk)):
-            self.outbox.put((msg.version, envelope, time.time_ns()), self._stop)
+            self.outbox.put(Forward(msg.version, envelope, time.time_ns()), self._stop)
 
     def _on_version(self, version: int, flat: np.ndarray) -> None:
         with self._snap_lock:
             self._flat = flat
-            self._snap_version = version
-            self._snapshot = None
             self.held_checksum = self.weights.decoder.checksum
-        self.policy_version = version
+            self.policy_version = version
+
+    def _held_snapshot(self) -> Snapshot:
+        return Snapshot(self.policy_version, self._flat.tobytes(), self.held_checksum)
 
     def _recv(self, ctx: LaneContext) -> None:
         while ctx.running:
@@ -90,11 +99,10 @@ class Replicator:
             item = self.outbox.get(ctx.stop, stats=ctx.stats)
             if item is None:
                 return
-            version, envelope, received_ns = item
             with ctx.busy():
-                self.bytes_forwarded += self.fabric.publish_sealed(key, envelope, weights=True)
+                self.bytes_forwarded += self.fabric.publish_sealed(key, item.envelope, weights=True)
                 self.forwarded += 1
-                self._timing(version, received_ns, time.time_ns())
+                self._timing(item.version, item.received_ns, time.time_ns())
             ctx.count()
 
     def _timing(self, version: int, received_ns: int, sent_ns: int) -> None:
@@ -107,22 +115,6 @@ class Replicator:
                 self.timing.pop(min(self.timing))
         t["last_in_ns"], t["last_out_ns"] = received_ns, sent_ns
         t["max_lag_ms"] = max(t["max_lag_ms"], (sent_ns - received_ns) / 1e6)
-
-    def _serve_snapshot(self, req: Any) -> Any:
-        with self._snap_lock:
-            version = self._snap_version if self._flat is not None else -1
-            return snapshot_reply(self.cfg.name, req, version, self.layout.hash, self._encoded_snapshot)
-
-    def _encoded_snapshot(self) -> bytes:
-        """The verified active version, encoded once per version (called under the lock)."""
-        if self._snapshot is None:
-            assert self._flat is not None
-            snap = WeightSnapshot(
-                sender=self.cfg.name, version=self._snap_version, layout_hash=self.layout.hash,
-                checksum=checksum(self._flat), data=self._flat.tobytes(), created_ns=time.time_ns(),
-            )
-            self._snapshot = encode(snap)
-        return self._snapshot
 
     def status_extra(self) -> dict[str, Any]:
         return {

@@ -22,12 +22,12 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 
-from ..config import RoleConfig
+from ..config import RoleConfig, env_group_sizes
 from ..fabric import Fabric, WireBuffer
 from ..learn import EnvGroup, make_policy
 from ..learn.policies import sample_actions
@@ -45,6 +45,16 @@ log = logging.getLogger("dvla.rollout")
 #: finished chunks waiting for the ship lane (with the one being shipped, what a killed rollout
 #: can take with it)
 SHIP_QUEUE = 8
+
+
+class Actions(NamedTuple):
+    """infer -> sim: what the policy chose for one env group's observations."""
+
+    gid: int
+    actions: np.ndarray
+    logprobs: np.ndarray
+    #: the policy version that chose them
+    version: int
 
 
 @dataclass
@@ -139,16 +149,13 @@ class Rollout:
         self.fabric = fabric
         task = cfg.task
         self.device = torch.device("cpu")  # inference of small policies stays on the host CPU
-        # torch.distributions re-validates its arguments on every call: for a batch of a few
-        # observations that is a third of an inference (measured with the mlp policy), and the
-        # infer lane's CPU comes straight out of the simulators' share.
+        # torch.distributions re-validates its arguments on every call, a large share of an
+        # inference on a batch of a few observations; the infer lane's CPU comes straight out
+        # of the simulators' share.
         torch.distributions.Distribution.set_default_validate_args(False)
-        n = task.envs_per_rollout
-        n_a = max(1, n // 2) if n >= 2 else 1
-        sizes = [n_a, n - n_a] if n >= 2 else [n]
         self.groups: list[_Group] = []
         seed = cfg.seed * 10_000
-        for gid, size in enumerate(sizes):
+        for gid, size in enumerate(env_group_sizes(task.envs_per_rollout)):
             envs = EnvGroup(task, size, seed + gid * 1000, **grpo_envs(task))
             self.groups.append(_Group(gid, envs, envs.reset()))
         g0 = self.groups[0].envs
@@ -195,7 +202,7 @@ class Rollout:
     # -- wiring -------------------------------------------------------------------------------
     def build(self, sl: Swimlane) -> None:
         self.to_infer = sl.queue("obs", len(self.groups))  # group ids whose obs await actions
-        self.to_sim = sl.queue("actions", len(self.groups))  # (group id, actions, logprobs)
+        self.to_sim = sl.queue("actions", len(self.groups))  # Actions for a group
         self.to_ship = sl.queue("chunks", SHIP_QUEUE)  # (pool, sealed wire buffer) of finished chunks
         self._count()
         self.weights = WeightSync(  # verified versions from the parent (ancestors as fallback)
@@ -236,8 +243,8 @@ class Rollout:
             self.to_sim.put(item, ctx.stop, stats=ctx.stats)
             ctx.count()
 
-    def _act(self, gid: int) -> tuple[int, np.ndarray, np.ndarray, int]:
-        """Swap in pending weights, then (group id, actions, log-probs, version) for a group."""
+    def _act(self, gid: int) -> Actions:
+        """Swap in pending weights, then the actions of group ``gid`` for its observations."""
         seq0 = self.pool.stage_seq
         swapped = self.pool.maybe_swap()
         g = self.groups[gid]
@@ -254,7 +261,7 @@ class Rollout:
         self.infer_ms.append(ms)
         if len(self.infer_ms) > 2048:
             del self.infer_ms[:1024]
-        return gid, action.numpy(), logprob.numpy(), self.pool.active_version
+        return Actions(gid, action.numpy(), logprob.numpy(), self.pool.active_version)
 
     def _sim_inline(self, ctx: LaneContext) -> None:
         """``rollout_infer: inline``: act and step each group in turn on this one thread."""
@@ -262,8 +269,8 @@ class Rollout:
         while ctx.running:
             for g in self.groups:
                 with ctx.busy():
-                    _gid, actions, logprobs, version = self._act(g.gid)
-                    self._record_step(g, actions, logprobs, version)
+                    a = self._act(g.gid)
+                    self._record_step(g, a.actions, a.logprobs, a.version)
                     ctx.count(g.envs.n)
                 if g.t == self.T:
                     self._finish_chunk(g, ctx)
@@ -274,20 +281,19 @@ class Rollout:
         for g in self.groups:
             self.to_infer.put(g.gid, ctx.stop, stats=ctx.stats)
         while ctx.running:
-            item = self.to_sim.get(ctx.stop, stats=ctx.stats)
-            if item is None:
+            a = self.to_sim.get(ctx.stop, stats=ctx.stats)
+            if a is None:
                 return
-            gid, actions, logprobs, version = item
-            g = self.groups[gid]
-            if version < self._lockstep_version:  # sync mode: acted on before the new weights
-                self.to_infer.put(gid, ctx.stop, stats=ctx.stats)
+            g = self.groups[a.gid]
+            if a.version < self._lockstep_version:  # sync mode: acted on before the new weights
+                self.to_infer.put(a.gid, ctx.stop, stats=ctx.stats)
                 continue
             with ctx.busy():
-                self._record_step(g, actions, logprobs, version)
+                self._record_step(g, a.actions, a.logprobs, a.version)
                 ctx.count(g.envs.n)
             if g.t == self.T:
                 self._finish_chunk(g, ctx)
-            self.to_infer.put(gid, ctx.stop, stats=ctx.stats)
+            self.to_infer.put(a.gid, ctx.stop, stats=ctx.stats)
 
     def _sim_random(self, ctx: LaneContext) -> None:
         """sim_only mode: step every group with uniform random actions; nothing leaves the process."""
@@ -437,10 +443,6 @@ class Rollout:
         self.counters.close()
         for g in self.groups:
             g.envs.close()
-
-
-def run(cfg: RoleConfig, fabric: Fabric) -> Rollout:
-    return Rollout(cfg, fabric)
 
 
 if __name__ == "__main__":

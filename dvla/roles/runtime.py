@@ -175,7 +175,7 @@ class RoleHost:
 def _lane_floats(stats: dict[str, dict[str, Any]]) -> dict[str, dict[str, float]]:
     """Lane stats as the float map RoleStatus carries (booleans become 0/1)."""
     return {
-        lane: {k: float(v) for k, v in st.items() if isinstance(v, (int, float)) and v is not None}
+        lane: {k: float(v) for k, v in st.items() if isinstance(v, (int, float))}
         for lane, st in stats.items()
     }
 

@@ -8,7 +8,7 @@ is set. This module owns:
   status snapshot with a sliding-window throughput and utilisation;
 * :class:`BoundedQueue` -- the only queue lanes hand work over with: always bounded, every
   blocking wait ends promptly when the stop event is set, and wait time is charged to the
-  calling lane;
+  calling lane (items are typed records, never positional tuples);
 * :class:`Swimlane` and :class:`LaneContext` -- starting, stopping and joining the lanes of one
   role, with fail-fast error handling: an exception in any lane is logged, kept as
   :attr:`Swimlane.error` and stops every lane, so a role never limps on with a dead thread;
@@ -16,25 +16,23 @@ is set. This module owns:
   apart by a label (e.g. whether a weight swap touched the batch); a reader diffs two readings
   to get percentiles over exactly the window between them;
 * :func:`pin_cpus` and :func:`set_torch_threads` -- process placement helpers, because torch
-  intra-op threads oversubscribing the cores a role shares with its lanes cost ~30% throughput.
+  intra-op threads oversubscribing the cores a role shares with its lanes cost throughput.
 """
 
 from __future__ import annotations
 
 import collections
-import ctypes
+import contextlib
 import logging
 import math
 import os
-import sys
+import queue
 import threading
 import time
 import traceback
 from collections.abc import Callable, Iterable
 from types import TracebackType
-from typing import Any, Generic, TypeVar
-
-from ..fabric.tokenqueue import TokenQueue
+from typing import Any, ContextManager, Generic, TypeVar
 
 __all__ = [
     "BoundedQueue",
@@ -69,49 +67,20 @@ _SAMPLES_PER_WINDOW = 20
 # --------------------------------------------------------------------------------------------
 
 
-class _BusySection:
-    """Reusable ``with`` block marking its lane busy (a class, not a generator: hot path)."""
+class _Section:
+    """A reusable ``with`` block calling ``enter`` and ``exit`` (a class, not a generator: lanes
+    enter one per item)."""
 
-    __slots__ = ("_stats",)
+    __slots__ = ("_enter", "_exit")
 
-    def __init__(self, stats: LaneStats) -> None:
-        self._stats = stats
-
-    def __enter__(self) -> None:
-        self._stats._enter_busy()
-
-    def __exit__(self, *exc: object) -> None:
-        self._stats._exit_busy()
-
-
-class _WaitSection:
-    """Reusable ``with`` block marking its lane as waiting (on a queue, a peer, a clock)."""
-
-    __slots__ = ("_stats",)
-
-    def __init__(self, stats: LaneStats) -> None:
-        self._stats = stats
+    def __init__(self, enter: Callable[[], None], exit: Callable[[], None]) -> None:
+        self._enter, self._exit = enter, exit
 
     def __enter__(self) -> None:
-        self._stats._enter_wait()
+        self._enter()
 
     def __exit__(self, *exc: object) -> None:
-        self._stats._exit_wait()
-
-
-class _NoSection:
-    """Stand-in section when there is no lane to charge a wait to."""
-
-    __slots__ = ()
-
-    def __enter__(self) -> None:
-        return None
-
-    def __exit__(self, *exc: object) -> None:
-        return None
-
-
-_NO_SECTION = _NoSection()
+        self._exit()
 
 
 class LaneStats:
@@ -150,16 +119,16 @@ class LaneStats:
         )
         self._last_sample_t = self._started
         self._samples_lock = threading.Lock()
-        self._busy_cm = _BusySection(self)
-        self._wait_cm = _WaitSection(self)
+        self._busy_cm = _Section(self._enter_busy, self._exit_busy)
+        self._wait_cm = _Section(self._enter_wait, self._exit_wait)
 
     # -- recording (lane thread) -------------------------------------------------------------
 
-    def busy(self) -> _BusySection:
+    def busy(self) -> _Section:
         """``with stats.busy():`` around real work."""
         return self._busy_cm
 
-    def waiting(self) -> _WaitSection:
+    def waiting(self) -> _Section:
         """``with stats.waiting():`` around blocking on a queue, a peer or a timer."""
         return self._wait_cm
 
@@ -281,8 +250,7 @@ def _fraction(part: float, whole: float) -> float:
 
 
 class BoundedQueue(Generic[T]):
-    """A bounded FIFO (a :class:`~dvla.fabric.tokenqueue.TokenQueue`: no Python-level locking
-    per hand-off) with stop-aware, accounted waits.
+    """A bounded FIFO with stop-aware, accounted waits.
 
     ``put``/``get`` block in :data:`WAIT_SLICE_S` slices and give up as soon as the stop event is
     set, so a lane blocked on a queue always exits. Blocking time is charged to the calling
@@ -290,115 +258,71 @@ class BoundedQueue(Generic[T]):
     not a valid item: it is what ``get`` returns when it was stopped or timed out.
     """
 
-    def __init__(self, maxsize: int, name: str = "", *, wait_slice_s: float = WAIT_SLICE_S) -> None:
+    def __init__(self, maxsize: int, name: str = "") -> None:
         if not isinstance(maxsize, int) or maxsize < 1:
             raise ValueError(f"BoundedQueue {name!r}: maxsize must be an int >= 1, got {maxsize!r}")
-        if wait_slice_s <= 0:
-            raise ValueError(f"wait_slice_s must be > 0, got {wait_slice_s}")
         self.name = name
-        self._q: TokenQueue[T] = TokenQueue(maxsize)
-        self._slice = wait_slice_s
-        self.high_watermark = 0
-        self.dropped = 0
-
-    @property
-    def maxsize(self) -> int:
-        """Capacity in items."""
-        return self._q.maxsize
+        self.maxsize = maxsize
+        self._q: queue.Queue[T] = queue.Queue(maxsize)
 
     @property
     def depth(self) -> int:
         """Items queued right now."""
         return self._q.qsize()
 
-    def __len__(self) -> int:
-        return self._q.qsize()
-
-    def _note_depth(self) -> None:
-        depth = self._q.qsize()
-        if depth > self.high_watermark:
-            self.high_watermark = depth
-
     def put(
-        self,
-        item: T,
-        stop: threading.Event,
-        *,
-        timeout: float | None = None,
-        stats: LaneStats | None = None,
+        self, item: T, stop: threading.Event, *, timeout: float | None = None, stats: LaneStats | None = None
     ) -> bool:
         """Enqueue ``item``, waiting while full; False if ``stop`` was set or ``timeout`` passed."""
         if item is None:
             raise ValueError(f"BoundedQueue {self.name!r}: None is reserved as the stop result")
         if stop.is_set():
             return False
-        if not self._q.put(item):
-            return self._put_blocking(item, stop, timeout, stats)
-        self._note_depth()
-        return True
-
-    def _put_blocking(
-        self, item: T, stop: threading.Event, timeout: float | None, stats: LaneStats | None
-    ) -> bool:
+        try:
+            self._q.put_nowait(item)
+            return True
+        except queue.Full:
+            pass
         deadline = None if timeout is None else time.monotonic() + timeout
         with _wait_section(stats):
             while not stop.is_set():
-                wait = _slice_until(self._slice, deadline)
+                wait = _slice_until(WAIT_SLICE_S, deadline)
                 if wait <= 0:
                     return False
-                if not self._q.put(item, timeout=wait):
-                    continue
-                self._note_depth()
-                return True
+                try:
+                    self._q.put(item, timeout=wait)
+                    return True
+                except queue.Full:
+                    pass
         return False
 
-    def put_nowait_or_drop(self, item: T) -> bool:
-        """Enqueue without waiting; when full, count a drop and return False."""
-        if item is None:
-            raise ValueError(f"BoundedQueue {self.name!r}: None is reserved as the stop result")
-        if not self._q.put(item):
-            self.dropped += 1
-            return False
-        self._note_depth()
-        return True
-
     def get(
-        self,
-        stop: threading.Event,
-        *,
-        timeout: float | None = None,
-        stats: LaneStats | None = None,
+        self, stop: threading.Event, *, timeout: float | None = None, stats: LaneStats | None = None
     ) -> T | None:
         """Dequeue an item, waiting while empty; None if ``stop`` was set or ``timeout`` passed."""
         if stop.is_set():
             return None
-        item = self._q.get()
+        item = self.get_nowait()
         if item is not None:
             return item
         deadline = None if timeout is None else time.monotonic() + timeout
         with _wait_section(stats):
             while not stop.is_set():
-                wait = _slice_until(self._slice, deadline)
+                wait = _slice_until(WAIT_SLICE_S, deadline)
                 if wait <= 0:
                     return None
-                item = self._q.get(timeout=wait)
-                if item is not None:
-                    return item
+                try:
+                    return self._q.get(timeout=wait)
+                except queue.Empty:
+                    pass
         return None
 
     def get_nowait(self) -> T | None:
         """Dequeue an item if one is ready, else None (for draining on shutdown)."""
-        return self._q.get()
-
-    def status(self) -> dict[str, Any]:
-        """Depth, capacity, high watermark and drop count, for the role's status report."""
-        return {
-            "name": self.name,
-            "depth": self.depth,
-            "maxsize": self.maxsize,
-            "high_watermark": self.high_watermark,
-            "dropped": self.dropped,
-        }
+        try:
+            return self._q.get_nowait()
+        except queue.Empty:
+            return None
 
 
 def _slice_until(slice_s: float, deadline: float | None) -> float:
@@ -408,12 +332,12 @@ def _slice_until(slice_s: float, deadline: float | None) -> float:
     return min(slice_s, deadline - time.monotonic())
 
 
-def _wait_section(stats: LaneStats | None) -> _WaitSection | _NoSection:
+def _wait_section(stats: LaneStats | None) -> ContextManager[None]:
     """The waiting section to charge: explicit stats, else the current lane's, else none."""
     if stats is None:
         ctx = current_lane()
         stats = ctx.stats if ctx is not None else None
-    return stats.waiting() if stats is not None else _NO_SECTION
+    return stats.waiting() if stats is not None else contextlib.nullcontext()
 
 
 # --------------------------------------------------------------------------------------------
@@ -453,11 +377,11 @@ class LaneContext:
         """True until the role is stopping; lane loops are ``while ctx.running:``."""
         return not self.stop.is_set()
 
-    def busy(self) -> _BusySection:
+    def busy(self) -> _Section:
         """``with ctx.busy():`` around real work."""
         return self.stats.busy()
 
-    def waiting(self) -> _WaitSection:
+    def waiting(self) -> _Section:
         """``with ctx.waiting():`` around blocking that is not a :class:`BoundedQueue` call."""
         return self.stats.waiting()
 
@@ -495,6 +419,15 @@ class _Lane:
         #: CPU seconds the thread had used when it ended (its clock is gone with it)
         self.cpu_s_final: float | None = None
 
+    def cpu_s(self) -> float | None:
+        """CPU seconds of the lane's thread so far (None where the OS cannot tell)."""
+        if self.cpu_s_final is None and self.cpu_clock is not None:
+            try:
+                return time.clock_gettime(self.cpu_clock)
+            except OSError:  # the thread ended between the check and the read
+                pass
+        return self.cpu_s_final
+
 
 class Swimlane:
     """The lanes of one role: register, start, wait, stop, join; fail fast on any lane error.
@@ -515,7 +448,6 @@ class Swimlane:
         self.error: LaneError | None = None
         self._window_s = window_s
         self._lanes: dict[str, _Lane] = {}
-        self._queues: dict[str, BoundedQueue[Any]] = {}
         self._error_lock = threading.Lock()
         self._started = False
 
@@ -536,12 +468,8 @@ class Swimlane:
         return ctx
 
     def queue(self, name: str, maxsize: int) -> BoundedQueue[Any]:
-        """Create a :class:`BoundedQueue` reported in :meth:`status`."""
-        if name in self._queues:
-            raise ValueError(f"swimlane {self.role!r}: queue {name!r} already exists")
-        q: BoundedQueue[Any] = BoundedQueue(maxsize, name)
-        self._queues[name] = q
-        return q
+        """A :class:`BoundedQueue` for a hand-off between two of this role's lanes."""
+        return BoundedQueue(maxsize, f"{self.role}/{name}")
 
     def pin(self, lane_cpus: dict[str, Iterable[int]]) -> None:
         """Pin lanes to cores of their own (``{"sim": [0]}``); each lane's thread applies its
@@ -591,7 +519,8 @@ class Swimlane:
         ctx = lane.ctx
         _local.lane = ctx
         _name_os_thread(ctx.name)
-        lane.cpu_clock = _thread_cpu_clock()
+        getclock = getattr(time, "pthread_getcpuclockid", None)  # readable from any thread
+        lane.cpu_clock = getclock(threading.get_ident()) if getclock else None
         try:
             if lane.cpus is not None:
                 pin_cpus(lane.cpus)
@@ -686,22 +615,11 @@ class Swimlane:
         for name, lane in self._lanes.items():
             snap: dict[str, Any] = dict(lane.ctx.stats.snapshot())
             snap["alive"] = lane.thread is not None and lane.thread.is_alive()
-            cpu = _lane_cpu_s(lane)
+            cpu = lane.cpu_s()
             if cpu is not None:
                 snap["cpu_s"] = cpu
             out[name] = snap
         return out
-
-    def status(self) -> dict[str, Any]:
-        """Role state, first error, lane stats and queue status in one dict."""
-        return {
-            "role": self.role,
-            "state": self.state,
-            "error": str(self.error) if self.error is not None else None,
-            "lanes": self.stats(),
-            "queues": {name: q.status() for name, q in self._queues.items()},
-        }
-
 
 # --------------------------------------------------------------------------------------------
 # Labelled latency histograms
@@ -743,10 +661,6 @@ class LatencyHistogram:
             raise ValueError("LatencyHistogram needs at least one label")
         self._lock = threading.Lock()
 
-    @property
-    def labels(self) -> tuple[str, ...]:
-        return tuple(self._counts)
-
     def record(self, label: str, ms: float) -> None:
         """Count one batch of ``label`` that took ``ms`` milliseconds."""
         buckets = self._counts[label]  # KeyError for an undeclared label: a bug, not data
@@ -758,16 +672,6 @@ class LatencyHistogram:
         """``{label: {bucket index as str: count}}`` (str keys: status travels as msgpack maps)."""
         with self._lock:
             return {label: {str(b): n for b, n in sorted(c.items())} for label, c in self._counts.items()}
-
-    def summary(self) -> dict[str, float | int]:
-        """``<label>_n``, ``<label>_p50_ms``, ``<label>_p99_ms`` over everything recorded."""
-        out: dict[str, float | int] = {}
-        for label, c in self.counts().items():
-            out[f"{label}_n"] = sum(c.values())
-            out[f"{label}_p50_ms"] = histogram_percentile(c, 50.0)
-            out[f"{label}_p99_ms"] = histogram_percentile(c, 99.0)
-        return out
-
 
 def histogram_diff(later: dict[str, int], earlier: dict[str, int]) -> dict[str, int]:
     """Counts recorded between two readings of one label's buckets."""
@@ -808,50 +712,14 @@ def histogram_percentile(counts: dict[str, int], q: float) -> float:
 # --------------------------------------------------------------------------------------------
 
 
-def _thread_cpu_clock() -> int | None:
-    """The calling thread's CPU-time clock id, or None where the platform has none."""
-    getter = getattr(time, "pthread_getcpuclockid", None)
-    if getter is None:
-        return None
-    try:
-        return getter(threading.get_ident())
-    except OSError:
-        return None
-
-
-def _lane_cpu_s(lane: _Lane) -> float | None:
-    """CPU seconds of a lane's thread so far (its final figure once it has ended)."""
-    if lane.cpu_s_final is not None:
-        return lane.cpu_s_final
-    if lane.cpu_clock is None:
-        return None
-    try:
-        return time.clock_gettime(lane.cpu_clock)
-    except OSError:  # the thread ended between the check and the read
-        return lane.cpu_s_final
-
-
 def _name_os_thread(lane: str) -> None:
-    """Name the calling thread ``dvla:<lane>`` for the OS (``top -H``, ``ps -L``,
-    ``/proc/<pid>/task/<tid>/comm``; the kernel keeps 15 bytes)."""
-    if _prctl is None:
-        return
+    """Name the calling thread ``dvla:<lane>`` for the OS (``top -H``, ``ps -L``; the kernel keeps
+    15 bytes). Linux only; elsewhere the thread keeps its name."""
     try:
-        _prctl(15, ctypes.c_char_p(f"dvla:{lane}".encode("utf-8", "replace")[:15]), 0, 0, 0)  # PR_SET_NAME
-    except (OSError, ctypes.ArgumentError):
+        with open(f"/proc/self/task/{threading.get_native_id()}/comm", "w") as comm:
+            comm.write(f"dvla:{lane}"[:15])
+    except OSError:
         pass
-
-
-def _load_prctl() -> Any:
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        return ctypes.CDLL(None, use_errno=True).prctl
-    except (OSError, AttributeError):
-        return None
-
-
-_prctl = _load_prctl()
 
 
 def pin_cpus(cpus: Iterable[int]) -> set[int] | None:

@@ -1,6 +1,6 @@
-"""Weights in the replication tree: :class:`WeightPublisher` originates versions at its root (the
-actor's `publish` lane); :class:`WeightSync` receives them from a parent, the `sync`/`recv` lane
-logic shared by rollouts, evaluators and replicators.
+"""Weights in the replication tree: `WeightPublisher` (the actor, the root: encode, send, serve
+snapshots) and `WeightSync` (the `sync`/`recv` lane logic shared by rollouts, evaluators and
+replicators), with the one snapshot queryable both ends serve (`serve_snapshots`).
 
 - Listens on the parent's weights key; assembles each version's chunks into a reusable buffer;
   decodes into the staging pool; verifies layout, base version and checksum; only a verified,
@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
@@ -25,6 +25,7 @@ from ..fabric import Fabric
 from ..fabric.codec import encode
 from ..fabric.messages import SnapshotRequest, WeightChunk, WeightManifest, WeightSnapshot
 from ..replication import (
+    MANIFEST_FIELDS,
     ChecksumMismatch,
     ChunkAssembler,
     EncodedVersion,
@@ -39,6 +40,13 @@ from ..replication import (
 from .swimlane import LaneContext
 
 log = logging.getLogger("dvla.weights")
+
+
+class Fetched(NamedTuple):
+    """What a snapshot fetch brought: the first ancestor that answered, and its reply."""
+
+    parent: str
+    snapshot: WeightSnapshot
 
 
 class WeightSync:
@@ -76,7 +84,8 @@ class WeightSync:
         self._lock = threading.Lock()
         self._want_snapshot = True
         self._fetch: threading.Thread | None = None
-        self._fetch_result: list[tuple[str, Any]] = []
+        #: fetch thread -> lane: the snapshot the finished fetch brought (None: nobody answered)
+        self._fetched: Fetched | None = None
         self._next_fetch = 0.0
         #: how long one snapshot query waits for its reply (a full snapshot of a large model)
         self.fetch_timeout_s = 5.0 + layout.nbytes / 25e6
@@ -200,31 +209,29 @@ class WeightSync:
     # -- catch-up -----------------------------------------------------------------------------
     def _start_fetch(self) -> None:
         order = [self.parent] + [p for p in self.parents if p != self.parent]
-        have = self.version
-        result: list[tuple[str, Any]] = []
+        request = SnapshotRequest(requester=self.fabric.name, have_version=self.version)
+        self._fetched = None
 
         def fetch() -> None:
             # Parent first, then further ancestors; the first one that answers decides.
             for p in order:
                 replies = self.fabric.query(
-                    self.fabric.keys.snapshot(p), SnapshotRequest(requester=self.fabric.name, have_version=have),
-                    expect=WeightSnapshot, timeout=self.fetch_timeout_s,
+                    self.fabric.keys.snapshot(p), request, expect=WeightSnapshot, timeout=self.fetch_timeout_s
                 )
                 if replies:
-                    result.append((p, replies[0][1]))
+                    self._fetched = Fetched(p, replies[0][1])
                     return
 
-        self._fetch_result = result
         self._fetch = threading.Thread(target=fetch, name=f"{self.fabric.name}-catchup", daemon=True)
         self._fetch.start()
 
     def _finish_fetch(self) -> None:
         """Use what the finished fetch brought (on the lane's thread: the decoder is the lane's)."""
         self._fetch = None
-        if not self._fetch_result:
+        if self._fetched is None:
             self._next_fetch = time.monotonic() + 0.5  # nobody answered: try again shortly
             return
-        p, snap = self._fetch_result[0]
+        p, snap = self._fetched.parent, self._fetched.snapshot
         if snap.version < 0:
             # The parent holds nothing yet: the stream's first version is a full one.
             self._want_snapshot = False
@@ -254,16 +261,36 @@ class WeightSync:
         return {"parent": self.parent, "version": self.version, **self.counters}
 
 
-def snapshot_reply(
-    sender: str, request: Any, version: int, layout_hash: str, build: Callable[[], Any]
-) -> Any:
-    """What a ``snapshot`` queryable answers: the full snapshot from ``build()`` only when the
-    requester is behind; otherwise (or when nothing is held yet, ``version`` -1) a header-only
-    reply, so an up-to-date or early requester never costs a full copy of the weights."""
-    have = request.have_version if isinstance(request, SnapshotRequest) else -1
-    if version < 0 or have >= version:
-        return WeightSnapshot(sender=sender, version=max(version, -1), layout_hash=layout_hash, checksum="", data=b"")
-    return build()
+def serve_snapshots(
+    fabric: Fabric, sender: str, layout_hash: str, lock: threading.Lock, held: Callable[[], int],
+    snapshot: Callable[[], Snapshot],
+) -> None:
+    """Declare ``sender``'s ``snapshot`` queryable (children's catch-up and repair).
+
+    ``held()`` is the version the caller holds (-1: none yet) and ``snapshot()`` builds it in
+    full; both are called under ``lock``, which the caller also holds while it changes what they
+    read, so a reply never mixes two versions. A requester that is up to date (or asks before
+    anything is held) gets a header-only reply and never costs a full copy of the weights; the
+    full reply is encoded once per version, however many children ask.
+    """
+    encoded: dict[int, bytes] = {}
+
+    def reply(request: Any) -> Any:
+        have = request.have_version if isinstance(request, SnapshotRequest) else -1
+        with lock:
+            version = held()
+            if version < 0 or have >= version:
+                return WeightSnapshot(sender=sender, version=max(version, -1), layout_hash=layout_hash, checksum="", data=b"")
+            if version not in encoded:
+                snap = snapshot()
+                encoded.clear()
+                encoded[version] = encode(WeightSnapshot(
+                    sender=sender, version=snap.version, layout_hash=layout_hash, checksum=snap.checksum,
+                    data=bytes(snap.payload), created_ns=time.time_ns(),
+                ))
+            return encoded[version]
+
+    fabric.serve(fabric.keys.snapshot(sender), reply)
 
 
 class WeightPublisher:
@@ -279,20 +306,21 @@ class WeightPublisher:
         self.replication = replication
         self.encoder = WeightEncoder.from_config(layout, replication, start_version=start_version)
         self._lock = threading.Lock()  # a snapshot being served never sees a half-encoded version
-        self._snapshot: bytes | None = None
+
+    def serve(self) -> None:
+        """Declare the ``snapshot`` queryable: children's catch-up with the newest version."""
+        serve_snapshots(self.fabric, self.sender, self.layout.hash, self._lock,
+                        lambda: self.encoder.latest, lambda: self.encoder.snapshot())
 
     def renumber(self, start_version: int) -> None:
         """Continue numbering after `start_version` (the next version is a full one)."""
         with self._lock:
             self.encoder = WeightEncoder.from_config(self.layout, self.replication, start_version=start_version)
-            self._snapshot = None
 
     def encode(self, flat: np.ndarray) -> EncodedVersion:
         """Encode the next version from the flat weights; snapshots served from now on are of it."""
         with self._lock:
-            enc = self.encoder.encode(flat)
-            self._snapshot = None  # rebuilt lazily on the next snapshot query
-        return enc
+            return self.encoder.encode(flat)
 
     def send(self, enc: EncodedVersion) -> int:
         """Sign and publish one encoded version: its manifest, then each chunk in order.
@@ -311,27 +339,7 @@ class WeightPublisher:
         with self._lock:
             return self.encoder.checksum
 
-    def serve_snapshot(self, req: Any) -> Any:
-        """The ``snapshot`` queryable's handler: see :func:`snapshot_reply`."""
-        with self._lock:
-            return snapshot_reply(self.sender, req, self.encoder.latest, self.layout.hash, self._encoded_snapshot)
-
-    def _encoded_snapshot(self) -> bytes:
-        """The newest version, encoded once per version (called under the lock)."""
-        if self._snapshot is None:
-            version, payload, checksum = self.encoder.snapshot()
-            snap = WeightSnapshot(
-                sender=self.sender, version=version, layout_hash=self.layout.hash,
-                checksum=checksum, data=bytes(payload), created_ns=time.time_ns(),
-            )
-            self._snapshot = encode(snap)
-        return self._snapshot
-
 
 def manifest_dict(m: WeightManifest) -> dict[str, Any]:
-    """The replication manifest fields of a WeightManifest message."""
-    return {
-        "version": m.version, "base_version": m.base_version, "encoding": m.encoding,
-        "layout_hash": m.layout_hash, "checksum": m.checksum, "n_chunks": m.n_chunks,
-        "total_bytes": m.total_bytes,
-    }
+    """The replication manifest fields of a WeightManifest message (checked by the decoder)."""
+    return {name: getattr(m, name) for name in MANIFEST_FIELDS}

@@ -10,7 +10,8 @@ import torch
 
 from dvla.config import TaskConfig, grpo_layout_problems
 from dvla.learn.envs import EnvGroup
-from dvla.learn.grpo import episode_steps, group_advantages, group_stats, grpo_envs, task_advantages
+from dvla.learn.grpo import episode_steps, group_advantages, group_stats, grpo_batch, grpo_envs
+from dvla.learn.ppo import Trajectories
 from dvla.orchestrator.topology import TopologyError, parse_topology
 
 
@@ -74,7 +75,11 @@ def test_episode_baseline_is_the_default_of_group_advantages_and_the_step_one_of
     task = TaskConfig(algorithm="grpo", group_size=2, grpo_gamma=1.0, grpo_std_floor=0.0)
     assert task.grpo_baseline == "step"
     want = torch.tensor([[0.0, 0.0], [1.0, -1.0], [1.0, -1.0]])
-    torch.testing.assert_close(task_advantages(task, rewards, term, trunc), want)
+    obs = {"state": torch.zeros(3, 2, 1)}
+    b = Trajectories(obs, torch.zeros(3, 2, 1), torch.zeros(3, 2), rewards, term, trunc, obs, {"state": torch.zeros(2, 1)})
+    batch = grpo_batch(b, task)  # what the actor trains on: advantages [T*N], no critic
+    torch.testing.assert_close(batch["advantages"].reshape(3, 2), want)
+    assert (batch["returns"] == 0).all() and (batch["values"] == 0).all() and batch["obs"].shape == (6, 1)
 
 
 def test_step_baseline_uses_the_groups_reward_to_go_at_each_step():

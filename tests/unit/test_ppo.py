@@ -7,8 +7,9 @@ import pytest
 import torch
 
 from dvla.config import PPOConfig
+from dvla.learn.grpo import grpo_advantages
 from dvla.learn.policies import MLPPolicy, Policy, make_policy, register_policy
-from dvla.learn.ppo import PPOLearner, batch_from_chunks, compute_gae, grpo_advantages
+from dvla.learn.ppo import PPOLearner, Trajectories, compute_gae, gae_batch
 
 GAMMA, LAM = 0.5, 0.5
 
@@ -162,9 +163,9 @@ def test_ppo_rejects_bad_batches():
 
 
 @pytest.mark.parametrize("bootstrap_terminated", [False, True])
-def test_batch_from_chunks_matches_manual_gae(bootstrap_terminated):
+def test_gae_batch_of_two_stacked_chunks_matches_manual_gae(bootstrap_terminated):
     torch.manual_seed(0)
-    cfg = PPOConfig(gamma=0.8, gae_lambda=0.9, reward_scale=2.0)
+    cfg = PPOConfig(gamma=0.8, gae_lambda=0.9, reward_scale=2.0, terminal_bootstrap=bootstrap_terminated)
     policy = MLPPolicy(3, 1, hidden=(8,))
     rng = np.random.default_rng(1)
     T, N = 5, 2
@@ -182,7 +183,11 @@ def test_batch_from_chunks_matches_manual_gae(bootstrap_terminated):
     chunk["truncated"][3, 1] = True
     chunk["final_obs"][1, 0] = rng.normal(size=3)
     chunk["final_obs"][3, 1] = rng.normal(size=3)
-    batch = batch_from_chunks(policy, [chunk, chunk], cfg, bootstrap_terminated=bootstrap_terminated)
+    # The same chunk twice, side by side, as the actor's slots stack them: [T, 2N].
+    side = {k: torch.as_tensor(np.concatenate([v, v], axis=0 if k == "next_obs" else 1)) for k, v in chunk.items()}
+    for k in ("obs", "final_obs", "next_obs"):
+        side[k] = {"state": side[k]}
+    batch = gae_batch(policy, Trajectories.of(side), cfg)
     assert batch["obs"].shape == (2 * T * N, 3) and batch["advantages"].shape == (2 * T * N,)
 
     with torch.no_grad():
@@ -195,8 +200,11 @@ def test_batch_from_chunks_matches_manual_gae(bootstrap_terminated):
     # Bootstrapping a termination treats it like a time limit: the episode still ends there.
     term = chunk["terminated"] & (not bootstrap_terminated)
     adv, ret = compute_gae(chunk["rewards"] * 2.0, v, nv, term, end, 0.8, 0.9)
-    np.testing.assert_allclose(batch["advantages"][: T * N].numpy(), adv.reshape(-1), rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(batch["returns"][T * N :].numpy(), ret.reshape(-1), rtol=1e-5, atol=1e-6)
+    both = lambda x: np.concatenate([x, x], axis=1).reshape(-1)  # noqa: E731
+    np.testing.assert_allclose(batch["advantages"].numpy(), both(adv), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(batch["returns"].numpy(), both(ret), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(batch["values"].numpy(), both(v), rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(batch["actions"].numpy(), both(chunk["actions"][..., 0])[:, None])
 
 
 def test_obs_norm_statistics_travel_with_the_state_dict():

@@ -103,7 +103,7 @@ def test_first_error_wins() -> None:
 def test_stop_joins_four_blocked_lanes_quickly() -> None:
     empty: BoundedQueue[int] = BoundedQueue(2, "empty")
     full: BoundedQueue[int] = BoundedQueue(1, "full")
-    full.put_nowait_or_drop(0)
+    assert full.put(0, threading.Event())
     entered = threading.Barrier(5, timeout=2.0)
     thread_names: list[str] = []
 
@@ -249,28 +249,13 @@ def test_queue_stays_bounded_under_fast_producer_slow_consumer() -> None:
     assert sl.wait(timeout=5.0)
     assert sl.join() == [] and sl.error is None
     assert received == list(range(n_items))
-    assert max(depths) <= maxsize
-    assert q.high_watermark == maxsize
-    assert q.dropped == 0
+    assert max(depths) == maxsize  # the producer filled the queue, never beyond
     stats = sl.stats()
     # The producer spent most of the ~0.3 s run blocked on the full queue; the consumer did not.
     assert stats["sim"]["wait_s"] >= 0.15
     assert stats["ship"]["busy_s"] >= n_items * 0.005 * 0.9
     assert stats["ship"]["wait_s"] < stats["sim"]["wait_s"]
     assert stats["ship"]["items"] == n_items
-
-
-def test_put_nowait_or_drop_counts_drops() -> None:
-    q: BoundedQueue[str] = BoundedQueue(2, "status")
-    results = [q.put_nowait_or_drop(f"m{i}") for i in range(5)]
-    assert results == [True, True, False, False, False]
-    assert q.dropped == 3
-    assert q.status() == {
-        "name": "status", "depth": 2, "maxsize": 2, "high_watermark": 2, "dropped": 3,
-    }
-    assert q.get_nowait() == "m0"
-    assert q.put_nowait_or_drop("m5") is True
-    assert q.dropped == 3
 
 
 def test_queue_timeout_and_stop_without_a_lane() -> None:
@@ -314,8 +299,6 @@ def test_queue_rejects_bad_input() -> None:
     q: BoundedQueue[int | None] = BoundedQueue(1)
     with pytest.raises(ValueError):
         q.put(None, threading.Event())
-    with pytest.raises(ValueError):
-        q.put_nowait_or_drop(None)
 
 
 # -- stats --------------------------------------------------------------------------------------
@@ -699,15 +682,13 @@ def test_stop_joins_every_lane_within_two_seconds_under_load() -> None:
     assert sl.stats()["learn"]["items"] > 0
 
 
-def test_swimlane_queues_are_bounded_and_reported() -> None:
+def test_swimlane_queues_are_bounded() -> None:
     sl = Swimlane("rollout")
     q = sl.queue("chunks", 3)
-    with pytest.raises(ValueError):
-        sl.queue("chunks", 3)
-    for i in range(10):
-        q.put_nowait_or_drop(i)
-    st = sl.status()["queues"]["chunks"]
-    assert st == {"name": "chunks", "depth": 3, "maxsize": 3, "high_watermark": 3, "dropped": 7}
+    stop = threading.Event()
+    assert all(q.put(i, stop, timeout=0.01) for i in range(3))
+    assert q.put(3, stop, timeout=0.01) is False
+    assert q.depth == q.maxsize == 3
 
 
 # -- latency histograms -------------------------------------------------------------------------
@@ -740,8 +721,7 @@ def test_latency_histogram_percentiles_and_window_diff() -> None:
     assert histogram_percentile(after["no_swap"], 99) == pytest.approx(100.0, rel=0.021)
     assert histogram_diff(after["swap"], before["swap"]) == {str(latency_bucket(2.0)): 1}
     assert histogram_percentile({}, 99) == 0.0
-    summary = h.summary()
-    assert summary["swap_n"] == 1 and summary["no_swap_n"] == 150
+    assert sum(after["swap"].values()) == 1 and sum(after["no_swap"].values()) == 150
     with pytest.raises(ValueError):
         histogram_diff(before["no_swap"], after["no_swap"])  # counts never go down
     with pytest.raises(KeyError):
