@@ -3,14 +3,11 @@
 Everything runs in one invocation on this machine with Zenoh shared memory off, every role in
 its own process (multiprocessing, spawn) so that the cores are used as in a real run:
 
-* **Throughput** (TCP on loopback). Trajectory chunks through the fabric against raw Zenoh with a
-  payload of exactly the same size; what each side does per message is spelled out in
-  :data:`DOES` and copied into the JSON. Same message count, same endpoints, same callback mode
-  (Zenoh's receive thread); bytes/s from the publisher's first put to the subscriber's last
-  message. The fabric side is measured twice: through `Fabric.on_traj` (the handler runs on the
-  receive thread, as raw's callback does) and through `Fabric.subscribe_traj`'s inbox with a
-  consumer thread (``_inbox`` figures). The kinds' rounds rotate, and each ratio fabric ÷ raw is
-  the median of the per-round ratios, for chunks of about 64 KiB and 1 MiB.
+* **Throughput** (TCP on loopback). Trajectory chunks of about 64 KiB and 1 MiB through the
+  trajectory path as a rollout and an actor use it (what each side does per chunk is spelled
+  out in :data:`DOES` and copied into the JSON): chunks/s and bytes/s from the publisher's
+  first put to the consumer's last chunk, and each side's CPU time per chunk; the median of
+  the rounds.
 * **Ctrl latency.** RTT of a signed status request/reply (`Fabric.query` -> `Fabric.serve`)
   from a tool process, through the sink's ctrl router, to a source process: idle; while the
   source floods its data session with 1 MiB chunks to the sink (the real layout of a rollout
@@ -112,25 +109,11 @@ def make_chunk(name: str, target_bytes: int) -> Any:
     )
 
 
-#: integer fields a rollout changes from chunk to chunk: 64-bit slots in its wire buffers
-WIDE = ("seq", "policy_version", "created_ns")
-
-
-def wire_chunk(target_bytes: int) -> Any:
-    """`make_chunk`'s chunk laid out in a WireBuffer, as a rollout ships it."""
-    from dvla.fabric import WireBuffer
-
-    return WireBuffer(make_chunk(SOURCE, target_bytes), wide=WIDE)
-
-
-def payload_size(kind: str, target_bytes: int) -> int:
-    """Bytes per message of a throughput kind: the encoded chunk for "encode", the wire
-    buffer's bytes for every other kind (raw sends those very bytes)."""
+def payload_size(target_bytes: int) -> int:
+    """Bytes per message: the encoded chunk."""
     from dvla.fabric import encode
 
-    if kind == "encode":
-        return len(encode(make_chunk(SOURCE, target_bytes)))
-    return wire_chunk(target_bytes).nbytes
+    return len(encode(make_chunk(SOURCE, target_bytes)))
 
 
 def _cpu_s() -> float:
@@ -140,7 +123,7 @@ def _cpu_s() -> float:
 
 
 def _direct(callback: Callable[[Any], None]) -> Any:
-    """A subscriber callback run on Zenoh's receive thread, as the fabric's data inbox is."""
+    """A subscriber callback run on Zenoh's receive thread, as the fabric's data inbox's is."""
     import zenoh
 
     try:
@@ -180,188 +163,106 @@ def _open_fabric(name: str, secret: bytes, *, ctrl: Any, data: Any = None, share
 
 
 def _between_rounds_s(phase_timeout_s: float) -> float:
-    """How long a worker waits for its next round: the other kind's round runs in between, and
-    the first round waits for the other pair to start."""
+    """How long a worker waits for its next round (the first waits for the pair to start)."""
     return START_TIMEOUT_S + 2 * phase_timeout_s
 
 
-class _Arrivals:
-    """Counts a subscriber's messages and notes the arrival time of each round's last one."""
-
-    def __init__(self, per_round: int) -> None:
-        self.per_round = per_round
-        self.count = 0
-        self.ends: queue.Queue[float] = queue.Queue()
-
-    def hit(self) -> None:
-        self.count += 1
-        if self.count % self.per_round == 0:
-            self.ends.put(time.monotonic())
-
-
-def _report_rounds(kind: str, arrivals: _Arrivals, rounds: int, ready: Any, out: Any, timeout_s: float,
-                   detail: Callable[[], str] = lambda: "") -> None:
-    """Signal readiness, then report each round's end (time, process CPU) or the shortfall."""
-    out.put(("sub_ready", 0, 0.0, _cpu_s()))
-    ready.set()
-    try:
-        for r in range(rounds):
-            out.put(("sub", r, arrivals.ends.get(timeout=_between_rounds_s(timeout_s)), _cpu_s()))
-    except queue.Empty:
-        out.put(("error", f"{kind} subscriber got {arrivals.count} of {rounds * arrivals.per_round} messages{detail()}"))
-
-
-def _throughput_sub(kind: str, port: int, n: int, rounds: int, secret: bytes, ready: Any, routed: Any,
-                    out: Any, timeout_s: float) -> None:
-    """Receives `rounds` x `n` messages; reports the arrival time of each round's last one."""
-    import zenoh
-
+def _throughput_sub(port: int, n: int, rounds: int, secret: bytes, ready: Any, routed: Any, out: Any,
+                    timeout_s: float) -> None:
+    """Takes `rounds` x `n` chunks from a trajectory inbox; reports when each round's last one
+    was taken, and this process's CPU time by then."""
     from dvla.fabric import TrajectoryChunk, plane_config
 
-    conf = plane_config(mode="peer", listen=[endpoint(port)])
-    arrivals = _Arrivals(n)
-    if kind == "raw":
-        session = zenoh.open(conf)
-
-        def on_sample(sample: Any) -> None:
-            sample.payload.to_bytes()  # what any consumer must do to use the payload
-            arrivals.hit()
-
-        sub = session.declare_subscriber(f"dvla/{RUN}/data/traj/{SOURCE}", _direct(on_sample))
-        probe = _probe_subscriber(session, routed)
-        try:
-            _report_rounds(kind, arrivals, rounds, ready, out, timeout_s)
-        finally:
-            probe.undeclare()
-            sub.undeclare()
-            session.close()
-        return
-    fabric = _open_fabric(SINK, secret, ctrl=plane_config(), data=conf)
+    fabric = _open_fabric(SINK, secret, ctrl=plane_config(), data=plane_config(mode="peer", listen=[endpoint(port)]))
+    ends: queue.Queue[float] = queue.Queue()
     stop = threading.Event()
-    consumer = None
+
+    def consume() -> None:  # as the actor's ingest lane takes chunks
+        count = 0
+        while not stop.is_set():
+            if inbox.get(timeout=0.5) is not None:
+                count += 1
+                if count % n == 0:
+                    ends.put(time.monotonic())
+
     try:
-        if kind in ("fabric", "encode"):
-            fabric.on_traj(TrajectoryChunk, lambda _chunk: arrivals.hit())
-        else:  # "inbox": a consumer thread takes every chunk from the bounded inbox
-            inbox = fabric.subscribe_traj(maxsize=64, expect=TrajectoryChunk)
-
-            def consume() -> None:
-                while not stop.is_set():
-                    if inbox.get(timeout=0.5) is not None:
-                        arrivals.hit()
-
-            consumer = threading.Thread(target=consume, name="consumer")
-            consumer.start()
+        inbox = fabric.subscribe_traj(maxsize=64, expect=TrajectoryChunk)
+        consumer = threading.Thread(target=consume, name="consumer")
+        consumer.start()
         probe = _probe_subscriber(fabric.data, routed)
         try:
-            _report_rounds(kind, arrivals, rounds, ready, out, timeout_s,
-                           lambda: f": {fabric.accounting.snapshot()}")
+            out.put(("sub_ready", 0, 0.0, _cpu_s()))
+            ready.set()
+            for r in range(rounds):
+                out.put(("sub", r, ends.get(timeout=_between_rounds_s(timeout_s)), _cpu_s()))
+        except queue.Empty:
+            out.put(("error", f"the subscriber got fewer than {rounds * n} chunks: {fabric.accounting.snapshot()}"))
         finally:
             probe.undeclare()
-    finally:
-        stop.set()
-        if consumer is not None:
+            stop.set()
             consumer.join()
+    finally:
         fabric.close()
 
 
-def _throughput_pub(kind: str, port: int, n: int, rounds: int, target: int, secret: bytes, routed: Any,
-                    go: Any, out: Any, timeout_s: float) -> None:
-    """Sends `n` messages per round, each round when told; reports when each round started."""
-    import zenoh
+def _throughput_pub(port: int, n: int, rounds: int, target: int, secret: bytes, routed: Any, go: Any, out: Any,
+                    timeout_s: float) -> None:
+    """Sends `n` chunks per round, each round when told; reports when each round started."""
+    import dataclasses
 
     from dvla.fabric import plane_config
 
-    conf = plane_config(mode="peer", connect=[endpoint(port)])
-    if kind == "raw":
-        session = zenoh.open(conf)
-        pub = session.declare_publisher(
-            f"dvla/{RUN}/data/traj/{SOURCE}", congestion_control=zenoh.CongestionControl.BLOCK,
-            priority=zenoh.Priority.DATA,
-        )
-        # The very bytes the fabric side sends (real data, not a zero-filled buffer whose pages
-        # all map the kernel's one zero page), from a prebuilt object: no encoding per message.
-        payload = bytes(wire_chunk(target).buf)
-
-        def send() -> None:
-            pub.put(payload)
-
-        probe_session, close = session, session.close
-    elif kind == "encode":
-        fabric = _open_fabric(SOURCE, secret, ctrl=plane_config(), data=conf)
-        chunk = make_chunk(SOURCE, target)
-
-        def send() -> None:
-            fabric.publish_traj(chunk)
-    else:
-        fabric = _open_fabric(SOURCE, secret, ctrl=plane_config(), data=conf)
-        wb, seq = wire_chunk(target), iter(range(1 << 62))
-
-        def send() -> None:
-            # As a rollout ships a chunk: its arrays were filled in place, step by step.
-            wb.seal(seq=next(seq), policy_version=1, created_ns=time.time_ns())
-            fabric.publish_traj(wb)
-
-    if kind != "raw":
-        probe_session, close = fabric.data, fabric.close
+    fabric = _open_fabric(SOURCE, secret, ctrl=plane_config(), data=plane_config(mode="peer", connect=[endpoint(port)]))
+    chunk = make_chunk(SOURCE, target)
     try:
-        _probe_until_routed(probe_session, routed, timeout_s)
+        _probe_until_routed(fabric.data, routed, timeout_s)
+        seq = 0
         for r in range(rounds):
             if go.get(timeout=_between_rounds_s(timeout_s)) is None:
                 return
             t0, c0 = time.monotonic(), _cpu_s()
             for _ in range(n):
-                send()
+                # as a rollout ships a chunk whose arrays it filled in place
+                fabric.publish_traj(dataclasses.replace(chunk, seq=seq, created_ns=time.time_ns()))
+                seq += 1
             out.put(("pub", r, t0, _cpu_s() - c0))
     finally:
-        close()
+        fabric.close()
 
 
-#: what each side of a throughput round does per message (also written into the JSON)
-DOES = {
-    "raw": ("publisher: Publisher.put of one prebuilt bytes payload (the fabric side's wire chunk), BLOCK "
-            "congestion control, no encoding; subscriber: callback on Zenoh's receive thread copies the payload out as Python bytes "
-            "(ZBytes.to_bytes) and counts it"),
-    "fabric": ("publisher: as a rollout ships a chunk whose arrays it filled in place: WireBuffer.seal (pack and "
-               "range-check seq, policy_version, created_ns) and Fabric.publish_traj of the WireBuffer (BLOCK put of its "
-               "bytes, accounting); subscriber: Fabric.on_traj, on Zenoh's receive thread: copies the "
-               "payload out as Python bytes, accounts, decodes and validates it zero-copy into a TrajectoryChunk and "
-               "calls the handler, which counts it"),
-    "encode": ("publisher: Fabric.publish_traj of a TrajectoryChunk (validate and encode it into the publisher's "
-               "reused buffer, BLOCK put, accounting); subscriber: as for fabric"),
-    "inbox": ("publisher: as for fabric; subscriber: Fabric.subscribe_traj, on Zenoh's receive thread: copies, "
-              "accounts, decodes and validates as for fabric, then hands the chunk to the bounded inbox; a consumer "
-              "thread takes every chunk from the inbox (one thread wake-up per chunk)"),
-}
+#: what each side of a throughput round does per chunk (also written into the JSON)
+DOES = ("publisher: as a rollout ships a chunk: Fabric.publish_traj of a TrajectoryChunk (validate, encode, "
+        "BLOCK put, accounting); subscriber: Fabric.subscribe_traj, on Zenoh's receive thread: copies the payload "
+        "out as Python bytes, accounts, decodes and validates it zero-copy into a TrajectoryChunk and hands it to "
+        "the bounded inbox; a consumer thread takes every chunk from the inbox, as the actor's ingest lane does")
 
 
 class _Pair:
-    """A subscriber and a publisher process of one kind ("raw" or "fabric"), driven round by round."""
+    """A subscriber and a publisher process, driven round by round."""
 
-    def __init__(self, ctx: Any, kind: str, n: int, target: int, cfg: BenchConfig, secret: bytes) -> None:
-        self.kind, self.n, self.size, self.cfg = kind, n, payload_size(kind, target), cfg
+    def __init__(self, ctx: Any, n: int, target: int, cfg: BenchConfig, secret: bytes) -> None:
+        self.n, self.size, self.cfg = n, payload_size(target), cfg
         port = free_port()
         self.ready, self.routed, self.out, self.go = ctx.Event(), ctx.Event(), ctx.Queue(), ctx.Queue()
         t = cfg.phase_timeout_s
-        self.sub = ctx.Process(target=_throughput_sub, args=(kind, port, n, cfg.rounds, secret, self.ready, self.routed, self.out, t))
-        self.pub = ctx.Process(target=_throughput_pub, args=(kind, port, n, cfg.rounds, target, secret, self.routed, self.go, self.out, t))
+        self.sub = ctx.Process(target=_throughput_sub, args=(port, n, cfg.rounds, secret, self.ready, self.routed, self.out, t))
+        self.pub = ctx.Process(target=_throughput_pub, args=(port, n, cfg.rounds, target, secret, self.routed, self.go, self.out, t))
 
     def start(self, pids: list[int]) -> None:
         self.sub.start()
         pids.append(self.sub.pid)
-        _wait_event(self.ready, self.sub, f"{self.kind} subscriber")
+        _wait_event(self.ready, self.sub, "subscriber")
         self.sub_cpu_mark = _collect(self.out, {"sub_ready"}, 5)["sub_ready"][3]  # after its start-up
         self.pub.start()
         pids.append(self.pub.pid)
-        _wait_event(self.routed, self.pub, f"{self.kind} publisher route")
+        _wait_event(self.routed, self.pub, "publisher route")
 
     def round(self, r: int) -> tuple[float, float, float]:
-        """Round `r`: bytes/s from the publisher's first put to the subscriber's last message, and
-        the CPU time per message (µs, all threads, Zenoh's included) of publisher and subscriber."""
+        """Round `r`: bytes/s from the publisher's first put to the consumer's last chunk, and
+        the CPU time per chunk (µs, all threads, Zenoh's included) of publisher and subscriber."""
         self.go.put(r)
         got = _collect(self.out, {"sub", "pub"}, self.cfg.phase_timeout_s + 5)
-        # The subscriber's CPU between the ends of two of its rounds: it idles (~0 CPU) while
-        # the other kind's round runs, so this is the CPU its round took.
+        # The subscriber's CPU between the ends of two of its rounds: it idles in between.
         sub_cpu = got["sub"][3] - self.sub_cpu_mark
         self.sub_cpu_mark = got["sub"][3]
         rate = self.n * self.size / max(got["sub"][2] - got["pub"][2], 1e-9)
@@ -372,38 +273,19 @@ class _Pair:
         _stop([self.sub, self.pub])
 
 
-KINDS = ("raw", "fabric", "encode", "inbox")
-
-
 def _measure_throughput(ctx: Any, n: int, target: int, cfg: BenchConfig, secret: bytes, pids: list[int]) -> dict[str, Any]:
-    """Raw and fabric rounds alternate (the order rotates each round) so that a change of
-    background load hits every kind alike; each ratio is the median of the per-round ratios."""
-    pairs = {kind: _Pair(ctx, kind, n, target, cfg, secret) for kind in KINDS}
+    """`cfg.rounds` rounds of `n` chunks; the median of each figure over the rounds."""
+    pair = _Pair(ctx, n, target, cfg, secret)
     try:
-        for pair in pairs.values():
-            pair.start(pids)
-        rates: dict[str, list[float]] = {k: [] for k in KINDS}
-        cpu: dict[str, list[tuple[float, float]]] = {k: [] for k in KINDS}
-        for r in range(cfg.rounds):
-            for kind in KINDS[r % len(KINDS):] + KINDS[:r % len(KINDS)]:
-                rate, pub_us, sub_us = pairs[kind].round(r)
-                rates[kind].append(rate)
-                cpu[kind].append((pub_us, sub_us))
+        pair.start(pids)
+        rounds = [pair.round(r) for r in range(cfg.rounds)]
     finally:
-        for pair in pairs.values():
-            pair.stop()
-    out: dict[str, Any] = {"payload_bytes": pairs["fabric"].size, "messages": n}
-    for kind, values in rates.items():
-        bps = statistics.median(values)
-        out[kind] = {"payload_bytes": pairs[kind].size, "bytes_per_s": bps, "msgs_per_s": bps / pairs[kind].size, "rounds_bytes_per_s": values, "does": DOES[kind],
-                     "pub_cpu_us_per_msg": statistics.median(c[0] for c in cpu[kind]),
-                     "sub_cpu_us_per_msg": statistics.median(c[1] for c in cpu[kind])}
-    for kind, suffix in (("fabric", ""), ("encode", "_encode"), ("inbox", "_inbox")):
-        out["ratio" + suffix] = statistics.median(f / r for f, r in zip(rates[kind], rates["raw"]))
-        # CPU per message (publisher + subscriber), raw ÷ fabric: less sensitive than bytes/s to
-        # other load on the machine, it says how much more work a chunk costs through the fabric.
-        out["cpu_ratio" + suffix] = statistics.median(sum(r) / sum(f) for f, r in zip(cpu[kind], cpu["raw"]))
-    return out
+        pair.stop()
+    bps = statistics.median(r[0] for r in rounds)
+    return {"payload_bytes": pair.size, "messages": n, "bytes_per_s": bps, "chunks_per_s": bps / pair.size,
+            "rounds_bytes_per_s": [r[0] for r in rounds], "does": DOES,
+            "pub_cpu_us_per_msg": statistics.median(r[1] for r in rounds),
+            "sub_cpu_us_per_msg": statistics.median(r[2] for r in rounds)}
 
 
 # --------------------------------------------------------------------------------------------
@@ -743,7 +625,7 @@ def _stop(procs: list[Any]) -> None:
 def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: bool = True,
               progress: Callable[[str], None] = lambda _m: None) -> dict[str, Any]:
     """Run every measurement; returns the JSON document (see the module docstring)."""
-    from dvla.fabric import encode, new_secret
+    from dvla.fabric import new_secret
 
     cfg = cfg or (BenchConfig.quick() if quick else BenchConfig())
     ctx = mp.get_context("spawn")
@@ -753,14 +635,11 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
     doc: dict[str, Any] = {"config": asdict(cfg), "quick": quick, "shared_memory": False, "cpus": os.cpu_count()}
     throughput: dict[str, Any] = {}
     for label, target, n in (("64k", 64 * KIB, cfg.n_64k), ("1m", MIB, cfg.n_1m)):
-        size = payload_size("fabric", target)  # the raw baseline sends these very bytes
-        progress(f"throughput {label}: {cfg.rounds} rounds x {n} messages of {size} bytes, raw and fabric")
+        progress(f"throughput {label}: {cfg.rounds} rounds x {n} chunks of {payload_size(target)} bytes")
         entry = _measure_throughput(ctx, n, target, cfg, secret, pids)
         throughput[label] = entry
-        doc[f"throughput_ratio_{label}"] = entry["ratio"]
-        doc[f"cpu_ratio_{label}"] = entry["cpu_ratio"]
-        doc[f"throughput_ratio_{label}_inbox"] = entry["ratio_inbox"]
-        doc[f"throughput_ratio_{label}_encode"] = entry["ratio_encode"]
+        doc[f"chunks_per_s_{label}"] = entry["chunks_per_s"]
+        doc[f"mb_per_s_{label}"] = entry["bytes_per_s"] / 1e6
     layouts = [LOOPBACK]
     why_not = links_available() if links else "not asked for (--no-links)"
     doc["links_layout"] = "used" if why_not is None else f"skipped: {why_not}"
@@ -794,8 +673,7 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
 
 
 HEADLINE_KEYS = (
-    "throughput_ratio_64k", "throughput_ratio_1m", "throughput_ratio_64k_encode", "throughput_ratio_1m_encode",
-    "throughput_ratio_64k_inbox", "throughput_ratio_1m_inbox",
+    "chunks_per_s_64k", "chunks_per_s_1m", "mb_per_s_64k", "mb_per_s_1m",
     "ctrl_rtt_p99_idle_ms", "ctrl_rtt_p99_loaded_ms",
     "ctrl_rtt_p99_loaded_shared_ms", "loaded_over_idle", "shared_over_separate",
 )
@@ -803,20 +681,11 @@ HEADLINE_KEYS = (
 
 def format_table(doc: dict[str, Any]) -> str:
     """A short human summary of `run_bench`'s document."""
-    lines = [f"{'throughput':<11}{'payload':>8}{'raw MB/s':>9}{'fabric':>8}{'ratio':>6}{'encode':>8}{'ratio':>6}"
-             f"{'inbox':>7}{'ratio':>6}{'CPU us/msg pub+sub: raw':>25}{'fabric':>9}{'encode':>9}{'inbox':>9}"]
+    lines = [f"{'throughput':<11}{'payload':>9}{'chunks/s':>10}{'MB/s':>8}{'CPU us/chunk pub':>18}{'sub':>6}"]
     for label, e in doc["throughput"].items():
-        cpu = {k: f"{e[k]['pub_cpu_us_per_msg']:.0f}+{e[k]['sub_cpu_us_per_msg']:.0f}" for k in KINDS}
-        lines.append(
-            f"{label:<11}{e['payload_bytes']:>8}{e['raw']['bytes_per_s'] / 1e6:>9.0f}"
-            f"{e['fabric']['bytes_per_s'] / 1e6:>8.0f}{e['ratio']:>6.2f}"
-            f"{e['encode']['bytes_per_s'] / 1e6:>8.0f}{e['ratio_encode']:>6.2f}"
-            f"{e['inbox']['bytes_per_s'] / 1e6:>7.0f}{e['ratio_inbox']:>6.2f}"
-            f"{cpu['raw']:>25}{cpu['fabric']:>9}{cpu['encode']:>9}{cpu['inbox']:>9}"
-        )
-    lines.append("fabric: a rollout's WireBuffer (arrays filled in place) to Fabric.on_traj (decoded chunks to a function "
-                 "on the receive thread, as raw's callback); encode: a TrajectoryChunk encoded per message, to "
-                 "Fabric.on_traj; inbox: WireBuffer to Fabric.subscribe_traj and a consumer thread")
+        lines.append(f"{label:<11}{e['payload_bytes']:>9}{e['chunks_per_s']:>10.0f}{e['bytes_per_s'] / 1e6:>8.0f}"
+                     f"{e['pub_cpu_us_per_msg']:>18.0f}{e['sub_cpu_us_per_msg']:>6.0f}")
+    lines.append("publish_traj of a TrajectoryChunk to subscribe_traj's inbox and a consumer thread")
     names = {"idle": "idle", "loaded": "flooded, own ctrl session", "loaded_shared": "flooded, shared session"}
     for layout, entry in doc["ctrl_rtt_layouts"].items():
         lines.append("")

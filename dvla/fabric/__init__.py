@@ -26,12 +26,11 @@ from .messages import (
     WeightManifest,
 )
 from .signing import Signer, Verifier, load_secret, new_secret
-from .wirebuf import WireBuffer
 from .zconfig import TlsFiles, plane_config
 
 __all__ = [
     "Accounting", "CTRL", "CodecError", "Command", "DATA", "EvalResult", "Fabric", "FabricError", "Inbox",
     "KeySpace", "Limits", "RoleStatus", "SecretError", "SignatureError", "Signer", "SnapshotRequest",
-    "TlsFiles", "TrajectoryChunk", "Verifier", "WeightChunk", "WeightManifest", "WireBuffer", "decode", "encode", "load_secret",
+    "TlsFiles", "TrajectoryChunk", "Verifier", "WeightChunk", "WeightManifest", "decode", "encode", "load_secret",
     "new_secret", "plane_config",
 ]

@@ -1,6 +1,6 @@
 """The one wire codec of dvla: message dataclass <-> msgpack bytes.
 
-This module owns the byte encoding of every :mod:`dvla.fabric.messages` type (layout in
+This module owns the byte encoding of every :mod:`dvla.fabric.messages` type (format in
 ``docs/wire-format.md``)::
 
     {"v": SCHEMA_VERSION, "t": <type tag>, "b": {<field name>: <value>, ...}}
@@ -31,8 +31,6 @@ import msgpack
 import numpy as np
 
 from dvla.fabric.errors import CodecError
-from dvla.fabric.layout import LayoutCache
-from dvla.fabric.layout import learn as learn_layout
 from dvla.fabric.messages import MESSAGE_TYPES, Message
 
 __all__ = [
@@ -43,13 +41,11 @@ __all__ = [
     "CodecError",
     "Limits",
     "decode",
-    "decoder",
     "encode",
-    "encode_into",
 ]
 
 SCHEMA_VERSION = 1
-"""Version of the top-level layout and of every message schema; bumped on any incompatible change."""
+"""Version of the top-level map and of every message schema; bumped on any incompatible change."""
 
 ARRAY_EXT_CODE = 1
 """msgpack ext type code of a numpy array."""
@@ -275,12 +271,6 @@ def _wire_array(arr: np.ndarray, path: Path, limits: Limits) -> tuple[bytes, np.
     return name, arr
 
 
-def _copy_at(view: memoryview, pos: int, src: Any) -> int:
-    end = pos + len(src)
-    view[pos:end] = src
-    return end
-
-
 class _Writer:
     """Accumulates the output as a list of pieces; small values go through one msgpack Packer,
     array and bin data are appended as buffer views so ``b"".join`` copies them exactly once."""
@@ -309,40 +299,6 @@ class _Writer:
         if self.offset > self.limits.max_message_bytes:
             raise CodecError("oversize", f"message {self.offset} bytes > {self.limits.max_message_bytes}")
         return b"".join(self.pieces)
-
-    def finish_into(self, out: bytearray) -> int:
-        """Write the message into ``out``, resized to exactly its length; returns that length.
-
-        A buffer reused for messages of similar size keeps its allocation (CPython only
-        reallocates a bytearray that grows, or shrinks below half), so steady traffic costs
-        no allocation and no page faults: the array bytes are copied once, into ``out``.
-        """
-        self._flush()
-        n = self.offset
-        if n > self.limits.max_message_bytes:
-            raise CodecError("oversize", f"message {n} bytes > {self.limits.max_message_bytes}")
-        have = len(out)
-        if have > n:
-            del out[n:]
-        elif have < n:
-            out.extend(bytes(n - have))
-        view = memoryview(out)
-        try:
-            pos = 0
-            run: list[Any] = []  # consecutive small pieces, copied as one
-            for piece in self.pieces:
-                if type(piece) is np.ndarray:
-                    if run:
-                        pos = _copy_at(view, pos, b"".join(run))
-                        run.clear()
-                    pos = _copy_at(view, pos, memoryview(piece).cast("B"))
-                else:
-                    run.append(piece)
-            if run:
-                _copy_at(view, pos, b"".join(run))
-        finally:
-            view.release()  # a live export would forbid resizing `out` next time
-        return n
 
     def map_header(self, n: int, path: Path) -> None:
         if n > self.limits.max_map_len:
@@ -424,47 +380,9 @@ class _Writer:
             self.offset += nbytes
 
 
-LAYOUTS = LayoutCache()
-"""Layouts of recently decoded messages, by length (see :mod:`dvla.fabric.layout`): the
-decoder's fast path."""
-
-WRITERS = LayoutCache(max_lengths=16)
-"""Layouts of recently encoded messages, by class: the fast path of :func:`encode_into`."""
-
-LAYOUT_MIN_BYTES = 4096
-"""Smaller messages (commands, status, manifests) are rare: they always take the full codec."""
-
-
 def encode(msg: Message, limits: Limits = DEFAULT_LIMITS) -> bytes:
     """Encode a message. Raises :class:`CodecError` if it is not a valid, encodable message."""
     return _write(msg, limits).finish()
-
-
-def encode_into(msg: Message, out: bytearray, limits: Limits = DEFAULT_LIMITS, *, layouts: bool = True) -> int:
-    """Encode a message into ``out`` (resized to fit exactly); returns the encoded length.
-
-    The same bytes as :func:`encode`, without a fresh allocation per message: meant for a
-    buffer that one publisher reuses (its content is overwritten by the next call). A message
-    shaped like a recent one is written through its layout (:mod:`dvla.fabric.layout`);
-    ``layouts=False`` always walks the message (same bytes, more time).
-    """
-    layouts = layouts and limits is DEFAULT_LIMITS
-    if layouts:
-        for layout in WRITERS.candidates(type(msg)):
-            try:
-                n = layout.write(msg, out)  # type: ignore[misc]
-            except CodecError:
-                raise
-            except Exception:  # anything unexpected: the full encoder decides, with its error
-                break
-            if n >= 0:
-                return n
-    n = _write(msg, limits).finish_into(out)
-    if n >= LAYOUT_MIN_BYTES and layouts:
-        layout = learn_layout(out, _SCHEMAS_BY_CLASS[type(msg)], _DTYPES_BY_WIRE_NAME)
-        if layout is not None and layout.write is not None:
-            WRITERS.add(type(msg), layout)
-    return n
 
 
 def _write(msg: Message, limits: Limits) -> "_Writer":
@@ -778,75 +696,26 @@ def _build(schema: _Schema, body: Any) -> Message:
     return msg
 
 
-
-
 def decode(
     buf: bytes | bytearray | memoryview,
     expect: type | tuple[type, ...] | None = None,
     limits: Limits = DEFAULT_LIMITS,
-    *,
-    layouts: bool = True,
 ) -> Message:
     """Decode one message whose arrays are views into ``buf`` (no copy).
 
     With ``bytes`` input the arrays are read-only; with a ``bytearray`` or writable memoryview
     they are writable and alias it, so don't reuse that buffer while the message is alive.
     ``expect`` restricts the accepted message classes. Any bad input raises
-    :class:`CodecError` (and nothing else). ``layouts=False`` skips the fast path of
-    :mod:`dvla.fabric.layout` (same result, more time).
+    :class:`CodecError` (and nothing else).
     """
     try:
         data = _as_byte_sequence(buf)
-        n = len(data)
-        if n > limits.max_message_bytes:
-            raise CodecError("oversize", f"message {n} bytes > {limits.max_message_bytes}")
-        if not layouts:
-            return _decode_full(data, expect, limits)[1]
-        cache_key = n if limits is DEFAULT_LIMITS else (n, limits)  # hashing Limits costs a microsecond
-        for layout in LAYOUTS.candidates(cache_key):
-            if expect is None or issubclass(layout.cls, expect):
-                msg = layout.build(data)
-                if msg is not None:
-                    return msg
-        schema, msg = _decode_full(data, expect, limits)
-        if n >= LAYOUT_MIN_BYTES:
-            layout = learn_layout(data, schema, _DTYPES_BY_WIRE_NAME)
-            if layout is not None:
-                LAYOUTS.add(cache_key, layout)
-        return msg
+        if len(data) > limits.max_message_bytes:
+            raise CodecError("oversize", f"message {len(data)} bytes > {limits.max_message_bytes}")
+        top = _read_top(data, limits)
+        return _build(_schema_for(top, expect), top["b"])
     except CodecError:
         raise
     except Exception as exc:
         # Safety net: whatever slipped past the explicit checks is still just a bad packet.
         raise CodecError("malformed", f"{type(exc).__name__}: {exc}") from exc
-
-
-def decoder(expect: type) -> Callable[[bytes], Message]:
-    """``decode(data, expect=expect)`` for one receiver of one message class, as a function
-    that looks the layout of ``bytes`` input up itself: on Zenoh's receive thread, where every
-    Python call runs with cold caches, the generic entry point's argument handling cost as
-    much as the build. Same results, same errors (:class:`CodecError` and nothing else)."""
-    by_length = LAYOUTS.live()
-
-    def _decode(data: bytes) -> Message:
-        if type(data) is bytes:
-            for layout in by_length.get(len(data), ()):
-                if issubclass(layout.cls, expect):
-                    try:
-                        msg = layout.build(data)
-                    except CodecError:
-                        raise
-                    except Exception as exc:
-                        raise CodecError("malformed", f"{type(exc).__name__}: {exc}") from exc
-                    if msg is not None:
-                        return msg
-        return decode(data, expect)
-
-    return _decode
-
-
-def _decode_full(data: bytes | bytearray | memoryview, expect: type | tuple[type, ...] | None,
-                 limits: Limits) -> tuple[_Schema, Message]:
-    top = _read_top(data, limits)
-    schema = _schema_for(top, expect)
-    return schema, _build(schema, top["b"])

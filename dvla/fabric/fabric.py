@@ -8,31 +8,25 @@
 
 Zenoh callbacks never block for long: they hand messages to a bounded :class:`Inbox`. The
 trajectory inbox decodes (zero-copy) on Zenoh's receive thread, so its lane gets ready chunks;
-ctrl inboxes queue raw bytes that the reading lane verifies and decodes. A consumer that needs
-no thread of its own takes trajectories with `Fabric.on_traj` instead: decoded chunks handed to
-its function on the receive thread, with no queue in between. Everything is counted.
+ctrl inboxes queue raw bytes that the reading lane verifies and decodes. Everything is counted.
 Usable without any dvla configuration: pass two plain `zenoh.Config` objects (docs/embedding.md).
 """
 
 from __future__ import annotations
 
-import atexit
 import logging
 import os
 import threading
 import time
-import weakref
 from typing import Any, Callable
 
 import zenoh
 
 from .accounting import Accounting
-from .codec import CodecError, decode, decoder, encode, encode_into
+from .codec import CodecError, decode, encode
 from .keys import KeySpace
 from .signing import SignatureError, Signer, Verifier
-from .threadstate import hold
 from .tokenqueue import TokenQueue
-from .wirebuf import WireBuffer
 
 log = logging.getLogger("dvla.fabric")
 
@@ -44,8 +38,6 @@ PRIO_CTRL = zenoh.Priority.INTERACTIVE_HIGH
 PRIO_WEIGHTS = zenoh.Priority.DATA_HIGH
 #: trajectories
 PRIO_DATA = zenoh.Priority.DATA
-#: senders a trajectory subscription remembers (name and counter by key) before it starts over
-MAX_SENDERS = 1024
 
 
 class Inbox:
@@ -158,11 +150,6 @@ class Fabric:
         self._declared: list[Any] = []
         self._publishers: dict[str, Any] = {}
         self._pub_lock = threading.Lock()
-        self._traj_buf = bytearray()
-        self._traj_lock = threading.Lock()
-        self._traj_key = self.keys.traj(name)  # this process's trajectory key
-        self._traj_pub: Any = None  # its publisher, declared on first use
-        self._traj_sent = self.accounting.tally(DATA, "sent", name)
         self.ctrl = _open_retrying(ctrl_conf, open_timeout_s, "ctrl")
         try:
             self.data = _open_retrying(data_conf, open_timeout_s, "data") if data_conf is not None else None
@@ -170,109 +157,49 @@ class Fabric:
             self.ctrl.close()
             raise
         self._closed = False
-        _OPEN.add(self)
 
     # ------------------------------------------------------------------ data plane
     def publish_traj(self, chunk: Any) -> int:
-        """Send a TrajectoryChunk on the data plane; returns bytes sent.
-
-        ``chunk`` is a :class:`~dvla.fabric.TrajectoryChunk` (encoded here) or a sealed
-        :class:`~dvla.fabric.WireBuffer` holding one (sent as it is: no encoding, no copy of its
-        arrays). Either way Zenoh copies the bytes during the put, so the caller may reuse the
-        buffer as soon as this returns.
-        """
-        pub = self._traj_pub
-        if pub is None:
-            pub = self._traj_pub = self._publisher(DATA, self._traj_key)
-        if type(chunk) is WireBuffer:
-            if chunk.msg.rollout != self.name:
-                raise ValueError(f"{self.name}: wire buffer of rollout {chunk.msg.rollout!r} (receivers reject it)")
-            n = chunk.nbytes
-            pub.put(chunk.buf)
-        else:
-            # One reused buffer per data publisher: no fresh allocation per chunk (a new 1 MiB
-            # object per message costs page faults on every put). Zenoh copies it during `put`.
-            with self._traj_lock:
-                n = encode_into(chunk, self._traj_buf)
-                pub.put(self._traj_buf)
-        self._traj_sent(n)
-        return n
+        """Encode a TrajectoryChunk of this process and send it on the data plane; returns
+        bytes sent. The encoding copies the chunk's arrays, so the caller may refill them as
+        soon as this returns."""
+        if chunk.rollout != self.name:
+            raise ValueError(f"{self.name}: chunk of rollout {chunk.rollout!r} (receivers reject it)")
+        raw = encode(chunk)
+        self._publisher(DATA, self.keys.traj(self.name)).put(raw)
+        self.accounting.sent(DATA, len(raw), self.name)
+        return len(raw)
 
     def subscribe_traj(self, maxsize: int, expect: type, block_s: float = 1.0, rollout: str = "*") -> Inbox:
         """Bounded inbox of decoded TrajectoryChunks from every (or one) rollout, for a lane
-        that takes them with ``inbox.get(timeout)``."""
-        inbox = Inbox(maxsize, None, self.accounting, DATA, block_s)
-        self._subscribe_data(rollout, self._traj_receiver(expect, inbox.offer))
-        return inbox
+        that takes them with ``inbox.get(timeout)``.
 
-    def on_traj(self, expect: type, handler: Callable[[Any], None], rollout: str = "*") -> None:
-        """Call `handler(chunk)` for each valid TrajectoryChunk, on Zenoh's receive thread.
-
-        No queue and no thread hand-off, which per chunk costs more CPU than the decode
-        (a consumer thread woken for every 64 KiB chunk adds ~80 µs on a 2-core VM). While
-        `handler` runs, that link's receive task waits, so a handler that blocks applies
-        backpressure to the senders (BLOCK congestion control); keep its waits well under
-        Zenoh's 5 s BLOCK limit (docs/embedding.md). An exception in `handler` is logged and
-        the chunk counted as ``dropped.handler_error``; the subscription carries on.
+        Each chunk is counted as received from its sender (the last part of its key), decoded
+        on Zenoh's receive thread (zero-copy: its arrays are views of the received bytes) and
+        checked to name that sender; one that fails is counted as rejected, logged with its
+        sender, and goes no further.
         """
-        acct = self.accounting
-
-        def _deliver(chunk: Any, peer: str) -> None:
-            try:
-                handler(chunk)
-            except Exception:  # a handler bug must not kill Zenoh's receive task
-                acct.dropped(DATA, "handler_error", peer)
-                log.exception("trajectory handler failed on a chunk from %s", peer)
-
-        self._subscribe_data(rollout, self._traj_receiver(expect, _deliver))
-
-    def _subscribe_data(self, rollout: str, callback: Callable[[zenoh.Sample], None]) -> None:
         if self.data is None:
             raise RuntimeError(f"{self.name}: this fabric was opened without a data plane")
-        key = self.keys.traj(rollout) if rollout != "*" else self.keys.traj_all()
-        self._declared.append(self.data.declare_subscriber(key, _on_receive_thread(callback)))
-
-    def _traj_receiver(self, expect: type, deliver: Callable[[Any, str], None]) -> Callable[[zenoh.Sample], None]:
-        """Everything a trajectory subscription does per chunk, as one function for Zenoh's
-        receive thread: count the chunk as received from its sender (the last chunk of its
-        key), decode it, check that it names that sender, and ``deliver(chunk, sender)``. A
-        chunk that fails is counted as rejected, logged, and goes no further.
-
-        Flat on purpose: Zenoh's own work between two callbacks evicts the interpreter's caches,
-        so each Python call here costs several times what it does in a loop. Senders are
-        looked up once per key (their name and accounting counter), and the decode goes
-        straight to the layout of the chunk's length (:func:`~dvla.fabric.codec.decoder`).
-        """
-        decode_chunk = decoder(expect)
-        acct = self.accounting
-        senders: dict[str, tuple[str, Callable[[int], None]]] = {}
-
-        def _sender(key: str) -> tuple[str, Callable[[int], None]]:
-            if len(senders) >= MAX_SENDERS:  # a flood of made-up names must not grow this
-                senders.clear()
-            peer = KeySpace.last(key)
-            senders[key] = entry = (peer, acct.tally(DATA, "received", peer))
-            return entry
+        inbox = Inbox(maxsize, None, self.accounting, DATA, block_s)
 
         def _receive(sample: zenoh.Sample) -> None:
-            hold()  # this receive thread keeps its Python thread state (threadstate.py)
-            key = str(sample.key_expr)
-            raw = sample.payload.to_bytes()
-            peer, count = senders.get(key) or _sender(key)
-            count(len(raw))
+            key, raw, peer = _take(sample, self.accounting, DATA)
             try:
-                msg = decode_chunk(raw)
+                msg = decode(raw, expect=expect)
             except CodecError as err:
-                acct.rejected(DATA, err.reason, peer)
+                self.accounting.rejected(DATA, err.reason, peer)
                 log.warning("rejected data message on %s from %s: %s", key, peer, err)
                 return
             if getattr(msg, "rollout", peer) != peer:
-                acct.rejected(DATA, "sender_mismatch", peer)
-                log.warning("rejected data message on %s: claims sender %r", key, msg.rollout)
+                self.accounting.rejected(DATA, "sender_mismatch", peer)
+                log.warning("rejected data message on %s from %s: claims sender %r", key, peer, msg.rollout)
                 return
-            deliver(msg, peer)
+            inbox.offer(msg, peer)
 
-        return _receive
+        key = self.keys.traj(rollout) if rollout != "*" else self.keys.traj_all()
+        self._declared.append(self.data.declare_subscriber(key, _on_receive_thread(_receive)))
+        return inbox
 
     # ------------------------------------------------------------------ ctrl plane
     def seal(self, key: str, msg: Any) -> bytes:
@@ -434,13 +361,10 @@ class Fabric:
             return pub
 
     def close(self) -> None:
-        """Undeclare everything and close both sessions (idempotent). A fabric still open when
-        the interpreter exits is closed by an exit hook, while Python can still run the
-        callbacks Zenoh waits for (left to the sessions' own teardown, the close times out)."""
+        """Undeclare everything and close both sessions (idempotent)."""
         if self._closed:
             return
         self._closed = True
-        _OPEN.discard(self)
         for entity in reversed(self._declared):
             try:
                 entity.undeclare()
@@ -463,16 +387,6 @@ class Fabric:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-#: fabrics not closed yet, closed at interpreter exit (weak: an open fabric may still be dropped)
-_OPEN: "weakref.WeakSet[Fabric]" = weakref.WeakSet()
-
-
-@atexit.register
-def _close_open_fabrics() -> None:
-    for fabric in list(_OPEN):
-        fabric.close()
 
 
 def _take(sample: zenoh.Sample, acct: Accounting, plane: str) -> tuple[str, bytes, str]:

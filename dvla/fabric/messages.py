@@ -41,24 +41,14 @@ class Message:
     def validate(self) -> None:
         """Raise :class:`CodecError` if the message breaks an invariant. Default: nothing to check."""
 
-    def validate_values(self) -> None:
-        """The part of :meth:`validate` that depends on values, not on structure.
-
-        The decoder calls this instead of :meth:`validate` for a message whose structure (keys,
-        array dtypes and shapes, encoding widths) is byte-for-byte that of a message
-        :meth:`validate` accepted (:mod:`dvla.fabric.layout`). Default: all of :meth:`validate`;
-        a subclass that overrides it must check every invariant involving a scalar's value.
-        """
-        self.validate()
-
 
 def _require(ok: bool, reason: str, detail: str) -> None:
     if not ok:
         raise CodecError(reason, detail)
 
 
-# Checks below run on every encode/decode: build error text only on failure (dtype
-# formatting alone costs microseconds).
+# Checks below run on every encode/decode: build error text only on failure (formatting a
+# dtype costs more than the check).
 _F32 = np.dtype(np.float32)
 _BOOL = np.dtype(np.bool_)
 
@@ -138,14 +128,6 @@ class TrajectoryChunk(Message):
         if self.env_steps != t * n:
             raise CodecError("shape", f"env_steps {self.env_steps} != T*N = {t * n}")
         self._validate_obs(t, n)
-
-    def validate_values(self) -> None:
-        # Every array check of validate() is about dtypes and shapes: fixed by the structure.
-        if self.seq < 0:
-            raise CodecError("schema", f"seq {self.seq} < 0")
-        shape = self.actions.shape
-        if self.env_steps != shape[0] * shape[1]:
-            raise CodecError("shape", f"env_steps {self.env_steps} != T*N = {shape[0] * shape[1]}")
 
     def _validate_obs(self, t: int, n: int) -> None:
         if not self.obs:

@@ -1,13 +1,12 @@
 """A bounded FIFO for hand-offs between threads, without Python-level locking.
 
 ``queue.Queue`` guards its bound with a ``threading.Condition`` written in Python: every put and
-get juggles locks under the GIL, which on a busy 2-core machine cost more per message than
-decoding a 64 KiB trajectory chunk (the fabric's inbox) and ~5% of a rollout's GIL time at one
-hand-off per env step (the swimlane queues). :class:`TokenQueue` is two C-implemented
-``queue.SimpleQueue`` instead: one holds the items, the other one token per free slot. A put
-takes a token (the bounded wait for space) and then enqueues; a get dequeues and gives a token
-back. Both the fabric's :class:`~dvla.fabric.fabric.Inbox` and the roles'
-:class:`~dvla.roles.swimlane.BoundedQueue` are built on it.
+get juggles locks under the GIL, on the receive thread and on every lane's hand-off alike.
+:class:`TokenQueue` is two C-implemented ``queue.SimpleQueue`` instead: one holds the items, the
+other one token per free slot. A put takes a token (the bounded wait for space) and then
+enqueues; a get dequeues and gives a token back. Both the fabric's
+:class:`~dvla.fabric.fabric.Inbox` and the roles' :class:`~dvla.roles.swimlane.BoundedQueue`
+are built on it.
 """
 
 from __future__ import annotations

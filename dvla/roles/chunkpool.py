@@ -1,29 +1,27 @@
-"""The rollout's trajectory slot pool: preallocated wire buffers, filled in place, shipped, reused.
+"""The rollout's chunk pool: preallocated trajectory chunks, filled in place, shipped, reused.
 
-Each env group fills one chunk at a time, writing every step straight into a
-:class:`~dvla.fabric.WireBuffer` (its arrays are views of the bytes that go on the wire). A
-finished buffer goes to the ship lane, which publishes it (Zenoh copies the bytes) and gives it
-back. Nothing is allocated per chunk in steady state, and shipping a chunk needs no encoding.
+Each env group fills one chunk at a time, writing every step straight into the arrays of a
+:class:`~dvla.fabric.TrajectoryChunk` taken from the group's pool. A finished chunk goes to the
+ship lane as a :class:`Shipment`; the ship lane encodes and publishes it and gives it back, so
+the arrays are allocated once per pool, not once per chunk.
 
-A group never waits for a buffer when the pool holds ``ship_queue + 2`` of them: one being
+A group never waits for a chunk when the pool holds ``ship_queue + 2`` of them: one being
 filled, at most ``ship_queue`` queued for the ship lane and one being published.
 """
 
 from __future__ import annotations
 
-from typing import Any
+import dataclasses
+from typing import Any, NamedTuple
 
 import numpy as np
 
-from ..fabric import TrajectoryChunk, WireBuffer
+from ..fabric import TrajectoryChunk
 from .freelist import FreeList
-
-#: TrajectoryChunk fields that change from chunk to chunk (64-bit slots in the wire bytes)
-WIDE_FIELDS = ("seq", "policy_version", "created_ns")
 
 
 def chunk_template(rollout: str, T: int, n: int, obs_spec: dict[str, Any], act_dim: int) -> TrajectoryChunk:
-    """A zero-filled chunk of T steps of n envs: the shape every buffer of a group's pool has."""
+    """A zero-filled chunk of T steps of n envs: the shape every chunk of a group's pool has."""
 
     def obs(*lead: int) -> dict[str, np.ndarray]:
         # observations keep their dtype (uint8 images) all the way to the wire
@@ -38,11 +36,27 @@ def chunk_template(rollout: str, T: int, n: int, obs_spec: dict[str, Any], act_d
     )
 
 
-class ChunkPool(FreeList[WireBuffer]):
-    """``size`` wire buffers shaped like ``template``: :meth:`take` one, :meth:`give` it back
-    once its bytes have been published (or never will be)."""
+def _with_own_arrays(chunk: TrajectoryChunk) -> TrajectoryChunk:
+    """A copy of `chunk` that shares no array with it."""
+    return dataclasses.replace(
+        chunk,
+        **{f: getattr(chunk, f).copy() for f in ("actions", "logprobs", "rewards", "terminated", "truncated", "success")},
+        **{f: {k: v.copy() for k, v in getattr(chunk, f).items()} for f in ("obs", "next_obs", "final_obs")},
+    )
+
+
+class ChunkPool(FreeList[TrajectoryChunk]):
+    """``size`` chunks shaped like ``template``, each with arrays of its own: :meth:`take` one,
+    fill its arrays, :meth:`give` it back once it has been published (or never will be)."""
 
     def __init__(self, template: TrajectoryChunk, size: int) -> None:
         if size < 1:
-            raise ValueError(f"a chunk pool needs at least one buffer, got size={size}")
-        super().__init__(WireBuffer(template, wide=WIDE_FIELDS) for _ in range(size))
+            raise ValueError(f"a chunk pool needs at least one chunk, got size={size}")
+        super().__init__(_with_own_arrays(template) for _ in range(size))
+
+
+class Shipment(NamedTuple):
+    """A finished chunk on its way to the ship lane, and the pool it goes back to."""
+
+    chunk: TrajectoryChunk
+    pool: ChunkPool

@@ -2,12 +2,12 @@
 
 Lanes (and what flows between them):
 - ``sim``:   steps env group A while ``infer`` computes actions for group B (double-buffered
-             sampling); writes each transition into its group's chunk, a wire buffer taken
-             from the group's preallocated pool (chunkpool.py).
+             sampling); writes each transition into its group's chunk, taken from the
+             group's preallocated pool (chunkpool.py).
 - ``infer``: policy forward for one group's observations; swaps in new weights between two
              batches, never during one.
-- ``ship``:  publishes finished chunks on the data plane (already in wire format: no encoding)
-             and gives their buffers back to the pool.
+- ``ship``:  encodes and publishes finished chunks on the data plane and gives them back to
+             the pool.
 - ``sync``:  receives weight versions into the staging pool (see weightsync.py).
 
 In ``sync`` mode (the lock-step baseline) the sim lane stops after its share of one learner
@@ -18,6 +18,7 @@ inferred or shipped: what the simulators alone deliver in this process and place
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -28,14 +29,14 @@ import numpy as np
 import torch
 
 from ..config import RoleConfig, env_group_sizes
-from ..fabric import Fabric, WireBuffer
+from ..fabric import Fabric, TrajectoryChunk
 from ..learn import EnvGroup, make_policy
 from ..learn.policies import sample_actions
 from ..learn.envs import obs_as_dict, obs_to_torch
 from ..learn.grpo import grpo_envs
 from ..replication import ParamLayout, bind_flat, unflatten_into
-from .chunkpool import ChunkPool, chunk_template
 from ..counters import INCARNATION_SHIFT, CounterFile
+from .chunkpool import ChunkPool, Shipment, chunk_template
 from .runtime import main
 from .swimlane import LaneContext, LatencyHistogram, Swimlane
 from .weightsync import WeightSync
@@ -66,10 +67,10 @@ class _Group:
     obs: np.ndarray
     t: int = 0
     versions: list[int] = field(default_factory=list)
-    #: this group's preallocated chunk buffers (its trajectory slot pool)
+    #: this group's preallocated chunks
     chunks: ChunkPool | None = None
-    #: the chunk being filled: a wire buffer of `chunks`, written through its message's arrays
-    wb: WireBuffer | None = None
+    #: the chunk being filled, one of `chunks`: each step is written into its arrays
+    chunk: TrajectoryChunk | None = None
 
 
 class PolicyPool:
@@ -165,7 +166,7 @@ class Rollout:
         for g in self.groups:
             template = chunk_template(cfg.name, self.T, g.envs.n, self.obs_spec, self.act_dim)
             g.chunks = ChunkPool(template, SHIP_QUEUE + 2)
-            g.wb = g.chunks.take(threading.Event())
+            g.chunk = g.chunks.take(threading.Event())
         # Counters that survive a kill -9 (counters.py); the incarnation goes in seq's high bits.
         self.counters = CounterFile(cfg.run_dir, cfg.name)
         self.seq = self.counters.incarnation << INCARNATION_SHIFT
@@ -203,7 +204,7 @@ class Rollout:
     def build(self, sl: Swimlane) -> None:
         self.to_infer = sl.queue("obs", len(self.groups))  # group ids whose obs await actions
         self.to_sim = sl.queue("actions", len(self.groups))  # Actions for a group
-        self.to_ship = sl.queue("chunks", SHIP_QUEUE)  # (pool, sealed wire buffer) of finished chunks
+        self.to_ship = sl.queue("chunks", SHIP_QUEUE)  # Shipment: a finished chunk and its pool
         self._count()
         self.weights = WeightSync(  # verified versions from the parent (ancestors as fallback)
             self.fabric, self.pool.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version
@@ -317,7 +318,7 @@ class Rollout:
         return step
 
     def _record_step(self, g: _Group, actions: np.ndarray, logprobs: np.ndarray, version: int) -> None:
-        m, t = g.wb.msg, g.t  # the chunk's arrays: views of its wire bytes
+        m, t = g.chunk, g.t
         for k, v in obs_as_dict(g.obs).items():
             m.obs[k][t] = v
         step = self._step(g.envs, actions)
@@ -339,23 +340,23 @@ class Rollout:
             self.successes += int((step.episode_done & step.success).sum())
 
     def _finish_chunk(self, g: _Group, ctx: LaneContext) -> None:
-        wb = g.wb
         for k, v in obs_as_dict(g.obs).items():
-            wb.msg.next_obs[k][...] = v
-        wb.seal(seq=self.seq, policy_version=min(g.versions), created_ns=time.time_ns())
+            g.chunk.next_obs[k][...] = v
+        # A new message object around the same arrays: the per-chunk fields are frozen.
+        chunk = dataclasses.replace(g.chunk, seq=self.seq, policy_version=min(g.versions), created_ns=time.time_ns())
         self.seq += 1
         g.t = 0
         g.versions = []
         # Produced = handed to the ship lane; a chunk finished while stopping never is.
-        if self.to_ship.put((g.chunks, wb), ctx.stop, stats=ctx.stats):
+        if self.to_ship.put(Shipment(chunk, g.chunks), ctx.stop, stats=ctx.stats):
             self.chunks_produced += 1
             self._count()
         else:
-            g.chunks.give(wb)
+            g.chunks.give(chunk)
         nxt = g.chunks.take(ctx.stop)  # never waits with a full-size pool (chunkpool.py)
         if nxt is None:
             return  # stopping
-        g.wb = nxt
+        g.chunk = nxt
         if self.sync_mode:
             self._lockstep_wait(g, ctx)
 
@@ -376,8 +377,8 @@ class Rollout:
 
     def _ship(self, ctx: LaneContext) -> None:
         while ctx.running:
-            chunk = self.to_ship.get(ctx.stop, stats=ctx.stats)
-            if chunk is None:
+            shipment = self.to_ship.get(ctx.stop, stats=ctx.stats)
+            if shipment is None:
                 break
             # While no learner subscribes (the actor is restarting), a put would go nowhere:
             # hold the chunk instead, and let the full ship queue pause the simulators.
@@ -385,18 +386,17 @@ class Rollout:
                 while ctx.running and not self._learner_listening():
                     ctx.sleep(0.05)
             with ctx.busy():
-                self._publish(chunk)
+                self._publish(shipment)
             ctx.count()
         # Flush what is already finished so that the accounting identity holds at shutdown.
-        while (chunk := self.to_ship.get_nowait()) is not None:
-            self._publish(chunk)
+        while (shipment := self.to_ship.get_nowait()) is not None:
+            self._publish(shipment)
 
-    def _publish(self, item: tuple[ChunkPool, WireBuffer]) -> None:
-        chunks, wb = item
+    def _publish(self, shipment: Shipment) -> None:
         try:
-            self.bytes_shipped += self.fabric.publish_traj(wb)  # Zenoh has copied the bytes on return
+            self.bytes_shipped += self.fabric.publish_traj(shipment.chunk)  # encoded: the arrays are free again
         finally:
-            chunks.give(wb)
+            shipment.pool.give(shipment.chunk)
         self.chunks_shipped += 1
         self._count()
 

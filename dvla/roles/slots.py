@@ -1,9 +1,11 @@
 """The actor's trajectory pool: fixed-size slots allocated once (pinned host memory on CUDA).
 
-`ingest` decodes a chunk straight into a free slot; `batch` stacks slots into a learner batch and
-releases them. Observations are one array per obs key (``{"state"}`` for flat observations;
-``rgb``/``proprio``/``tokens`` for structured ones), each in its wire dtype (images stay uint8). No allocation happens per chunk in steady state; when every slot is taken,
-`acquire` waits, the data-plane inbox fills, and backpressure reaches the rollouts.
+`ingest` copies a decoded chunk (its arrays are views of the received bytes) into a free slot,
+once; `batch` stacks slots into a learner batch and releases them. Observations are one array
+per obs key (``{"state"}`` for flat observations; ``rgb``/``proprio``/``tokens`` for structured
+ones), each in its wire dtype (images stay uint8). No allocation happens per chunk in steady
+state; when every slot is taken, `acquire` waits, the data-plane inbox fills, and backpressure
+reaches the rollouts.
 """
 
 from __future__ import annotations
@@ -75,7 +77,8 @@ class SlotPool:
         return self._free.free()
 
     def fill(self, slot: int, c: TrajectoryChunk) -> str | None:
-        """Copy a chunk into `slot`; returns a reason string when its shape does not fit."""
+        """Copy a decoded chunk into `slot` (each array once, from the received bytes into the
+        slot's columns); returns a reason string when its shape does not fit."""
         if c.obs.keys() != self.obs.keys():
             return f"observation keys {sorted(c.obs)} != the policy's {sorted(self.obs)}"
         T, n = c.rewards.shape
@@ -87,12 +90,12 @@ class SlotPool:
             if arr.shape[2:] != self.obs[k].shape[3:] or _TORCH_DTYPES.get(arr.dtype.name) != self.obs[k].dtype:
                 return f"obs[{k!r}] {arr.dtype}{list(arr.shape)} does not match the policy"
         for k in self.obs:
-            self.obs[k][slot, :, :n] = torch.from_numpy(np.ascontiguousarray(c.obs[k]))
-            self.final_obs[k][slot, :, :n] = torch.from_numpy(np.ascontiguousarray(c.final_obs[k]))
-            self.next_obs[k][slot, :n] = torch.from_numpy(np.ascontiguousarray(c.next_obs[k]))
-        self.actions[slot, :, :n] = torch.from_numpy(np.ascontiguousarray(c.actions))
+            _copy(self.obs[k][slot, :, :n], c.obs[k])
+            _copy(self.final_obs[k][slot, :, :n], c.final_obs[k])
+            _copy(self.next_obs[k][slot, :n], c.next_obs[k])
+        _copy(self.actions[slot, :, :n], c.actions)
         for name in _FIELDS_TN:
-            self.tn[name][slot, :, :n] = torch.from_numpy(np.ascontiguousarray(getattr(c, name)))
+            _copy(self.tn[name][slot, :, :n], getattr(c, name))
         self._n[slot] = n
         self._version[slot] = c.policy_version
         self._rollout[slot] = c.rollout
@@ -124,3 +127,9 @@ class SlotPool:
             out[name] = cat(src, 1)
         out["steps"] = torch.tensor(sum(self.steps(s) for s in slots))
         return out
+
+
+def _copy(dst: torch.Tensor, src: np.ndarray) -> None:
+    # torch.from_numpy wraps the decoded view without copying (the slot only reads it), and
+    # torch's strided copy into the slot's columns is faster than numpy's.
+    dst.copy_(torch.from_numpy(src))

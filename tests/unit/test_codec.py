@@ -24,7 +24,6 @@ from dvla.fabric.codec import (
     Limits,
     decode,
     encode,
-    encode_into,
 )
 from dvla.fabric.errors import FabricError
 from dvla.fabric.messages import (
@@ -542,28 +541,6 @@ def test_encode_copies_array_bytes_once():
     finally:
         tracemalloc.stop()
     assert peak < len(buf) + 256 * 1024, (peak, len(buf))
-
-
-def test_encode_into_reuses_one_buffer_and_writes_the_same_bytes():
-    out = bytearray(b"stale contents that must vanish")
-    for msg in (make_traj(t=16, n=8, d=64), make_traj(t=16, n=8, d=60), make_traj(vision=True),
-                *control_messages(), make_traj(t=16, n=8, d=64)):
-        n = encode_into(msg, out)
-        assert n == len(out) and bytes(out) == encode(msg), type(msg).__name__
-        assert_same(decode(bytes(out)), msg)
-    # steady sizes: the buffer is overwritten in place, nothing per message but the copy
-    big = make_traj(t=16, n=32, d=2048)
-    encode_into(big, out)
-    tracemalloc.start()
-    try:
-        encode_into(big, out)
-        _, peak = tracemalloc.get_traced_memory()
-    finally:
-        tracemalloc.stop()
-    assert peak < 64 * 1024, peak
-    with pytest.raises(CodecError) as err:
-        encode_into(big, out, limits=Limits(max_message_bytes=1000))
-    assert err.value.reason == "oversize"
 
 
 # ----------------------------------------------------------------------------- fuzzing

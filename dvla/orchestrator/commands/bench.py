@@ -58,7 +58,7 @@ def fabric(
     links: Annotated[bool, typer.Option("--links/--no-links",
                                         help="also measure ctrl RTT over rate-limited per-plane links (needs root)")] = True,
 ) -> None:
-    """Fabric chunk throughput against raw Zenoh (64 KiB, 1 MiB) and ctrl request/reply p99 RTT: idle,
+    """Trajectory chunk throughput (64 KiB, 1 MiB: chunks/s, MB/s) and ctrl request/reply p99 RTT: idle,
     with the data plane flooded, and flooded with data and ctrl on one shared session."""
     from benchmarks.fabric import format_table, run_bench
 
