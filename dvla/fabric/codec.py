@@ -122,46 +122,14 @@ def _type_error(path: Path, value: Any, expected: str) -> CodecError:
     return CodecError("type", f"{_path_str(path)}: {type(value).__name__}, expected {expected}")
 
 
-def _check_str(value: Any, path: Path) -> str:
-    if not isinstance(value, str):
-        raise _type_error(path, value, "str")
-    return value
+def _checker(types: type | tuple[type, ...], expected: str, convert: Callable[[Any], Any] = lambda v: v,
+             refuse: tuple[type, ...] = ()) -> Checker:
+    def check(value: Any, path: Path) -> Any:
+        if isinstance(value, refuse) or not isinstance(value, types):
+            raise _type_error(path, value, expected)
+        return convert(value)
 
-
-def _check_int(value: Any, path: Path) -> int:
-    # bool is an int subclass in Python but a distinct msgpack type; keep them apart.
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise _type_error(path, value, "int")
-    return int(value)
-
-
-def _check_float(value: Any, path: Path) -> float:
-    # Integers are accepted because other encoders may write 1 for 1.0.
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (float, int, np.floating, np.integer)):
-        raise _type_error(path, value, "float")
-    return float(value)
-
-
-def _check_bool(value: Any, path: Path) -> bool:
-    if not isinstance(value, (bool, np.bool_)):
-        raise _type_error(path, value, "bool")
-    return bool(value)
-
-
-def _check_bytes(value: Any, path: Path) -> Any:
-    if not isinstance(value, (bytes, bytearray, memoryview)):
-        raise _type_error(path, value, "bytes")
-    return value
-
-
-def _check_ndarray(value: Any, path: Path) -> np.ndarray:
-    if not isinstance(value, np.ndarray):
-        raise _type_error(path, value, "numpy.ndarray")
-    return value
-
-
-def _check_any(value: Any, path: Path) -> Any:
-    return value
+    return check
 
 
 def _dict_checker(value_checker: Checker) -> Checker:
@@ -178,9 +146,16 @@ def _dict_checker(value_checker: Checker) -> Checker:
     return check
 
 
+# bool is an int subclass in Python but a distinct msgpack type, so ints refuse it; floats accept
+# integers because other encoders may write 1 for 1.0.
 _SCALAR_CHECKERS: dict[Any, Checker] = {
-    str: _check_str, int: _check_int, float: _check_float, bool: _check_bool,
-    bytes: _check_bytes, np.ndarray: _check_ndarray, Any: _check_any,
+    str: _checker(str, "str"),
+    int: _checker((int, np.integer), "int", int, refuse=(bool,)),
+    float: _checker((float, int, np.floating, np.integer), "float", float, refuse=(bool, np.bool_)),
+    bool: _checker((bool, np.bool_), "bool", bool),
+    bytes: _checker((bytes, bytearray, memoryview), "bytes"),
+    np.ndarray: _checker(np.ndarray, "numpy.ndarray"),
+    Any: lambda value, path: value,
 }
 
 
@@ -189,7 +164,7 @@ def _compile_hint(hint: Any) -> Checker:
     if hint in _SCALAR_CHECKERS:
         return _SCALAR_CHECKERS[hint]
     if hint is dict:
-        return _dict_checker(_check_any)
+        return _dict_checker(_SCALAR_CHECKERS[Any])
     if typing.get_origin(hint) is dict:
         key_hint, value_hint = typing.get_args(hint)
         if key_hint is str:
@@ -226,28 +201,14 @@ _MAX_DIM = (1 << 32) - 1
 _NAME_PREFIX = {name: _U8.pack(len(name)) + name for name in _DTYPES_BY_WIRE_NAME}
 #: pad-length byte followed by that many zero bytes, per pad length
 _PAD_BYTES = [_U8.pack(pad) + bytes(pad) for pad in range(ARRAY_ALIGN)]
-_EXT_FRAME_LEN = (3, 4, 6)
+#: msgpack bin 8/16/32 and ext 8/16/32 frames: (length bound, header struct, type byte)
+_BIN_FRAMES = ((1 << 8, struct.Struct(">BB"), 0xC4), (1 << 16, struct.Struct(">BH"), 0xC5), (1 << 32, struct.Struct(">BI"), 0xC6))
+_EXT_FRAMES = ((1 << 8, struct.Struct(">BBb"), 0xC7), (1 << 16, struct.Struct(">BHb"), 0xC8), (1 << 32, struct.Struct(">BIb"), 0xC9))
 
 
-def _ext_frame(length: int, kind: int) -> bytes:
-    """msgpack ext 8/16/32 header; ``kind`` (0, 1, 2) is chosen by :meth:`_Writer.array`."""
-    if kind == 0:
-        return struct.pack(">BBb", 0xC7, length, ARRAY_EXT_CODE)
-    if kind == 1:
-        return struct.pack(">BHb", 0xC8, length, ARRAY_EXT_CODE)
-    return struct.pack(">BIb", 0xC9, length, ARRAY_EXT_CODE)
-
-
-def _ext_kind(length: int) -> int:
-    return 0 if length < (1 << 8) else 1 if length < (1 << 16) else 2
-
-
-def _bin_frame(length: int) -> bytes:
-    if length < (1 << 8):
-        return struct.pack(">BB", 0xC4, length)
-    if length < (1 << 16):
-        return struct.pack(">BH", 0xC5, length)
-    return struct.pack(">BI", 0xC6, length)
+def _frame(frames: tuple, length: int) -> tuple[struct.Struct, int]:
+    """The smallest (header struct, type byte) of ``frames`` that can hold ``length`` bytes."""
+    return next((st, code) for bound, st, code in frames if length < bound)
 
 
 def _wire_array(arr: np.ndarray, path: Path, limits: Limits) -> tuple[bytes, np.ndarray]:
@@ -290,10 +251,6 @@ class _Writer:
             self.offset += len(chunk)
             self.packer.reset()
 
-    def _raw(self, piece: Any, length: int) -> None:
-        self.pieces.append(piece)
-        self.offset += length
-
     def finish(self) -> bytes:
         self._flush()
         if self.offset > self.limits.max_message_bytes:
@@ -312,14 +269,12 @@ class _Writer:
         self.packer.pack(value)
 
     def value(self, value: Any, path: Path, depth: int) -> None:
-        if type(value) is np.ndarray:  # most values of a trajectory chunk
+        if isinstance(value, np.ndarray):
             self.array(value, path)
         elif value is None or isinstance(value, (bool, int, float)):
             self.packer.pack(value)
         elif isinstance(value, str):
             self.string(value, path)
-        elif isinstance(value, np.ndarray):
-            self.array(value, path)
         elif isinstance(value, dict):
             self.mapping(value, path, depth + 1)
         elif isinstance(value, (list, tuple)):
@@ -358,9 +313,9 @@ class _Writer:
         if n > self.limits.max_array_bytes:
             raise CodecError("oversize", f"{_path_str(path)}: {n} bytes > {self.limits.max_array_bytes}")
         self._flush()
-        frame = _bin_frame(n)
-        self._raw(frame, len(frame))
-        self._raw(view, n)
+        st, code = _frame(_BIN_FRAMES, n)
+        self.pieces += [st.pack(code, n), view]
+        self.offset += st.size + n
 
     def array(self, value: np.ndarray, path: Path) -> None:
         name, arr = _wire_array(value, path, self.limits)
@@ -369,10 +324,10 @@ class _Writer:
         hlen = len(header) + 1  # + the pad-length byte
         nbytes = arr.nbytes
         # Pick the frame size assuming the largest pad, so choosing the pad can't change it.
-        kind = _ext_kind(hlen + (ARRAY_ALIGN - 1) + nbytes)
+        st, code = _frame(_EXT_FRAMES, hlen + (ARRAY_ALIGN - 1) + nbytes)
         self._flush()
-        pad = -(self.offset + _EXT_FRAME_LEN[kind] + hlen) % ARRAY_ALIGN
-        head = _ext_frame(hlen + pad + nbytes, kind) + header + _PAD_BYTES[pad]
+        pad = -(self.offset + st.size + hlen) % ARRAY_ALIGN
+        head = st.pack(code, hlen + pad + nbytes, ARRAY_EXT_CODE) + header + _PAD_BYTES[pad]
         self.pieces.append(head)
         self.offset += len(head)
         if nbytes:
@@ -415,80 +370,45 @@ def _write(msg: Message, limits: Limits) -> "_Writer":
 # Decoding
 # --------------------------------------------------------------------------------------------
 
-_BE_U16 = struct.Struct(">H").unpack_from
-_BE_U32 = struct.Struct(">I").unpack_from
-_BE_U64 = struct.Struct(">Q").unpack_from
-_BE_I8 = struct.Struct(">b").unpack_from
-_BE_I16 = struct.Struct(">h").unpack_from
-_BE_I32 = struct.Struct(">i").unpack_from
-_BE_I64 = struct.Struct(">q").unpack_from
-_BE_F32 = struct.Struct(">f").unpack_from
-_BE_F64 = struct.Struct(">d").unpack_from
-
-# Fixed-width scalars: first byte -> (width, unpack function).
+# Fixed-width scalars: first byte -> big-endian struct.
 _FIXED_SCALARS = {
-    0xCA: (4, _BE_F32), 0xCB: (8, _BE_F64),
-    0xCC: (1, struct.Struct(">B").unpack_from), 0xCD: (2, _BE_U16), 0xCE: (4, _BE_U32), 0xCF: (8, _BE_U64),
-    0xD0: (1, _BE_I8), 0xD1: (2, _BE_I16), 0xD2: (4, _BE_I32), 0xD3: (8, _BE_I64),
+    b: struct.Struct(">" + fmt)
+    for b, fmt in zip(range(0xCA, 0xD4), ("f", "d", "B", "H", "I", "Q", "b", "h", "i", "q"))
 }
-# Length-prefixed values: first byte -> (kind, width of the length, unpack function of the length).
+# Length-prefixed values: first byte -> (kind, width of the big-endian length).
 _SIZED = {
-    0xC4: ("bin", 1, None), 0xC5: ("bin", 2, _BE_U16), 0xC6: ("bin", 4, _BE_U32),
-    0xC7: ("ext", 1, None), 0xC8: ("ext", 2, _BE_U16), 0xC9: ("ext", 4, _BE_U32),
-    0xD9: ("str", 1, None), 0xDA: ("str", 2, _BE_U16), 0xDB: ("str", 4, _BE_U32),
-    0xDC: ("list", 2, _BE_U16), 0xDD: ("list", 4, _BE_U32),
-    0xDE: ("map", 2, _BE_U16), 0xDF: ("map", 4, _BE_U32),
+    0xC4: ("bin", 1), 0xC5: ("bin", 2), 0xC6: ("bin", 4),
+    0xC7: ("ext", 1), 0xC8: ("ext", 2), 0xC9: ("ext", 4),
+    0xD9: ("str", 1), 0xDA: ("str", 2), 0xDB: ("str", 4),
+    0xDC: ("list", 2), 0xDD: ("list", 4),
+    0xDE: ("map", 2), 0xDF: ("map", 4),
 }
 _FIXEXT_LEN = {0xD4: 1, 0xD5: 2, 0xD6: 4, 0xD7: 8, 0xD8: 16}
+_CONSTANTS = {0xC0: None, 0xC2: False, 0xC3: True}
 
 
 class _Reader:
-    """Recursive-descent msgpack reader; arrays come out as views of ``data``.
-
-    ``data`` is the caller's ``bytes``/``bytearray`` itself when possible (slicing those for
-    strings is several times cheaper than slicing a memoryview), otherwise a 1-D byte
-    memoryview. Hot paths inline their bounds checks: this runs per field of every message.
-    """
+    """Recursive-descent msgpack reader over a flat byte memoryview; arrays come out as views
+    of it."""
 
     __slots__ = ("data", "pos", "end", "limits")
 
-    def __init__(self, data: bytes | bytearray | memoryview, limits: Limits) -> None:
+    def __init__(self, data: memoryview, limits: Limits) -> None:
         self.data = data
         self.pos = 0
         self.end = len(data)
         self.limits = limits
 
-    def _truncated(self, n: int, at: int) -> CodecError:
-        return CodecError("malformed", f"truncated: need {n} bytes at offset {at}, have {self.end - at}")
-
     def _take(self, n: int) -> int:
         """Claim the next ``n`` bytes; return their start offset."""
         start = self.pos
         if n > self.end - start:
-            raise self._truncated(n, start)
+            raise CodecError("malformed", f"truncated: need {n} bytes at offset {start}, have {self.end - start}")
         self.pos = start + n
         return start
 
     def value(self, depth: int) -> Any:
-        pos = self.pos
-        if pos >= self.end:
-            raise self._truncated(1, pos)
-        data = self.data
-        b = data[pos]
-        pos += 1
-        self.pos = pos
-        if 0xA0 <= b <= 0xBF:  # fixstr, the most common value (every map key): inlined
-            n = b & 0x1F
-            if n > self.limits.max_str_len:
-                raise CodecError("oversize", f"string of {n} bytes > {self.limits.max_str_len}")
-            stop = pos + n
-            if stop > self.end:
-                raise self._truncated(n, pos)
-            self.pos = stop
-            try:
-                return str(data[pos:stop], "utf-8")
-            except UnicodeDecodeError as exc:
-                raise CodecError("malformed", f"invalid UTF-8 at offset {pos}") from exc
+        b = self.data[self._take(1)]
         if b <= 0x7F:
             return b
         if b >= 0xE0:
@@ -497,35 +417,20 @@ class _Reader:
             return self.mapping(b & 0x0F, depth + 1)
         if b <= 0x9F:
             return self.sequence(b & 0x0F, depth + 1)
-        if 0xC7 <= b <= 0xC9:  # ext 8/16/32 (arrays): skip the generic sized-value dispatch
-            width = 1 << (b - 0xC7)
-            if pos + width + 1 > self.end:
-                raise self._truncated(width + 1, pos)
-            n = data[pos] if width == 1 else (_BE_U16 if width == 2 else _BE_U32)(data, pos)[0]
-            self.pos = pos + width
-            return self.ext(n)
-        if b == 0xC0:
-            return None
-        if b == 0xC2:
-            return False
-        if b == 0xC3:
-            return True
-        fixed = _FIXED_SCALARS.get(b)
-        if fixed is not None:
-            width, unpack = fixed
-            return unpack(self.data, self._take(width))[0]
-        sized = _SIZED.get(b)
-        if sized is not None:
-            return self._sized(sized, depth)
-        n = _FIXEXT_LEN.get(b)
-        if n is not None:
-            return self.ext(n)
-        raise CodecError("malformed", f"invalid msgpack type byte 0x{b:02x} at offset {pos}")
-
-    def _sized(self, sized: tuple, depth: int) -> Any:
-        kind, width, unpack = sized
+        if b <= 0xBF:
+            return self.string(b & 0x1F)
+        if b in _CONSTANTS:
+            return _CONSTANTS[b]
+        if b in _FIXED_SCALARS:
+            st = _FIXED_SCALARS[b]
+            return st.unpack_from(self.data, self._take(st.size))[0]
+        if b in _FIXEXT_LEN:
+            return self.ext(_FIXEXT_LEN[b])
+        if b not in _SIZED:
+            raise CodecError("malformed", f"invalid msgpack type byte 0x{b:02x} at offset {self.pos}")
+        kind, width = _SIZED[b]
         start = self._take(width)
-        n = self.data[start] if unpack is None else unpack(self.data, start)[0]
+        n = int.from_bytes(self.data[start:start + width], "big")
         if kind == "str":
             return self.string(n)
         if kind == "bin":
@@ -539,13 +444,9 @@ class _Reader:
     def string(self, n: int) -> str:
         if n > self.limits.max_str_len:
             raise CodecError("oversize", f"string of {n} bytes > {self.limits.max_str_len}")
-        start = self.pos
-        stop = start + n
-        if stop > self.end:
-            raise self._truncated(n, start)
-        self.pos = stop
+        start = self._take(n)
         try:
-            return str(self.data[start:stop], "utf-8")
+            return str(self.data[start:start + n], "utf-8")
         except UnicodeDecodeError as exc:
             raise CodecError("malformed", f"invalid UTF-8 at offset {start}") from exc
 
@@ -571,31 +472,18 @@ class _Reader:
     def mapping(self, n: int, depth: int) -> dict:
         self._enter(depth, n, 2, self.limits.max_map_len, "map")
         out: dict[str, Any] = {}
-        value = self.value
-        data, end, max_str = self.data, self.end, self.limits.max_str_len
         for _ in range(n):
-            pos = self.pos
-            b = data[pos] if pos < end else 0
-            if 0xA0 <= b <= 0xBF and (b & 0x1F) <= max_str and pos + 1 + (b & 0x1F) <= end:
-                # a short str key (every key the reference encoder writes): read inline
-                stop = pos + 1 + (b & 0x1F)
-                try:
-                    key = str(data[pos + 1:stop], "utf-8")
-                except UnicodeDecodeError as exc:
-                    raise CodecError("malformed", f"invalid UTF-8 at offset {pos + 1}") from exc
-                self.pos = stop
-            else:
-                key = value(depth)
-                if type(key) is not str:
-                    raise CodecError("schema", f"map key {key!r} is not a str")
+            key = self.value(depth)
+            if type(key) is not str:
+                raise CodecError("schema", f"map key {key!r} is not a str")
             if key in out:
                 raise CodecError("schema", f"duplicate map key {key!r}")
-            out[key] = value(depth)
+            out[key] = self.value(depth)
         return out
 
     def ext(self, n: int) -> np.ndarray:
         code_at = self._take(1)
-        code = _BE_I8(self.data, code_at)[0]
+        code = int.from_bytes(self.data[code_at:code_at + 1], "big", signed=True)
         if code != ARRAY_EXT_CODE:
             raise CodecError("type", f"unsupported ext type {code} at offset {code_at}")
         start = self._take(n)
@@ -641,24 +529,19 @@ class _Reader:
             raise CodecError("oversize", f"array of {nbytes} bytes > {limits.max_array_bytes}")
         if count == 0:
             return np.empty(shape, dtype)
-        # One constructor call: a view of `data` (half the cost of frombuffer + reshape).
         return np.ndarray(shape, dtype, data, p)
 
 
-def _as_byte_sequence(buf: Any) -> bytes | bytearray | memoryview:
-    """``buf`` itself if it is bytes/bytearray, else a flat byte memoryview of it."""
-    if type(buf) is bytes or type(buf) is bytearray:
-        return buf
+def _byte_view(buf: Any) -> memoryview:
+    """A flat byte memoryview of ``buf``."""
     try:
         mv = memoryview(buf)
-        if mv.ndim != 1 or mv.format != "B":
-            mv = mv.cast("B")  # needs C-contiguity; a strided view is refused here
+        return mv if mv.ndim == 1 and mv.format == "B" else mv.cast("B")  # a strided view is refused
     except (TypeError, ValueError) as exc:
         raise CodecError("malformed", f"not a contiguous bytes-like object: {type(buf).__name__}") from exc
-    return mv
 
 
-def _read_top(data: bytes | bytearray | memoryview, limits: Limits) -> dict:
+def _read_top(data: memoryview, limits: Limits) -> dict:
     reader = _Reader(data, limits)
     top = reader.value(0)
     if reader.pos != reader.end:
@@ -709,7 +592,7 @@ def decode(
     :class:`CodecError` (and nothing else).
     """
     try:
-        data = _as_byte_sequence(buf)
+        data = _byte_view(buf)
         if len(data) > limits.max_message_bytes:
             raise CodecError("oversize", f"message {len(data)} bytes > {limits.max_message_bytes}")
         top = _read_top(data, limits)

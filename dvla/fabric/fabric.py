@@ -15,7 +15,6 @@ Usable without any dvla configuration: pass two plain `zenoh.Config` objects (do
 from __future__ import annotations
 
 import logging
-import os
 import threading
 import time
 from typing import Any, Callable
@@ -70,7 +69,6 @@ class Inbox:
         self._plane = plane
         self._block_s = block_s
         self.maxsize = maxsize
-        self.high_watermark = 0
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key, raw, peer = _take(sample, self._acct, self._plane)
@@ -80,10 +78,6 @@ class Inbox:
         """Queue `item` (from `peer`), waiting at most `block_s` for space; else drop and count it."""
         if not self._queue.put(item, timeout=self._block_s):
             self._acct.dropped(self._plane, "backpressure", peer)
-            return
-        depth = self._queue.qsize()
-        if depth > self.high_watermark:
-            self.high_watermark = depth
 
     def get(self, timeout: float | None = None) -> Any | None:
         """Next valid message, or None after `timeout`. Invalid ones are counted and skipped.
@@ -341,9 +335,6 @@ class Fabric:
 
     # ------------------------------------------------------------------ plumbing
     def _publisher(self, plane: str, key: str, kind: str = "data") -> Any:
-        pub = self._publishers.get(key)
-        if pub is not None:
-            return pub
         with self._pub_lock:
             pub = self._publishers.get(key)
             if pub is None:
@@ -365,14 +356,9 @@ class Fabric:
         if self._closed:
             return
         self._closed = True
-        for entity in reversed(self._declared):
+        for entity in [*reversed(self._declared), *self._publishers.values()]:
             try:
                 entity.undeclare()
-            except Exception:
-                pass
-        for pub in self._publishers.values():
-            try:
-                pub.undeclare()
             except Exception:
                 pass
         for session in (self.data, self.ctrl):
@@ -426,12 +412,3 @@ def _open_retrying(conf: zenoh.Config, timeout_s: float, plane: str) -> zenoh.Se
                 raise ConnectionError(f"cannot open the {plane} plane session: {err}") from err
             time.sleep(delay)
             delay = min(delay * 2, 0.5)
-
-
-def init_zenoh_logging() -> None:
-    """Route Zenoh's own logs to Python logging at WARN (once per process)."""
-    if os.environ.get("DVLA_ZENOH_LOG", "1") != "0":
-        try:
-            zenoh.init_log_from_env_or("error")
-        except Exception:
-            pass

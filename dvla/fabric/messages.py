@@ -118,11 +118,8 @@ class TrajectoryChunk(Message):
             raise CodecError("shape", f"actions: ndim {actions.ndim}, expected 3 [T, N, A]")
         t, n = actions.shape[:2]
         _check_array("actions", actions, actions.shape, _F32)
-        _check_array("logprobs", self.logprobs, (t, n), _F32)
-        _check_array("rewards", self.rewards, (t, n), _F32)
-        _check_array("terminated", self.terminated, (t, n), _BOOL)
-        _check_array("truncated", self.truncated, (t, n), _BOOL)
-        _check_array("success", self.success, (t, n), _BOOL)
+        for name in ("logprobs", "rewards", "terminated", "truncated", "success"):
+            _check_array(name, getattr(self, name), (t, n), _F32 if name in ("logprobs", "rewards") else _BOOL)
         if self.seq < 0:
             raise CodecError("schema", f"seq {self.seq} < 0")
         if self.env_steps != t * n:

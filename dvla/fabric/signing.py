@@ -35,7 +35,7 @@ import struct
 import threading
 import time
 from collections import OrderedDict
-from typing import Callable
+from typing import Callable, NamedTuple
 
 from dvla.fabric.errors import SecretError, SignatureError
 
@@ -104,12 +104,12 @@ class Signer:
         return b"".join((header, payload, mac.digest()))
 
 
-class _Parsed:
-    __slots__ = ("sender", "ts_ns", "nonce", "body_end", "payload_start")
-
-    def __init__(self, sender: str, ts_ns: int, nonce: bytes, payload_start: int, body_end: int) -> None:
-        self.sender, self.ts_ns, self.nonce = sender, ts_ns, nonce
-        self.payload_start, self.body_end = payload_start, body_end
+class _Parsed(NamedTuple):
+    sender: str
+    ts_ns: int
+    nonce: bytes
+    payload_start: int
+    body_end: int
 
 
 def _parse(env: memoryview) -> _Parsed:

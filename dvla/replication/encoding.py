@@ -345,11 +345,6 @@ def _apply_bf16(base: np.ndarray, q: np.ndarray, out: np.ndarray) -> None:
     np.add(base, out, out=out)
 
 
-def _topk_new_values(base: np.ndarray, idx: np.ndarray, vals: np.ndarray) -> np.ndarray:
-    """base[idx] + vals, in float32."""
-    return np.add(base[idx], vals)
-
-
 def topk_count(numel: int, fraction: float) -> int:
     """Entries sent per delta-topk version: ceil(fraction * numel), at least 1."""
     return min(numel, max(1, math.ceil(fraction * numel)))
@@ -385,21 +380,18 @@ class WeightEncoder:
         start_version: int = 0,
         compression: str = "none",
     ) -> None:
-        if compression not in COMPRESSIONS:
-            raise ValueError(f"compression must be one of {COMPRESSIONS}, got {compression!r}")
-        if encoding not in ENCODINGS:
-            raise ValueError(f"encoding must be one of {ENCODINGS}, got {encoding!r}")
-        if not 0.0 < topk_fraction <= 1.0:
-            raise ValueError(f"topk_fraction must be in (0, 1], got {topk_fraction!r}")
-        if snapshot_every < 1:
-            raise ValueError(f"snapshot_every must be >= 1, got {snapshot_every!r}")
-        if chunk_bytes < 1:
-            raise ValueError(f"chunk_bytes must be >= 1, got {chunk_bytes!r}")
-        if not 0 < layout.numel < 2**32:
-            # Indices travel as uint32; an empty layout has nothing to replicate.
-            raise ValueError(f"layout must hold between 1 and 2**32 - 1 elements, has {layout.numel}")
-        if start_version < 0:
-            raise ValueError(f"start_version must be >= 0, got {start_version!r}")
+        # Indices travel as uint32; an empty layout has nothing to replicate.
+        for ok, problem in (
+            (compression in COMPRESSIONS, f"compression must be one of {COMPRESSIONS}, got {compression!r}"),
+            (encoding in ENCODINGS, f"encoding must be one of {ENCODINGS}, got {encoding!r}"),
+            (0.0 < topk_fraction <= 1.0, f"topk_fraction must be in (0, 1], got {topk_fraction!r}"),
+            (snapshot_every >= 1, f"snapshot_every must be >= 1, got {snapshot_every!r}"),
+            (chunk_bytes >= 1, f"chunk_bytes must be >= 1, got {chunk_bytes!r}"),
+            (0 < layout.numel < 2**32, f"layout must hold between 1 and 2**32 - 1 elements, has {layout.numel}"),
+            (start_version >= 0, f"start_version must be >= 0, got {start_version!r}"),
+        ):
+            if not ok:
+                raise ValueError(problem)
         self.layout = layout
         self.encoding = encoding
         self.topk_fraction = topk_fraction
@@ -512,7 +504,7 @@ class WeightEncoder:
         vals = self._topk[k:].view(_F32)
         np.copyto(idx, chosen, casting="unsafe")  # < numel < 2**32
         np.take(d, idx, out=vals)
-        new = _topk_new_values(self._pub, idx, vals)
+        new = np.add(self._pub[idx], vals)
         if not _all_finite(new):
             return None
         self._pub[idx] = new
@@ -662,10 +654,9 @@ class WeightDecoder:
 
     def _check_size(self, m: Manifest, nbytes: int) -> None:
         n = self.layout.numel
-        if m.encoding == "full" and nbytes != 4 * n:
-            raise CorruptPayload(f"full payload must be {4 * n} bytes, got {nbytes}")
-        if m.encoding == "delta-bf16" and nbytes != 2 * n:
-            raise CorruptPayload(f"delta-bf16 payload must be {2 * n} bytes, got {nbytes}")
+        want = {"full": 4 * n, "delta-bf16": 2 * n}.get(m.encoding, nbytes)
+        if nbytes != want:
+            raise CorruptPayload(f"{m.encoding} payload must be {want} bytes, got {nbytes}")
         if m.encoding == "delta-topk" and (nbytes % 8 or nbytes > 4 * n):
             # Encoders never send a top-k payload larger than a full one.
             raise CorruptPayload(f"delta-topk payload of {nbytes} bytes is not 8*k with 8*k <= {4 * n}")
@@ -685,7 +676,7 @@ class WeightDecoder:
             if idx[-1] >= n or (k > 1 and not bool(np.all(idx[1:] > idx[:-1]))):
                 raise CorruptPayload("delta-topk indices out of range or not strictly increasing")
             np.copyto(staging, self.active)
-            staging[idx] = _topk_new_values(self.active, idx, vals)
+            staging[idx] = np.add(self.active[idx], vals)
 
 
 # --------------------------------------------------------------------------------------------
@@ -753,12 +744,6 @@ class ChunkAssembler:
         self._have[index] = 1
         self._received += 1
         return True
-
-    def chunk(self, index: int) -> memoryview:
-        """The stored bytes of a received chunk (valid until :meth:`reset`)."""
-        if not (isinstance(index, int) and 0 <= index < self.n_chunks and self._have[index]):
-            raise ReplicationError(f"chunk {index!r} not held")
-        return self._view[slice(*chunk_span(index, self.n_chunks, self.total_bytes))]
 
     def payload(self) -> memoryview:
         """The assembled payload (valid until :meth:`reset`); raises if chunks are missing."""

@@ -22,7 +22,7 @@ import math
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Union
+from typing import Union
 
 import numpy as np
 import torch
@@ -99,23 +99,6 @@ class ParamLayout:
     def empty(self) -> np.ndarray:
         """A new zeroed flat float32 vector of this layout."""
         return np.zeros(self.numel, dtype=np.float32)
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain-data form (JSON/msgpack friendly) for sending a layout to a peer."""
-        return {"names": list(self.names), "shapes": [list(s) for s in self.shapes], "dtypes": list(self.dtypes)}
-
-    @staticmethod
-    def from_dict(raw: Mapping[str, Any]) -> "ParamLayout":
-        """Inverse of :meth:`to_dict`; malformed input raises :class:`LayoutMismatch`."""
-        try:
-            names = tuple(str(n) for n in raw["names"])
-            shapes = tuple(tuple(int(d) for d in s) for s in raw["shapes"])
-            dtypes = tuple(str(d) for d in raw["dtypes"])
-            if any(d < 0 for s in shapes for d in s):
-                raise ValueError("negative dimension")
-            return ParamLayout(names=names, shapes=shapes, dtypes=dtypes)
-        except (KeyError, TypeError, ValueError) as exc:
-            raise LayoutMismatch(f"malformed layout description: {exc}") from exc
 
 
 def _layout_digest(names: tuple[str, ...], shapes: tuple[tuple[int, ...], ...], dtypes: tuple[str, ...]) -> str:

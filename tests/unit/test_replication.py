@@ -67,8 +67,6 @@ def test_layout_covers_float_tensors_only_and_hash_is_stable(layout: ParamLayout
     assert layout.numel == 50_080
     assert layout.nbytes == 4 * layout.numel
     assert ParamLayout.from_state_dict(_mlp(seed=7).state_dict()).hash == layout.hash
-    assert ParamLayout.from_dict(layout.to_dict()) == layout
-    assert ParamLayout.from_dict(layout.to_dict()).hash == layout.hash
 
 
 def test_layout_hash_depends_on_names_shapes_dtypes(layout: ParamLayout) -> None:
@@ -77,8 +75,6 @@ def test_layout_hash_depends_on_names_shapes_dtypes(layout: ParamLayout) -> None
     assert renamed.hash != layout.hash
     half = ParamLayout(names=layout.names, shapes=layout.shapes, dtypes=("float16",) + layout.dtypes[1:])
     assert half.hash != layout.hash
-    with pytest.raises(LayoutMismatch):
-        ParamLayout.from_dict({"names": ["a"], "shapes": [[-1]], "dtypes": ["float32"]})
 
 
 def test_flatten_and_unflatten_work_in_place(layout: ParamLayout) -> None:
@@ -186,7 +182,6 @@ def test_chunk_assembler_rules() -> None:
     for i in (0, 1, 3):
         asm.add(i, chunks[i])
     assert asm.complete and bytes(asm.payload()) == payload
-    assert bytes(asm.chunk(1)) == bytes(chunks[1])
     asm.reset(1, 10)  # reused, not reallocated
     assert id(asm._buf) == buffer_id and asm.missing() == [0]
     with pytest.raises(ReplicationError):
