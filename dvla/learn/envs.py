@@ -33,7 +33,7 @@ import numpy as np
 from dvla.config import TaskConfig
 
 __all__ = [
-    "make_env", "resolve_sim_backend", "ArraySpec", "ObsSpec", "EnvGroup", "StepResult", "run_eval_episodes",
+    "make_env", "ArraySpec", "ObsSpec", "EnvGroup", "StepResult", "run_eval_episodes",
     "obs_as_dict", "obs_to_torch", "probe_spec",
 ]
 
@@ -71,15 +71,6 @@ def obs_to_torch(obs: Any, device: Any = "cpu") -> Any:
     return torch.as_tensor(obs, device=device)
 
 
-def resolve_sim_backend(name: str) -> str:
-    """'auto' -> 'physx_cuda' when a CUDA device is present, else 'physx_cpu'."""
-    if name != "auto":
-        return name
-    import torch
-
-    return "physx_cuda" if torch.cuda.is_available() else "physx_cpu"
-
-
 def _load_factory(spec: str) -> Callable[[TaskConfig, int], Any]:
     module_name, _, attr = spec.partition(":")
     if not module_name or not attr:
@@ -104,17 +95,17 @@ def make_env(task: TaskConfig, seed: int) -> Any:
 
     import torch
 
-    backend = resolve_sim_backend(task.sim_backend)
+    cuda = torch.cuda.is_available()
     kwargs: dict[str, Any] = dict(
         obs_mode=task.obs_mode,
         control_mode=task.control_mode,
-        sim_backend=backend,
+        sim_backend=task.sim_backend if task.sim_backend != "auto" else "physx_cuda" if cuda else "physx_cpu",
         num_envs=1,
         max_episode_steps=task.max_episode_steps,
     )
     if task.obs_mode != "state":
         kwargs["sensor_configs"] = dict(width=task.image_size, height=task.image_size)
-    if not torch.cuda.is_available():
+    if not cuda:
         # ManiSkill's default render backend wants a GPU; without one, render on the CPU
         # (SAPIEN through a software Vulkan driver). With CUDA the GPU renderer is kept.
         kwargs["render_backend"] = "cpu"

@@ -8,25 +8,10 @@ shape/dtype) for structured ones (``obs_mode="rgb"``: ``rgb``, ``proprio``, ``to
 docs/policies.md is the full protocol, including what a user policy must respect for weight
 replication.
 
-The policy protocol (short form)
---------------------------------
-A policy is a ``torch.nn.Module`` (its floating-point ``state_dict`` entries are what the
-replication tree ships, so all weights must live in parameters or buffers) with these methods;
-``obs`` is a float32 tensor ``[B, D]`` for flat observations and a dict of ``[B, ...]`` tensors
-(images uint8, tokens int32) for structured ones; ``action`` is float32 ``[B, A]``, every other
-output ``[B]``:
-
-* ``act(obs, deterministic=False) -> (action, logprob, value)``: sample an action (the mean when
-  ``deterministic``), without gradients. ``logprob`` must be the log-density of exactly the
-  returned action; the env clips actions itself, so return the unclipped sample.
-* ``evaluate(obs, action) -> (logprob, entropy, value)``: with gradients, for the PPO loss.
-* ``value(obs) -> value``: the critic, for bootstrapping.
-* optional ``observe(obs)``: called by the learner with every training batch's observations
-  before it updates (e.g. to keep running normalisation statistics in buffers).
-* optional ``sample(obs, deterministic=False) -> (action, logprob)``: ``act`` without the value,
-  which rollouts and the evaluator discard; called instead of ``act`` when present. Worth having
-  when the critic is a separate network (as in the MLP policy).
-
+A policy is a ``torch.nn.Module`` with ``act(obs, deterministic=False) -> (action, logprob,
+value)``, ``evaluate(obs, action) -> (logprob, entropy, value)`` and ``value(obs)``, and
+optionally ``observe(obs)`` (the learner's batches, e.g. for normalisation statistics) and
+``sample(obs, deterministic=False) -> (action, logprob)`` (``act`` without the critic).
 Register a class with ``@register_policy("name")`` to make it addressable by name.
 """
 
@@ -136,9 +121,6 @@ def make_policy(spec: str, obs: Any, act_dim: int, **kwargs: Any) -> nn.Module:
     return policy
 
 
-# --- the default MLP policy ------------------------------------------------------------------
-
-
 def _layer(n_in: int, n_out: int, std: float) -> nn.Linear:
     # Orthogonal weights and zero biases keep early activations well scaled (CleanRL-style init).
     layer = nn.Linear(n_in, n_out)
@@ -147,51 +129,10 @@ def _layer(n_in: int, n_out: int, std: float) -> nn.Linear:
     return layer
 
 
-def _sigmoid_tanh(x: Tensor) -> Tensor:
-    """tanh(x) as 2 * sigmoid(2x) - 1."""
-    return torch.sigmoid(x * 2.0).mul_(2.0).sub_(1.0)
-
-
-class _SigmoidTanh(torch.autograd.Function):
-    """:func:`_sigmoid_tanh` with tanh's own backward (1 - y^2)."""
-
-    @staticmethod
-    def forward(ctx: Any, x: Tensor) -> Tensor:
-        y = _sigmoid_tanh(x)
-        ctx.save_for_backward(y)
-        return y
-
-    @staticmethod
-    def backward(ctx: Any, grad: Tensor) -> Tensor:
-        (y,) = ctx.saved_tensors
-        return torch.ops.aten.tanh_backward(grad, y)
-
-
-class Tanh(nn.Tanh):
-    """``nn.Tanh`` that is faster for large CPU batches (the learner's minibatches).
-
-    PyTorch's CPU tanh kernel is several times slower than its sigmoid, so for a minibatch-sized
-    activation ``2 * sigmoid(2x) - 1`` is faster, by a noticeable share of a PPO update of the
-    default MLP. The two agree to float32 rounding (absolute error below 1e-6). Small inputs (a
-    rollout's inference batch) and other devices use ``torch.tanh``: there the extra kernels or
-    the autograd function's Python overhead would cost more than they save.
-    """
-
-    #: elements from which the sigmoid form is used on the CPU
-    MIN_ELEMENTS = 16384
-
-    def forward(self, x: Tensor) -> Tensor:
-        if x.device.type != "cpu" or x.numel() < self.MIN_ELEMENTS or x.dtype != torch.float32:
-            return torch.tanh(x)
-        if torch.is_grad_enabled() and x.requires_grad:
-            return _SigmoidTanh.apply(x)
-        return _sigmoid_tanh(x)
-
-
 def _mlp(n_in: int, hidden: Sequence[int], n_out: int, out_std: float) -> nn.Sequential:
     layers: list[nn.Module] = []
     for width in hidden:
-        layers += [_layer(n_in, width, math.sqrt(2)), Tanh()]
+        layers += [_layer(n_in, width, math.sqrt(2)), nn.Tanh()]
         n_in = width
     layers.append(_layer(n_in, n_out, out_std))
     return nn.Sequential(*layers)

@@ -188,9 +188,12 @@ class PPOLearner:
             raise KeyError(f"batch lacks {missing}")
         out = {k: torch.as_tensor(batch[k], dtype=torch.float32, device=self.device) for k in BATCH_KEYS if k != "obs"}
         out["obs"] = _obs_tensors(batch["obs"], self.device)
-        size = _obs_len(out["obs"])
-        if any(v.shape[0] != size for v in _flat_items(out)):
-            raise ValueError(f"batch arrays disagree on length: { {k: tuple(v.shape) for k, v in _flat_items(out, True)} }")
+        obs = out["obs"]
+        shapes = {k: tuple(v.shape) for k, v in out.items() if k != "obs"}
+        shapes |= {f"obs.{k}": tuple(v.shape) for k, v in obs.items()} if isinstance(obs, Mapping) else {"obs": tuple(obs.shape)}
+        size = _obs_len(obs)
+        if any(shape[0] != size for shape in shapes.values()):
+            raise ValueError(f"batch arrays disagree on length: {shapes}")
         if size < self.cfg.minibatches:
             raise ValueError(f"batch of {size} is smaller than minibatches={self.cfg.minibatches}")
         return out
@@ -275,16 +278,8 @@ class PPOLearner:
         self.optimizer.load_state_dict(state["optimizer"])
 
 
-# --- structured observations (dict of tensors: uint8 images, int32 tokens, float32 proprio) ----
-
-
 def make_adam(params: Any, **kwargs: Any) -> torch.optim.Adam:
-    """Adam with the fused kernel where this PyTorch has it for the parameters' device.
-
-    Same algorithm, one kernel for all parameters instead of a dozen small ops per tensor, which
-    matters on a CPU learner taking many small steps per update. Falls back to the default
-    implementation where fused is not supported.
-    """
+    """Adam with the fused kernel (one kernel for all parameters) where this PyTorch has it."""
     params = list(params)
     try:
         return torch.optim.Adam(params, fused=True, **kwargs)
@@ -305,16 +300,6 @@ def _obs_len(obs: Any) -> int:
 
 def _take(v: Any, idx: Tensor) -> Any:
     return {k: a[idx] for k, a in v.items()} if isinstance(v, Mapping) else v[idx]
-
-
-def _flat_items(b: Mapping[str, Any], named: bool = False) -> list:
-    items = []
-    for k, v in b.items():
-        if isinstance(v, Mapping):
-            items += [(f"{k}.{kk}", vv) for kk, vv in v.items()]
-        else:
-            items.append((k, v))
-    return items if named else [v for _, v in items]
 
 
 def _approx_kl(log_ratio: Tensor) -> float:

@@ -28,7 +28,7 @@ from ..learn.envs import probe_spec
 from ..learn.grpo import grpo_batch
 from ..replication import ParamLayout, flatten, unflatten_into
 from .checkpoint import load_checkpoint, save_checkpoint
-from .counters import CounterFile, source_key, split_seq
+from ..counters import CounterFile, source_key, split_seq
 from .runtime import main
 from .slots import SlotPool
 from .swimlane import LaneContext, Swimlane
@@ -95,7 +95,7 @@ class Actor:
         sl.lane("learn", self._learn)
         sl.lane("publish", self._publish)
         # The first version: the initial (or resumed) weights, so rollouts can act at once.
-        self._snapshot_version(self.policy)
+        self.versions.put(self._flat_weights(), threading.Event())
 
     def _skip_past_replicas(self, wait_s: float = 5.0) -> None:
         """After a restart, continue numbering above every version a replica already holds.
@@ -119,11 +119,10 @@ class Actor:
             self.publisher.renumber(highest)
             self.policy_version = self.published_version = highest
 
-    def _snapshot_version(self, module: torch.nn.Module) -> np.ndarray:
+    def _flat_weights(self) -> np.ndarray:
         flat = np.empty(self.layout.numel, np.float32)
         with torch.no_grad():
-            flatten(module.state_dict(), self.layout, out=flat)
-        self.versions.put(flat, threading.Event())
+            flatten(self.policy.state_dict(), self.layout, out=flat)
         return flat
 
     # -- lanes --------------------------------------------------------------------------------
@@ -220,9 +219,7 @@ class Actor:
                 self.policy_version += 1
                 stats["learn_s"] = time.perf_counter() - t0
                 self.learn_stats = {k: float(v) for k, v in stats.items()}
-                flat = np.empty(self.layout.numel, np.float32)
-                with torch.no_grad():
-                    flatten(self.policy.state_dict(), self.layout, out=flat)
+                flat = self._flat_weights()
             self.versions.put(flat, ctx.stop, stats=ctx.stats)
             ctx.count()
 

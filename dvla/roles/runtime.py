@@ -154,17 +154,8 @@ class RoleHost:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             st = self.status()
-            doc = {
-                "name": st.name,
-                "kind": st.kind,
-                "policy_version": st.policy_version,
-                "env_steps": st.env_steps,
-                "lanes": st.lanes,
-                "planes": st.planes,
-                "extra": st.extra,
-                "error": None if error is None else str(error),
-                "wall_s": time.time() - self.started,
-            }
+            doc = {k: getattr(st, k) for k in ("name", "kind", "policy_version", "env_steps", "lanes", "planes", "extra")}
+            doc.update(error=None if error is None else str(error), wall_s=time.time() - self.started)
             tmp = path.with_suffix(".tmp")
             tmp.write_text(json.dumps(doc, indent=1, sort_keys=True, default=str))
             tmp.replace(path)

@@ -1,22 +1,10 @@
 """Swimlanes: the named worker threads every role process runs, and their plumbing.
 
-A role (rollout, actor, replicator) overlaps its work on a few named *lanes* (for a rollout:
-``sim``, ``infer``, ``ship``, ``sync``), each a thread running a loop until a shared stop event
-is set. This module owns:
-
-* :class:`LaneStats` -- cheap per-lane counters (busy / waiting time, items, errors) and a
-  status snapshot with a sliding-window throughput and utilisation;
-* :class:`BoundedQueue` -- the only queue lanes hand work over with: always bounded, every
-  blocking wait ends promptly when the stop event is set, and wait time is charged to the
-  calling lane (items are typed records, never positional tuples);
-* :class:`Swimlane` and :class:`LaneContext` -- starting, stopping and joining the lanes of one
-  role, with fail-fast error handling: an exception in any lane is logged, kept as
-  :attr:`Swimlane.error` and stops every lane, so a role never limps on with a dead thread;
-* :class:`LatencyHistogram` -- cumulative log-bucketed latencies of a lane's batches, kept
-  apart by a label (e.g. whether a weight swap touched the batch); a reader diffs two readings
-  to get percentiles over exactly the window between them;
-* :func:`pin_cpus` and :func:`set_torch_threads` -- process placement helpers, because torch
-  intra-op threads oversubscribing the cores a role shares with its lanes cost throughput.
+A role overlaps its work on a few named *lanes* (a rollout: ``sim``, ``infer``, ``ship``,
+``sync``), each a thread looping until a shared stop event is set. An exception in any lane is
+logged, kept as :attr:`Swimlane.error` and stops every lane: a role never limps on with a dead
+thread. Lanes hand work over only through :class:`BoundedQueue`, whose waits end when the stop
+event is set and are charged to the waiting lane's :class:`LaneStats`.
 """
 
 from __future__ import annotations
@@ -31,21 +19,11 @@ import threading
 import time
 import traceback
 from collections.abc import Callable, Iterable
-from types import TracebackType
 from typing import Any, ContextManager, Generic, TypeVar
 
 __all__ = [
-    "BoundedQueue",
-    "LatencyHistogram",
-    "LaneContext",
-    "LaneError",
-    "LaneStats",
-    "Swimlane",
-    "current_lane",
-    "histogram_diff",
-    "histogram_percentile",
-    "pin_cpus",
-    "set_torch_threads",
+    "BoundedQueue", "LatencyHistogram", "LaneContext", "LaneError", "LaneStats", "Swimlane", "current_lane",
+    "histogram_diff", "histogram_percentile", "pin_cpus", "set_torch_threads",
 ]
 
 log = logging.getLogger("dvla.swimlane")
@@ -62,14 +40,9 @@ _SAMPLES_PER_WINDOW = 20
 """How many (time, counters) samples a window keeps; bounds memory and sampling cost."""
 
 
-# --------------------------------------------------------------------------------------------
-# Per-lane statistics
-# --------------------------------------------------------------------------------------------
-
 
 class _Section:
-    """A reusable ``with`` block calling ``enter`` and ``exit`` (a class, not a generator: lanes
-    enter one per item)."""
+    """A reusable ``with`` block calling ``enter`` and ``exit`` (lanes enter one per item)."""
 
     __slots__ = ("_enter", "_exit")
 
@@ -122,7 +95,6 @@ class LaneStats:
         self._busy_cm = _Section(self._enter_busy, self._exit_busy)
         self._wait_cm = _Section(self._enter_wait, self._exit_wait)
 
-    # -- recording (lane thread) -------------------------------------------------------------
 
     def busy(self) -> _Section:
         """``with stats.busy():`` around real work."""
@@ -174,7 +146,6 @@ class LaneStats:
                 self._busy_since = now
             self._maybe_sample(now)
 
-    # -- reading (any thread) ----------------------------------------------------------------
 
     def _totals(self, now: float) -> tuple[float, float]:
         """Busy and wait seconds including a section still open at ``now``."""
@@ -243,10 +214,6 @@ def _fraction(part: float, whole: float) -> float:
         return 0.0
     return min(1.0, max(0.0, part / whole))
 
-
-# --------------------------------------------------------------------------------------------
-# Bounded hand-over queue
-# --------------------------------------------------------------------------------------------
 
 
 class BoundedQueue(Generic[T]):
@@ -339,10 +306,6 @@ def _wait_section(stats: LaneStats | None) -> ContextManager[None]:
         stats = ctx.stats if ctx is not None else None
     return stats.waiting() if stats is not None else contextlib.nullcontext()
 
-
-# --------------------------------------------------------------------------------------------
-# Lanes
-# --------------------------------------------------------------------------------------------
 
 _local = threading.local()
 
@@ -451,7 +414,6 @@ class Swimlane:
         self._error_lock = threading.Lock()
         self._started = False
 
-    # -- setup -------------------------------------------------------------------------------
 
     def lane(self, name: str, target: LaneTarget, *, stop_on_exit: bool = True) -> LaneContext:
         """Register lane ``name`` running ``target(ctx)``; returns its context.
@@ -495,7 +457,6 @@ class Swimlane:
         """Each lane's CPU affinity as its thread found it after pinning (None before it runs)."""
         return {name: lane.affinity for name, lane in self._lanes.items()}
 
-    # -- lifecycle ---------------------------------------------------------------------------
 
     def start(self) -> None:
         """Start one daemon thread per lane, named ``"{role}/{lane}"``."""
@@ -588,15 +549,9 @@ class Swimlane:
     def __enter__(self) -> Swimlane:
         return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
-    # -- status ------------------------------------------------------------------------------
 
     @property
     def state(self) -> str:
@@ -620,10 +575,6 @@ class Swimlane:
                 snap["cpu_s"] = cpu
             out[name] = snap
         return out
-
-# --------------------------------------------------------------------------------------------
-# Labelled latency histograms
-# --------------------------------------------------------------------------------------------
 
 LATENCY_BUCKET_RATIO = 1.02
 """Upper edge of bucket ``i`` is ``LATENCY_MIN_MS * ratio**i``: percentiles are exact to 2%."""
@@ -706,10 +657,6 @@ def histogram_percentile(counts: dict[str, int], q: float) -> float:
             return bucket_upper_ms(b)
     return bucket_upper_ms(items[-1][0])  # unreachable: rank <= total
 
-
-# --------------------------------------------------------------------------------------------
-# Process placement
-# --------------------------------------------------------------------------------------------
 
 
 def _name_os_thread(lane: str) -> None:

@@ -191,15 +191,10 @@ class WeightSync:
             self.counters["repairs"] += 1
             self._want_snapshot = True
             return
-        except ChecksumMismatch:
+        except ReplicationError as err:  # a failed checksum among them: a snapshot repairs it
             self.counters["rejected"] += 1
-            self.counters["repairs"] += 1
-            log.warning("weights: v%d failed its checksum: discarded, asking for a snapshot", m.version)
-            self._want_snapshot = True
-            return
-        except ReplicationError as err:
-            self.counters["rejected"] += 1
-            log.warning("weights: v%d rejected: %s", m.version, err)
+            self.counters["repairs"] += isinstance(err, ChecksumMismatch)
+            log.warning("weights: v%d rejected, asking for a snapshot: %s", m.version, err)
             self._want_snapshot = True
             return
         self.version = m.version
