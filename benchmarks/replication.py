@@ -34,7 +34,7 @@ from typing import Any, Callable
 
 from dvla.config import LinkConfig, Topology
 from dvla.orchestrator.estimate import delivery_estimate
-from dvla.orchestrator.ports import free_port_block
+from benchmarks.ports import free_port_block
 from dvla.orchestrator.topology import dump_topology_yaml, load_topology
 from .repcluster import RepCluster, without_roles
 

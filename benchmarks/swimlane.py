@@ -51,7 +51,7 @@ from typing import Any, Callable
 from dvla.config import BudgetConfig, NodeConfig, RackConfig, RolePlacement, Topology
 from dvla.fabric.messages import RoleStatus
 from dvla.orchestrator.plan import role_cpus
-from dvla.orchestrator.ports import free_port_block
+from benchmarks.ports import free_port_block
 from dvla.roles.swimlane import histogram_diff, histogram_percentile
 
 from .stats import weighted_percentile

@@ -20,9 +20,11 @@ RoleKind = Literal["actor", "rollout", "replicator", "evaluator"]
 ROLE_KINDS: tuple[str, ...] = typing.get_args(RoleKind)
 """Every role a topology may place. ``evaluator`` is a rollout that runs deterministic eval episodes."""
 
-ENCODINGS = ("full", "delta-bf16", "delta-topk")
-COMPRESSIONS = ("none", "zstd")
-"""Weight encodings of the replication tree (see docs/replication.md)."""
+Encoding = Literal["full", "delta-bf16", "delta-topk"]
+Compression = Literal["none", "zstd"]
+#: weight encodings and compressions of the replication tree (see docs/replication.md)
+ENCODINGS: tuple[str, ...] = typing.get_args(Encoding)
+COMPRESSIONS: tuple[str, ...] = typing.get_args(Compression)
 
 ROLE_LANES: dict[str, tuple[str, ...]] = {
     "actor": ("ingest", "batch", "learn", "publish"),
@@ -209,12 +211,12 @@ class ReplicationConfig:
     """How weights travel from the actor to the rollouts."""
 
     #: "full", "delta-bf16" or "delta-topk"
-    encoding: str = "full"
+    encoding: Encoding = "full"
     #: fraction of entries sent per version by delta-topk
     topk_fraction: float = 0.05
     #: lossless compression of delta payloads: "zstd" (byte planes + zstd, sent when smaller) or
     #: "none"; full versions are never compressed
-    compression: str = "zstd"
+    compression: Compression = "zstd"
     #: a full snapshot every this many versions
     snapshot_every: int = 10
     #: max children per tree node

@@ -36,20 +36,15 @@ def die_with_parent() -> None:
 class Launcher:
     """Owns every child process of a run."""
 
-    def __init__(
-        self,
-        run_dir: Path,
-        env: dict[str, str],
-        *,
-        max_restarts: int = 3,
-        backoff_s: float = 1.0,
-        wrap: CommandWrapper | None = None,
-    ) -> None:
+    #: seconds before the first restart of a role that died young; doubled on each restart
+    BACKOFF_S = 1.0
+
+    def __init__(self, run_dir: Path, env: dict[str, str], *, max_restarts: int = 3) -> None:
         self.run_dir = run_dir
         self.env = env
         self.max_restarts = max_restarts
-        self.backoff_s = backoff_s
-        self.wrap = wrap or CommandWrapper()
+        #: how a role's argv becomes the command that starts it (in a namespace, over ssh)
+        self.wrap = CommandWrapper()
         self.children: dict[str, Supervised] = {}
 
     def add(self, proc: Process) -> Supervised:
@@ -156,7 +151,7 @@ class Launcher:
                 continue
             # A role that ran a while before crashing gets its backoff reset.
             ran = now - sup.started_at
-            delay = self.backoff_s * (2 ** sup.restarts if ran < 30 else 1)
+            delay = self.BACKOFF_S * (2 ** sup.restarts if ran < 30 else 1)
             sup.restarts += 1
             sup.next_start = now + delay
             events.append(f"{sup.name} crashed (exit {code}); restarting in {delay:.1f} s")

@@ -131,12 +131,9 @@ def ip(*args: str, ns: str | None = None) -> str:
 def rate_limit(ns: str | None, dev: str, gbit: float) -> None:
     """Limit the egress of `dev` to `gbit` with a token bucket."""
     rate_bit = int(gbit * 1e9)
-    # tbf passes a packet whole only if it fits the bucket; a GSO super-packet (up to 64 KiB of
-    # payload *plus* headers) that does not is cut into MTU-sized packets in software, so the
-    # receiver handles ~45 packets instead of one: on a 200 Mbit/s link with a 64 KiB bucket
-    # that made every byte across it cost its receiver about twice the CPU of a 1 Gbit/s link
-    # (real NICs segment and coalesce in hardware). 256 KiB holds any super-packet; beyond that
-    # ~2 ms of line rate keeps the shaper accurate at high rates.
+    # the bucket must hold a whole GSO super-packet: tbf cuts a larger one into MTU-sized packets
+    # in software, multiplying the receiver's per-byte cost (real NICs segment in hardware); above
+    # that, a few ms of line rate keeps the shaper accurate at high rates
     burst = max(256 * 1024, rate_bit // 8 // 500)
     _run(["tc", *(["-n", ns] if ns else []), "qdisc", "replace", "dev", dev, "root", "tbf",
           "rate", f"{rate_bit}bit", "burst", str(burst), "latency", "25ms"])
@@ -241,18 +238,14 @@ def _setns(fd: int) -> None:
         raise OSError(code, f"setns: {os.strerror(code)}")
 
 
-def _enter(path: str) -> None:
-    fd = os.open(path, os.O_RDONLY)
+def enter_netns(name: str) -> None:
+    """Move the calling thread into the named namespace (``ip netns add NAME``); a process that
+    calls this before it starts threads or opens sockets runs inside that namespace."""
+    fd = os.open(f"/run/netns/{name}", os.O_RDONLY)
     try:
         _setns(fd)
     finally:
         os.close(fd)
-
-
-def enter_netns(name: str) -> None:
-    """Move the calling thread into the named namespace (``ip netns add NAME``); a process that
-    calls this before it starts threads or opens sockets runs inside that namespace."""
-    _enter(f"/var/run/netns/{name}")
 
 
 @dataclass(frozen=True)
@@ -276,7 +269,7 @@ def _probe_connects(nodes: list[_Node], pairs: list[tuple[str, str]]) -> dict[tu
         listeners: dict[str, socket.socket] = {}
         try:
             for dst in sorted({d for _s, d in pairs}):
-                _enter(f"/run/netns/{by_name[dst].ns}")
+                enter_netns(by_name[dst].ns)
                 sock = socket.socket()
                 sock.bind((by_name[dst].ip, 0))
                 sock.listen(64)
@@ -285,7 +278,7 @@ def _probe_connects(nodes: list[_Node], pairs: list[tuple[str, str]]) -> dict[tu
                 if src == "host":
                     _setns(home)
                 else:
-                    _enter(f"/run/netns/{by_name[src].ns}")
+                    enter_netns(by_name[src].ns)
                 results[(src, dst)] = _connect(by_name[dst].ip, listeners[dst].getsockname()[1])
         except BaseException as err:  # re-raised by the caller, in its own thread
             failure.append(err)
@@ -357,9 +350,6 @@ class NetnsCluster:
     def names(self) -> list[str]:
         """Every namespace and root-namespace interface created so far (for `dvla down`)."""
         return list(self._created)
-
-    def wrapper(self) -> CommandWrapper:
-        return NetnsWrapper()
 
     def create(self) -> None:
         """Build the whole fabric and check it; on any failure remove what was built and raise."""

@@ -26,11 +26,11 @@ from ..fabric.messages import Command
 from .accounting import run_accounting
 from .launcher import Launcher, log_tail
 from .monitor import Monitor
-from .netns import NetnsCluster
+from .netns import NetnsCluster, NetnsWrapper
 from .plan import make_plan, pinning_problems
 from .plots import plot_run
 from .process import Plan, is_local_host
-from .ssh import SshWrapper
+from .ssh import SshWrapper, write_private
 from .topology import dump_topology_yaml
 
 log = logging.getLogger("dvla.up")
@@ -117,9 +117,7 @@ def resolve_secret(topo: Topology, run_dir: Path) -> tuple[str, str]:
         return load_secret(None).hex(), "DVLA_SECRET"
     secret = new_secret()
     path = run_dir / "secret"
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as f:
-        f.write(secret)
+    write_private(path, secret)
     return secret, str(path)
 
 
@@ -191,7 +189,7 @@ class Up:
         if self.topo.emulate == "netns":
             self.netns = NetnsCluster(self.topo, self.plan)
             self.netns.create()
-            self.launcher.wrap = self.netns.wrapper()
+            self.launcher.wrap = NetnsWrapper()
         if not self._all_local():
             ssh = SshWrapper(self.topo, self.secret, self.launcher.env, local=self.launcher.wrap)
             ssh.check_all()  # one clear line naming the host, before anything starts

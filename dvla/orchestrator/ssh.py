@@ -114,10 +114,10 @@ class SshTarget:
         return " ".join(shlex.quote(a) for a in (self.ssh.python, *args))
 
 
-def check_host(target: SshTarget, timeout_s: float | None = None) -> dict[str, Any]:
+def check_host(target: SshTarget) -> dict[str, Any]:
     """Log in once and ask the remote Python about itself; raise :class:`SshError` (one line) if
     the host, the login or the remote dvla fails. Returns what the remote side reported."""
-    timeout = timeout_s if timeout_s is not None else target.ssh.connect_timeout_s + 20
+    timeout = target.ssh.connect_timeout_s + 20
     argv = target.argv(target.python_command("-m", "dvla.orchestrator.ssh", "probe"))
     try:
         proc = subprocess.run(argv, stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=timeout)
@@ -284,7 +284,7 @@ def _prepare_run_dir(run_dir: Path, token: str) -> None:
             token_path.write_text(token + "\n")
 
 
-def _write_private(path: Path, text: str) -> None:
+def write_private(path: Path, text: str) -> None:
     """Write a file only its owner can read (0600 from creation on)."""
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     with os.fdopen(fd, "w") as f:
@@ -305,10 +305,9 @@ def _results_tar(run_dir: Path, since: float) -> bytes:
     return buf.getvalue()
 
 
-def serve(stdin: Any = None, stdout: Any = None) -> int:
+def serve() -> int:
     """Run one role as the orchestrator's stdin header says; stop it when stdin closes."""
-    stdin = stdin or sys.stdin.buffer
-    stdout = stdout or sys.stdout.buffer
+    stdin, stdout = sys.stdin.buffer, sys.stdout.buffer
     line = stdin.readline()
     if not line:
         print("dvla ssh serve: no header on stdin", file=sys.stderr)
@@ -321,7 +320,7 @@ def serve(stdin: Any = None, stdout: Any = None) -> int:
     roles_dir = run_dir / "roles"
     roles_dir.mkdir(exist_ok=True)
     config_path = roles_dir / f"{config['name']}.json"
-    _write_private(config_path, json.dumps(config, indent=1, sort_keys=True))
+    write_private(config_path, json.dumps(config, indent=1, sort_keys=True))
     env = dict(os.environ)
     env.update(header.get("env", {}))
     env.setdefault("PYTHONUNBUFFERED", "1")

@@ -28,8 +28,6 @@ import yaml
 from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 
 from dvla.config import (
-    COMPRESSIONS,
-    ENCODINGS,
     OBS_MODES,
     ROLE_KINDS,
     ROLE_LANES,
@@ -239,14 +237,7 @@ def _describe_node(node: Node) -> str:
         return "a list"
     if isinstance(node, MappingNode):
         return "a mapping"
-    kinds = {
-        "null": "null",
-        "bool": "boolean",
-        "int": "integer",
-        "float": "number",
-        "str": "string",
-        "timestamp": "date",
-    }
+    kinds = {"null": "null", "bool": "boolean", "int": "integer", "float": "number", "str": "string", "timestamp": "date"}
     kind = kinds.get(node.tag.removeprefix(_TAG), node.tag)
     if kind == "null":
         return "null"
@@ -579,15 +570,11 @@ _RANGES: dict[type, dict[str, _Range]] = {
 }
 
 
-def _is_number(v: Any) -> bool:
-    return type(v) in (int, float)
-
-
 def _check_ranges(p: _Partial, ctx: _Context) -> None:
     for name, allowed in _RANGES.get(p.cls, {}).items():
         v = p.get(name)
         # NaN fails every comparison, so it is reported as out of range as well
-        if _is_number(v) and not allowed.contains(v):
+        if type(v) in (int, float) and not allowed.contains(v):
             ctx.report(p.where(name), f"{v!r} is out of range (expected {allowed.describe(name)})")
 
 
@@ -715,15 +702,6 @@ def _check_stop_condition(p: _Partial, ctx: _Context) -> None:
         ctx.report(p.path, f"no stop condition (expected at least one of {', '.join(limits)} to be set)")
 
 
-def _check_encoding(p: _Partial, ctx: _Context) -> None:
-    encoding = p.get("encoding")
-    if isinstance(encoding, str) and encoding not in ENCODINGS:
-        ctx.report(p.where("encoding"), _unknown_value("encoding", encoding, ENCODINGS))
-    compression = p.get("compression")
-    if isinstance(compression, str) and compression not in COMPRESSIONS:
-        ctx.report(p.where("compression"), _unknown_value("compression", compression, COMPRESSIONS))
-
-
 def _check_rack_nodes(p: _Partial, ctx: _Context) -> None:
     if p.get("nodes") == ():
         ctx.report(p.where("nodes"), "rack has no nodes (expected at least one node)")
@@ -835,7 +813,6 @@ _CHECKS: dict[type, list[Callable[[_Partial, _Context], None]]] = {
     TlsConfig: [_check_tls],
     TaskConfig: [_check_obs_and_policy, _check_grpo],
     BudgetConfig: [_check_stop_condition],
-    ReplicationConfig: [_check_encoding],
     RackConfig: [_check_rack_nodes],
     NodeConfig: [_check_node_roles, _check_cpus],
     RolePlacement: [_check_cpus, _check_lane_cpus],

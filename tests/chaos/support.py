@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from dvla.orchestrator.ports import free_port_block  # noqa: F401  (tests import it from here)
+from benchmarks.ports import free_port_block  # noqa: F401  (tests import it from here)
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from dvla.config import ROLE_LANES
-from dvla.orchestrator.ports import free_port_block  # noqa: F401  (tests import it from here)
+from benchmarks.ports import free_port_block  # noqa: F401  (tests import it from here)
 
 ROOT = Path(__file__).resolve().parents[2]
 ROLES = {"actor-node0-0", "replicator-node0-0", "rollout-node0-0", "rollout-node0-1", "evaluator-node0-0"}
