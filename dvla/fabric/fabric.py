@@ -15,6 +15,7 @@ Usable without any dvla configuration: pass two plain `zenoh.Config` objects (do
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 import time
 from typing import Any, Callable
@@ -25,7 +26,6 @@ from .accounting import Accounting
 from .codec import CodecError, decode, encode
 from .keys import KeySpace
 from .signing import SignatureError, Signer, Verifier
-from .tokenqueue import TokenQueue
 
 log = logging.getLogger("dvla.fabric")
 
@@ -62,8 +62,7 @@ class Inbox:
         plane: str,
         block_s: float = 1.0,
     ) -> None:
-        # No queue.Queue: its Python-level Condition cost more per message than the decode.
-        self._queue: TokenQueue[Any] = TokenQueue(maxsize)
+        self._queue: queue.Queue[Any] = queue.Queue(maxsize)
         self._decoder = decoder
         self._acct = accounting
         self._plane = plane
@@ -76,7 +75,9 @@ class Inbox:
 
     def offer(self, item: Any, peer: str) -> None:
         """Queue `item` (from `peer`), waiting at most `block_s` for space; else drop and count it."""
-        if not self._queue.put(item, timeout=self._block_s):
+        try:
+            self._queue.put(item, timeout=self._block_s)
+        except queue.Full:
             self._acct.dropped(self._plane, "backpressure", peer)
 
     def get(self, timeout: float | None = None) -> Any | None:
@@ -91,8 +92,9 @@ class Inbox:
         late = 0
         while True:
             remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
-            item = self._queue.get(timeout=remaining)
-            if item is None:
+            try:
+                item = self._queue.get(timeout=remaining)
+            except queue.Empty:
                 return None
             if self._decoder is None:
                 return item
@@ -113,9 +115,12 @@ class Inbox:
     def drain_count(self) -> int:
         """Discard what is queued (at shutdown); returns how many were discarded."""
         n = 0
-        while self._queue.get() is not None:
+        while True:
+            try:
+                self._queue.get_nowait()
+            except queue.Empty:
+                return n
             n += 1
-        return n
 
 
 class Fabric:
