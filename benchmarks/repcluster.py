@@ -109,12 +109,12 @@ class RepCluster:
         write_trigger(self.run_dir, 0)
         try:
             if self.topo.emulate == "netns":
-                if self.netns is None:
-                    from dvla.orchestrator.netns import NetnsCluster
+                from dvla.orchestrator.netns import NetnsCluster, NetnsWrapper
 
+                if self.netns is None:
                     self.netns = NetnsCluster(self.topo, self.plan)
                     self.netns.create()
-                self.launcher.wrap = self.netns.wrapper()
+                self.launcher.wrap = NetnsWrapper()
             for p in self.plan.processes:
                 self.launcher.add(p)
             self.launcher.start_all()
