@@ -11,7 +11,7 @@ filled, at most ``ship_queue`` queued for the ship lane and one being published.
 
 from __future__ import annotations
 
-import dataclasses
+import copy
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -36,15 +36,6 @@ def chunk_template(rollout: str, T: int, n: int, obs_spec: dict[str, Any], act_d
     )
 
 
-def _with_own_arrays(chunk: TrajectoryChunk) -> TrajectoryChunk:
-    """A copy of `chunk` that shares no array with it."""
-    return dataclasses.replace(
-        chunk,
-        **{f: getattr(chunk, f).copy() for f in ("actions", "logprobs", "rewards", "terminated", "truncated", "success")},
-        **{f: {k: v.copy() for k, v in getattr(chunk, f).items()} for f in ("obs", "next_obs", "final_obs")},
-    )
-
-
 class ChunkPool(FreeList[TrajectoryChunk]):
     """``size`` chunks shaped like ``template``, each with arrays of its own: :meth:`take` one,
     fill its arrays, :meth:`give` it back once it has been published (or never will be)."""
@@ -52,7 +43,7 @@ class ChunkPool(FreeList[TrajectoryChunk]):
     def __init__(self, template: TrajectoryChunk, size: int) -> None:
         if size < 1:
             raise ValueError(f"a chunk pool needs at least one chunk, got size={size}")
-        super().__init__(_with_own_arrays(template) for _ in range(size))
+        super().__init__(copy.deepcopy(template) for _ in range(size))  # no array shared
 
 
 class Shipment(NamedTuple):
