@@ -219,7 +219,11 @@ class SshWrapper(CommandWrapper):
         assert path is not None
         note = None
         if code == SSH_FAILED:
-            note = f"{sup.name}: ssh {target.label()} failed: {_last_log_line(sup.log_path)}"
+            try:
+                why = last_line(sup.log_path.read_text(errors="replace")[-4000:])
+            except OSError:
+                why = "(no log)"
+            note = f"{sup.name}: ssh {target.label()} failed: {why}"
         try:
             unpacked = unpack_results(path, sup.log_path.parent.parent)
             if unpacked:
@@ -227,13 +231,6 @@ class SshWrapper(CommandWrapper):
         except (OSError, tarfile.TarError) as err:
             log.warning("%s: results from %s unreadable: %s", sup.name, target.host, err)
         return note
-
-
-def _last_log_line(path: Path) -> str:
-    try:
-        return last_line(path.read_text(errors="replace")[-4000:])
-    except OSError:
-        return "(no log)"
 
 
 def unpack_results(path: Path, run_dir: Path) -> list[str]:
