@@ -171,8 +171,7 @@ def check_zenoh() -> CheckResult:
             v = "unknown"
     except ImportError as err:
         return outcome("zenoh", False, f"import failed: {err}", fix=SETUP_PYTHON, required=True)
-    major = v.split(".")[0]
-    ok = major == "1"
+    ok = v.split(".")[0] == "1"
     return outcome("zenoh", ok, f"eclipse-zenoh {v}" + ("" if ok else " (dvla needs 1.x)"),
                    fix="python -m pip install 'eclipse-zenoh>=1.4,<2'", required=True)
 

@@ -231,7 +231,7 @@ class Up:
             if failed:
                 self.reason = "role_failed:" + ",".join(s.name for s in failed)
                 for s in failed:
-                    self.events.append(f"{s.name} last log lines:\n" + log_tail(s.log_path, 15, indent="  "))
+                    self.events.append(f"{s.name} last log lines:\n" + log_tail(s.log_path, indent="  "))
                 return ExitCode.ROLE_FAILED
             if events:
                 self._write_state()
