@@ -100,10 +100,9 @@ class SshTarget:
         }
         if s.known_hosts_file:
             opts["UserKnownHostsFile"] = s.known_hosts_file
-        if s.identity_file:
-            opts["IdentitiesOnly"] = "yes"
         argv = ["ssh", "-T", "-p", str(s.port)]
         if s.identity_file:
+            opts["IdentitiesOnly"] = "yes"
             argv += ["-i", s.identity_file]
         for key, value in opts.items():
             argv += ["-o", f"{key}={value}"]
@@ -128,10 +127,8 @@ def check_host(target: SshTarget) -> dict[str, Any]:
     if proc.returncode == SSH_FAILED:
         raise SshError(f"ssh {target.label()} failed: {last_line(proc.stderr)}")
     if proc.returncode != 0:
-        raise SshError(
-            f"ssh {target.label()}: remote python {target.ssh.python!r} cannot run dvla "
-            f"(exit {proc.returncode}): {last_line(proc.stderr)}"
-        )
+        raise SshError(f"ssh {target.label()}: remote python {target.ssh.python!r} cannot run dvla "
+                       f"(exit {proc.returncode}): {last_line(proc.stderr)}")
     try:
         return json.loads(last_line(proc.stdout))
     except ValueError:
