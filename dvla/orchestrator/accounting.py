@@ -45,13 +45,8 @@ def accounting_from_summaries(run_dir: Path) -> dict[str, Any]:
             consumed += int(data.get("consumed", 0))
             dropped += int(data.get("dropped", 0))
             rejected += int(data.get("rejected", 0))
-    return {
-        "produced": produced,
-        "consumed": consumed,
-        "dropped": dropped,
-        "rejected": rejected,
-        "unaccounted": produced - consumed - dropped - rejected,
-    }
+    return {"produced": produced, "consumed": consumed, "dropped": dropped, "rejected": rejected,
+            "unaccounted": produced - consumed - dropped - rejected}
 
 
 def accounting_from_counters(run_dir: Path) -> dict[str, Any] | None:

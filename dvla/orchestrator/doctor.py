@@ -171,8 +171,7 @@ def check_zenoh() -> CheckResult:
             v = "unknown"
     except ImportError as err:
         return outcome("zenoh", False, f"import failed: {err}", fix=SETUP_PYTHON, required=True)
-    major = v.split(".")[0]
-    ok = major == "1"
+    ok = v.split(".")[0] == "1"
     return outcome("zenoh", ok, f"eclipse-zenoh {v}" + ("" if ok else " (dvla needs 1.x)"),
                    fix="python -m pip install 'eclipse-zenoh>=1.4,<2'", required=True)
 
@@ -327,8 +326,19 @@ def check_clock() -> CheckResult:
                    fix="timedatectl set-ntp true (or install chrony)", required=False)
 
 
-#: every check `run_checks` knows, in its order (names for `dvla doctor --skip`)
-CHECK_NAMES = ("python", "torch", "zenoh", "vulkan", "maniskill", "ports", "cpus", "netns", "ssh", "clock")
+#: every check, in the order it runs (its name is what `dvla doctor --skip` takes)
+CHECKS: dict[str, Callable[[Topology | None, Needs], CheckResult | list[CheckResult]]] = {
+    "python": lambda topo, needs: check_python(),
+    "torch": lambda topo, needs: check_torch(needs),
+    "zenoh": lambda topo, needs: check_zenoh(),
+    "vulkan": lambda topo, needs: check_vulkan(needs),
+    "maniskill": lambda topo, needs: check_maniskill(needs),
+    "ports": lambda topo, needs: check_ports(needs),
+    "cpus": lambda topo, needs: check_cpus(topo),
+    "netns": lambda topo, needs: check_netns(needs),
+    "ssh": lambda topo, needs: check_ssh(topo, needs),
+    "clock": lambda topo, needs: check_clock(),
+}
 
 
 def run_checks(
@@ -336,26 +346,14 @@ def run_checks(
 ) -> list[CheckResult]:
     """Every check, in a fixed order; those named in `skipped` are reported as skipped."""
     needs = needs_of(topo)
-    steps: list[tuple[str, Callable[[], CheckResult | list[CheckResult]]]] = [
-        ("python", check_python),
-        ("torch", lambda: check_torch(needs)),
-        ("zenoh", check_zenoh),
-        ("vulkan", lambda: check_vulkan(needs)),
-        ("maniskill", lambda: check_maniskill(needs)),
-        ("ports", lambda: check_ports(needs)),
-        ("cpus", lambda: check_cpus(topo)),
-        ("netns", lambda: check_netns(needs)),
-        ("ssh", lambda: check_ssh(topo, needs)),
-        ("clock", check_clock),
-    ]
     results: list[CheckResult] = []
-    for name, fn in steps:
+    for name, fn in CHECKS.items():
         if name in skipped:
             results.append(skip(name, "skipped (--skip)"))
             continue
         if progress is not None:
             progress(name)
-        r = fn()
+        r = fn(topo, needs)
         results.extend(r if isinstance(r, list) else [r])
     return results
 

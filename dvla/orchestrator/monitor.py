@@ -4,7 +4,6 @@ and stop conditions. Collects first, renders elsewhere (view.py)."""
 from __future__ import annotations
 
 import csv
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,8 +33,6 @@ class Snapshot:
     time_s: float
     statuses: dict[str, RoleStatus]
     env_steps: int
-    produced_steps: int
-    steps_per_s: float
     version: int
 
 
@@ -50,19 +47,16 @@ class Monitor:
     first_step_s: float | None = None
     success_at_s: float | None = None
     success_at_steps: int | None = None
-    _lock: threading.Lock = field(default_factory=threading.Lock)
     _rate_mark: tuple[float, int] | None = None
     _rate: float = 0.0
 
     def __post_init__(self) -> None:
-        self.metrics_path = self.run_dir / "metrics.csv"
-        self.evals_path = self.run_dir / "evals.csv"
-        self._metrics = open(self.metrics_path, "w", newline="")
+        self._metrics = open(self.run_dir / "metrics.csv", "w", newline="")
         self._mw = csv.writer(self._metrics)
         self._mw.writerow(["time_s", "env_steps", "produced_steps", "steps_per_s", "version", "policy_lag_mean", "roles_up",
                            # rollouts' per-step inference latency, the slowest rollout's percentiles
                            "infer_ms_p50", "infer_ms_p99"])
-        self._evals = open(self.evals_path, "w", newline="")
+        self._evals = open(self.run_dir / "evals.csv", "w", newline="")
         self._ew = csv.writer(self._evals)
         self._ew.writerow(["time_s", "version", "env_steps", "success_once", "success_at_end", "return_mean", "episodes"])
         self._inbox = self.fabric.subscribe_ctrl(self.fabric.keys.eval_all(), 64, EvalResult)
@@ -87,7 +81,7 @@ class Monitor:
         elif t - self._rate_mark[0] >= 3.0:
             self._rate = (env_steps - self._rate_mark[1]) / (t - self._rate_mark[0])
             self._rate_mark = (t, env_steps)
-        snap = Snapshot(t, statuses, env_steps, produced, self._rate, version)
+        snap = Snapshot(t, statuses, env_steps, version)
         lag = actors[0].extra.get("policy_lag_mean", 0.0) if actors else 0.0
         rollouts = [s.extra for s in statuses.values() if s.kind == "rollout"]
         p50 = max((float(e.get("infer_ms_p50", 0.0)) for e in rollouts), default=0.0)
@@ -134,8 +128,7 @@ class Monitor:
         self._evals.close()
 
     def result(self) -> dict[str, Any]:
-        last = self.last
-        first = self.first_step_s
+        last, first = self.last, self.first_step_s
         end = self.success_at_s if self.success_at_s is not None else self.now()
         train_s = (end - first) if first is not None else None
         steps = self.success_at_steps if self.success_at_steps is not None else (last.env_steps if last else 0)

@@ -134,48 +134,26 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
             data = PlaneEndpoints(mode="peer")
         else:
             ctrl = PlaneEndpoints(mode="client", connect=tuple(ep(a, "ctrl") for a in anc))
-            data = (
-                PlaneEndpoints(mode="peer", connect=tuple(ep(by_name[a], "data") for a in s.actors))
-                if s.kind == "rollout"
-                else PlaneEndpoints(mode="peer")
-            )
+            # evaluators have no actors: an empty data plane
+            data = PlaneEndpoints(mode="peer", connect=tuple(ep(by_name[a], "data") for a in s.actors))
         if "ctrl" in tls_planes:
             ctrl = dataclasses.replace(ctrl, tls=topo.tls)
         if "data" in tls_planes:
             data = dataclasses.replace(data, tls=topo.tls)
         cfg = RoleConfig(
-            name=s.name,
-            kind=s.kind,  # type: ignore[arg-type]
-            run=topo.run,
-            node=s.node.name,
-            rack=s.rack.name,
-            seed=topo.seed * 1000 + s.index,
-            mode=topo.mode,
-            run_dir=run_dir,
-            data=data,
-            ctrl=ctrl,
-            shared_memory=topo.shared_memory,
-            parent=s.parent,
-            ancestors=tuple(a.name for a in anc),
-            children=tuple(s.children),
-            actors=tuple(s.actors),
-            rollouts=tuple(s.rollouts),
-            cpus=role_cpus(s.node, s.placement),
-            lane_cpus=s.placement.lane_cpus,
-            lockstep_steps=_lockstep_steps(topo, s, by_name),
-            task=topo.task,
-            replication=topo.replication,
+            name=s.name, kind=s.kind, run=topo.run, node=s.node.name, rack=s.rack.name,  # type: ignore[arg-type]
+            seed=topo.seed * 1000 + s.index, mode=topo.mode, run_dir=run_dir,
+            data=data, ctrl=ctrl, shared_memory=topo.shared_memory,
+            parent=s.parent, ancestors=tuple(a.name for a in anc), children=tuple(s.children),
+            actors=tuple(s.actors), rollouts=tuple(s.rollouts),
+            cpus=role_cpus(s.node, s.placement), lane_cpus=s.placement.lane_cpus,
+            lockstep_steps=_lockstep_steps(topo, s, by_name), task=topo.task, replication=topo.replication,
         )
         netns = netns_name(topo.run, s.node.name) if topo.emulate == "netns" else None
         processes.append(Process(config=cfg, host=s.node.host, netns=netns))
 
     entry = [ep(root, "ctrl")] + [ep(s, "ctrl") for s in slots if s.kind == "replicator"]
-    return Plan(
-        processes=tuple(processes),
-        ctrl_entry=tuple(entry),
-        addresses=addresses,
-        warnings=tuple(warnings),
-    )
+    return Plan(processes=tuple(processes), ctrl_entry=tuple(entry), addresses=addresses, warnings=tuple(warnings))
 
 
 def _lockstep_steps(topo: Topology, s: _Slot, by_name: dict[str, _Slot]) -> int:

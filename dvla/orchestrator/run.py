@@ -34,6 +34,8 @@ from .ssh import SshWrapper, write_private
 from .topology import dump_topology_yaml
 
 log = logging.getLogger("dvla.up")
+#: seconds between status collections
+POLL_S = 1.0
 
 
 class ExitCode:
@@ -61,8 +63,6 @@ class UpOptions:
     base_port: int | None = None
     #: runs/ directory
     runs_root: Path = Path("runs")
-    #: seconds between status collections
-    poll_s: float = 1.0
     #: restarts allowed per role
     max_restarts: int = 3
 
@@ -227,11 +227,11 @@ class Up:
                 return ExitCode.INTERRUPTED
             events = self.launcher.poll(stopping=False)
             self.events.extend(events)
-            if any(s.failed for s in self.launcher.children.values()):
-                failed = [s for s in self.launcher.children.values() if s.failed]
+            failed = [s for s in self.launcher.children.values() if s.failed]
+            if failed:
                 self.reason = "role_failed:" + ",".join(s.name for s in failed)
                 for s in failed:
-                    self.events.append(f"{s.name} last log lines:\n" + log_tail(s.log_path, 15, indent="  "))
+                    self.events.append(f"{s.name} last log lines:\n" + log_tail(s.log_path, indent="  "))
                 return ExitCode.ROLE_FAILED
             if events:
                 self._write_state()
@@ -241,18 +241,16 @@ class Up:
             reason = self.monitor.stop_reason()
             if reason is not None:
                 self.reason = reason
-                b = self.topo.task.budget
-                if b.until_success is not None and not self.monitor.success_reached():
+                if self.topo.task.budget.until_success is not None and not self.monitor.success_reached():
                     return ExitCode.TARGET_MISSED
                 return ExitCode.SUCCESS
-            self._interrupted.wait(self.opts.poll_s)
+            self._interrupted.wait(POLL_S)
 
     def _shutdown(self, fabric: Fabric) -> None:
         """Stop leaves first (they flush their last chunks), then the actor and the relays
         together (the tools' ctrl link runs through the actor's router, so relays are told
         while it is still up); escalate to signals on timeout."""
-        groups = [("rollout", "evaluator"), ("actor", "replicator")]
-        for kinds in groups:
+        for kinds in (("rollout", "evaluator"), ("actor", "replicator")):
             names = [n for n, s in self.launcher.children.items() if s.proc.config.kind in kinds and s.alive()]
             for n in names:
                 fabric.publish_ctrl(fabric.keys.cmd(n), Command(target=n, verb="stop", args={}, issued_ns=time.time_ns()))
@@ -268,16 +266,10 @@ class Up:
     def _report(self, code: int) -> None:
         assert self.monitor is not None
         res = self.monitor.result()
-        res.update(
-            {
-                "run": self.topo.run,
-                "reason": self.reason,
-                "exit_code": code,
-                "restarts": {n: s.restarts for n, s in self.launcher.children.items()},
-                # remote roles write their counter files on their own hosts
-                "accounting": run_accounting(self.run_dir, counters_complete=self._all_local()),
-            }
-        )
+        res.update(run=self.topo.run, reason=self.reason, exit_code=code,
+                   restarts={n: s.restarts for n, s in self.launcher.children.items()},
+                   # remote roles write their counter files on their own hosts
+                   accounting=run_accounting(self.run_dir, counters_complete=self._all_local()))
         (self.run_dir / "result.json").write_text(json.dumps(res, indent=1, default=str))
         try:
             plot_run(self.run_dir)
@@ -286,11 +278,8 @@ class Up:
 
 
 def install_sigint(up: Up) -> None:
-    def _handler(_signum: int, _frame: Any) -> None:
-        up.interrupt()
-
-    signal.signal(signal.SIGINT, _handler)
-    signal.signal(signal.SIGTERM, _handler)
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda _signum, _frame: up.interrupt())
 
 
 # ----------------------------------------------------------------------------------------------

@@ -100,10 +100,9 @@ class SshTarget:
         }
         if s.known_hosts_file:
             opts["UserKnownHostsFile"] = s.known_hosts_file
-        if s.identity_file:
-            opts["IdentitiesOnly"] = "yes"
         argv = ["ssh", "-T", "-p", str(s.port)]
         if s.identity_file:
+            opts["IdentitiesOnly"] = "yes"
             argv += ["-i", s.identity_file]
         for key, value in opts.items():
             argv += ["-o", f"{key}={value}"]
@@ -128,10 +127,8 @@ def check_host(target: SshTarget) -> dict[str, Any]:
     if proc.returncode == SSH_FAILED:
         raise SshError(f"ssh {target.label()} failed: {last_line(proc.stderr)}")
     if proc.returncode != 0:
-        raise SshError(
-            f"ssh {target.label()}: remote python {target.ssh.python!r} cannot run dvla "
-            f"(exit {proc.returncode}): {last_line(proc.stderr)}"
-        )
+        raise SshError(f"ssh {target.label()}: remote python {target.ssh.python!r} cannot run dvla "
+                       f"(exit {proc.returncode}): {last_line(proc.stderr)}")
     try:
         return json.loads(last_line(proc.stdout))
     except ValueError:
@@ -219,7 +216,11 @@ class SshWrapper(CommandWrapper):
         assert path is not None
         note = None
         if code == SSH_FAILED:
-            note = f"{sup.name}: ssh {target.label()} failed: {_last_log_line(sup.log_path)}"
+            try:
+                why = last_line(sup.log_path.read_text(errors="replace")[-4000:])
+            except OSError:
+                why = "(no log)"
+            note = f"{sup.name}: ssh {target.label()} failed: {why}"
         try:
             unpacked = unpack_results(path, sup.log_path.parent.parent)
             if unpacked:
@@ -227,13 +228,6 @@ class SshWrapper(CommandWrapper):
         except (OSError, tarfile.TarError) as err:
             log.warning("%s: results from %s unreadable: %s", sup.name, target.host, err)
         return note
-
-
-def _last_log_line(path: Path) -> str:
-    try:
-        return last_line(path.read_text(errors="replace")[-4000:])
-    except OSError:
-        return "(no log)"
 
 
 def unpack_results(path: Path, run_dir: Path) -> list[str]:

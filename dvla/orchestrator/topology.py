@@ -22,7 +22,7 @@ import re
 import types
 import typing
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator, Literal, Union
+from typing import Any, Callable, Iterator, Literal, NamedTuple, Union
 
 import yaml
 from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
@@ -133,7 +133,8 @@ class _Context:
     def line_of(self, path: str) -> int:
         """Line of ``path``, or of its nearest ancestor present in the file (absent keys)."""
         while path not in self.lines:
-            path = _parent(path)
+            cut = max(path.rfind("."), path.rfind("["))
+            path = path[:cut] if cut > 0 else ""
         return self.lines[path]
 
     def construct(self, node: Node, path: str) -> Any:
@@ -152,11 +153,6 @@ def _line(node: Node) -> int:
 
 def _join(path: str, key: str) -> str:
     return f"{path}.{key}" if path else key
-
-
-def _parent(path: str) -> str:
-    cut = max(path.rfind("."), path.rfind("["))
-    return path[:cut] if cut > 0 else ""
 
 
 def _leaf(path: str) -> str:
@@ -246,10 +242,6 @@ def _describe_node(node: Node) -> str:
     return f"{kind} {node.value}"
 
 
-def _is_null(node: Node) -> bool:
-    return isinstance(node, ScalarNode) and node.tag == _TAG + "null"
-
-
 # --------------------------------------------------------------------------------------------
 # YAML nodes -> partially validated values
 
@@ -291,7 +283,7 @@ def _mismatch(node: Node, hint: Any, path: str, ctx: _Context, advice: str = "")
 def _convert(node: Node, hint: Any, path: str, ctx: _Context) -> Any:
     """Read ``node`` as a value of type ``hint``; report problems and return INVALID on failure."""
     inner, nullable = _unwrap_optional(hint)
-    if nullable and _is_null(node):
+    if nullable and isinstance(node, ScalarNode) and node.tag == _TAG + "null":
         return None
     origin = typing.get_origin(inner)
     if inner is Any:
@@ -497,30 +489,21 @@ def _blamed_field(partial: _Partial, message: str) -> str:
 # semantic checks
 
 
-@dataclass(frozen=True)
-class _Range:
-    """Allowed numeric range of a field."""
+class _Range(NamedTuple):
+    """Allowed numeric range of a field: above `low` (or equal unless `low_open`), at most `high`."""
 
-    low: float | None = None
+    low: float
     high: float | None = None
     low_open: bool = False
-    high_open: bool = False
     note: str = ""
 
-    def contains(self, v: float) -> bool:
-        above = self.low is None or (v > self.low if self.low_open else v >= self.low)
-        below = self.high is None or (v < self.high if self.high_open else v <= self.high)
-        return above and below
 
-    def describe(self, name: str) -> str:
-        if self.low is not None and self.high is not None:
-            left, right = "(" if self.low_open else "[", ")" if self.high_open else "]"
-            text = f"{name} in {left}{self.low}, {self.high}{right}"
-        elif self.low is not None:
-            text = f"{name} {'>' if self.low_open else '>='} {self.low}"
-        else:
-            text = f"{name} {'<' if self.high_open else '<='} {self.high}"
-        return text + (f" {self.note}" if self.note else "")
+def _describe_range(name: str, r: _Range) -> str:
+    if r.high is None:
+        text = f"{name} {'>' if r.low_open else '>='} {r.low}"
+    else:
+        text = f"{name} in {'(' if r.low_open else '['}{r.low}, {r.high}]"
+    return text + (f" {r.note}" if r.note else "")
 
 
 _AT_LEAST_1 = _Range(low=1)
@@ -573,9 +556,12 @@ _RANGES: dict[type, dict[str, _Range]] = {
 def _check_ranges(p: _Partial, ctx: _Context) -> None:
     for name, allowed in _RANGES.get(p.cls, {}).items():
         v = p.get(name)
+        if type(v) not in (int, float):
+            continue
         # NaN fails every comparison, so it is reported as out of range as well
-        if type(v) in (int, float) and not allowed.contains(v):
-            ctx.report(p.where(name), f"{v!r} is out of range (expected {allowed.describe(name)})")
+        above = v > allowed.low if allowed.low_open else v >= allowed.low
+        if not (above and (allowed.high is None or v <= allowed.high)):
+            ctx.report(p.where(name), f"{v!r} is out of range (expected {_describe_range(name, allowed)})")
 
 
 def _check_run_id(p: _Partial, ctx: _Context) -> None:
@@ -930,10 +916,8 @@ def _plain(value: Any) -> Any:
 
 
 def topology_to_dict(topo: Topology) -> dict[str, Any]:
-    """The topology as plain dicts, lists and scalars, every default filled in.
-
-    ``source`` is left out: it is not part of a file, the loader sets it.
-    """
+    """The topology as plain dicts, lists and scalars, every default filled in (``source`` left out:
+    the loader sets it)."""
     return _plain(topo)
 
 

@@ -79,9 +79,7 @@ def _default(f: dataclasses.Field, nested: type | None) -> str:
     if f.default is not dataclasses.MISSING:
         return f"`{f.default!r}`"
     if f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
-        if nested is not None:
-            return "`(see below)`"
-        return f"`{f.default_factory()!r}`"  # type: ignore[misc]
+        return "`(see below)`" if nested is not None else f"`{f.default_factory()!r}`"  # type: ignore[misc]
     return "`required`"
 
 
