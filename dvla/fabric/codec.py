@@ -541,44 +541,6 @@ def _byte_view(buf: Any) -> memoryview:
         raise CodecError("malformed", f"not a contiguous bytes-like object: {type(buf).__name__}") from exc
 
 
-def _read_top(data: memoryview, limits: Limits) -> dict:
-    reader = _Reader(data, limits)
-    top = reader.value(0)
-    if reader.pos != reader.end:
-        raise CodecError("malformed", f"{reader.end - reader.pos} trailing bytes")
-    if not isinstance(top, dict):
-        raise CodecError("schema", f"top level is {type(top).__name__}, expected map")
-    if top.keys() != {"v", "t", "b"}:
-        raise CodecError("schema", f"top-level keys {sorted(top)}, expected ['b', 't', 'v']")
-    return top
-
-
-def _schema_for(top: dict, expect: type | tuple[type, ...] | None) -> _Schema:
-    version = top["v"]
-    if type(version) is not int or version != SCHEMA_VERSION:
-        raise CodecError("schema", f"schema version {version!r}, this codec speaks {SCHEMA_VERSION}")
-    tag = top["t"]
-    schema = _SCHEMAS_BY_TAG.get(tag) if isinstance(tag, str) else None
-    if schema is None:
-        raise CodecError("schema", f"unknown message type {tag!r}")
-    if expect is not None and not issubclass(schema.cls, expect):
-        raise CodecError("type", f"got {schema.cls.__name__}, expected {expect}")
-    return schema
-
-
-def _build(schema: _Schema, body: Any) -> Message:
-    if not isinstance(body, dict):
-        raise CodecError("schema", f"body is {type(body).__name__}, expected map")
-    if body.keys() != schema.names:
-        missing = sorted(schema.names - body.keys())
-        extra = sorted(body.keys() - schema.names)
-        raise CodecError("schema", f"{schema.tag}: missing fields {missing}, unknown fields {extra}")
-    kwargs = {name: check(body[name], name) for name, check in schema.fields}
-    msg = schema.cls(**kwargs)
-    msg.validate()
-    return msg
-
-
 def decode(
     buf: bytes | bytearray | memoryview,
     expect: type | tuple[type, ...] | None = None,
@@ -595,8 +557,31 @@ def decode(
         data = _byte_view(buf)
         if len(data) > limits.max_message_bytes:
             raise CodecError("oversize", f"message {len(data)} bytes > {limits.max_message_bytes}")
-        top = _read_top(data, limits)
-        return _build(_schema_for(top, expect), top["b"])
+        reader = _Reader(data, limits)
+        top = reader.value(0)
+        if reader.pos != reader.end:
+            raise CodecError("malformed", f"{reader.end - reader.pos} trailing bytes")
+        if not isinstance(top, dict):
+            raise CodecError("schema", f"top level is {type(top).__name__}, expected map")
+        if top.keys() != {"v", "t", "b"}:
+            raise CodecError("schema", f"top-level keys {sorted(top)}, expected ['b', 't', 'v']")
+        version, tag, body = top["v"], top["t"], top["b"]
+        if type(version) is not int or version != SCHEMA_VERSION:
+            raise CodecError("schema", f"schema version {version!r}, this codec speaks {SCHEMA_VERSION}")
+        schema = _SCHEMAS_BY_TAG.get(tag) if isinstance(tag, str) else None
+        if schema is None:
+            raise CodecError("schema", f"unknown message type {tag!r}")
+        if expect is not None and not issubclass(schema.cls, expect):
+            raise CodecError("type", f"got {schema.cls.__name__}, expected {expect}")
+        if not isinstance(body, dict):
+            raise CodecError("schema", f"body is {type(body).__name__}, expected map")
+        if body.keys() != schema.names:
+            missing = sorted(schema.names - body.keys())
+            extra = sorted(body.keys() - schema.names)
+            raise CodecError("schema", f"{schema.tag}: missing fields {missing}, unknown fields {extra}")
+        msg = schema.cls(**{name: check(body[name], name) for name, check in schema.fields})
+        msg.validate()
+        return msg
     except CodecError:
         raise
     except Exception as exc:

@@ -338,6 +338,13 @@ class Fabric:
         replies = self.ctrl.liveliness().get(self.keys.alive_all(), timeout=timeout)
         return {KeySpace.last(str(r.ok.key_expr)) for r in replies if r.ok is not None}
 
+    def traj_matched(self) -> bool:
+        """Whether a subscriber matches this process's trajectory key (True if unknown)."""
+        try:
+            return bool(self._publisher(DATA, self.keys.traj(self.name)).matching_status.matching)
+        except Exception:  # matching status unavailable: ship as before
+            return True
+
     # ------------------------------------------------------------------ plumbing
     def _publisher(self, plane: str, key: str, kind: str = "data") -> Any:
         with self._pub_lock:

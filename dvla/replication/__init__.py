@@ -32,10 +32,8 @@ from dvla.replication.encoding import (
     bf16_to_float32,
     checksum,
     chunk_count,
-    chunk_span,
     split_chunks,
     split_encoding,
-    topk_count,
 )
 from dvla.replication.layout import LayoutMismatch, ParamLayout, ReplicationError, bind_flat, flatten, unflatten_into
 
@@ -59,10 +57,8 @@ __all__ = [
     "bind_flat",
     "checksum",
     "chunk_count",
-    "chunk_span",
     "flatten",
     "split_chunks",
     "split_encoding",
-    "topk_count",
     "unflatten_into",
 ]

@@ -698,10 +698,6 @@ class ChunkAssembler:
         self.max_bytes = max_bytes
         self._buf = bytearray(max_bytes)
         self._view = memoryview(self._buf)
-        self.n_chunks = 0
-        self.total_bytes = 0
-        self._have = bytearray()
-        self._received = 0
         self.reset(n_chunks, total_bytes)
 
     def reset(self, n_chunks: int, total_bytes: int) -> None:

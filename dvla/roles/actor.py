@@ -31,7 +31,7 @@ from .checkpoint import load_checkpoint, save_checkpoint
 from ..counters import CounterFile, source_key, split_seq
 from .runtime import main
 from .slots import SlotPool
-from .swimlane import LaneContext, Swimlane
+from .swimlane import LaneContext, Swimlane, sample_percentile
 from .weightsync import WeightPublisher
 
 log = logging.getLogger("dvla.actor")
@@ -256,7 +256,7 @@ class Actor:
 
     # -- status -------------------------------------------------------------------------------
     def status_extra(self) -> dict[str, Any]:
-        lags = sorted(self.lags[-1024:])
+        lags = self.lags[-1024:]
         acct = self.fabric.accounting
         return {
             "published_version": self.published_version,
@@ -266,7 +266,7 @@ class Actor:
             "consumed_chunks": acct.get(DATA, "consumed"),
             "dropped_stale": acct.get(DATA, "dropped.stale"),
             "policy_lag_mean": float(np.mean(lags)) if lags else 0.0,
-            "policy_lag_p99": float(lags[min(len(lags) - 1, int(len(lags) * 0.99))]) if lags else 0.0,
+            "policy_lag_p99": sample_percentile(lags, 0.99),
             "policy_lag_counts": {str(k): v for k, v in sorted(dict(self.ingest_lag_counts).items())},
             "bytes_published": self.bytes_published,
             "publish_bytes": dict(self.publish_bytes),

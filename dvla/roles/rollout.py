@@ -38,7 +38,7 @@ from ..replication import ParamLayout, bind_flat, unflatten_into
 from ..counters import INCARNATION_SHIFT, CounterFile
 from .chunkpool import ChunkPool, Shipment, chunk_template
 from .runtime import main
-from .swimlane import LaneContext, LatencyHistogram, Swimlane
+from .swimlane import LaneContext, LatencyHistogram, Swimlane, sample_percentile
 from .weightsync import WeightSync
 
 log = logging.getLogger("dvla.rollout")
@@ -76,11 +76,8 @@ class _Group:
 class PolicyPool:
     """Dual-pool weights: `active` serves inference, `staging` receives the next version.
 
-    The sync lane writes a verified version into `staging` and marks it pending; the infer lane
-    swaps the two references between batches. Both take one short lock, so a swap never meets a
-    half-written staging module. The sync lane never waits for inference: a version that
-    arrives before the previous one was swapped in simply overwrites it (only the newest
-    matters), which keeps backpressure from forming a cycle through the weight tree.
+    The sync lane writes `staging` under a lock; the infer lane swaps the two between batches.
+    A newer version overwrites an unswapped one, so sync never waits on inference.
     """
 
     def __init__(self, make: Any) -> None:
@@ -119,12 +116,7 @@ class PolicyPool:
             unflatten_into(flat, self.staging, self.layout)  # checks the vector, copies per tensor
 
     def maybe_swap(self) -> bool:
-        """Called between batches (by infer; in sync mode also by sim while it waits).
-
-        Never waits: while the sync lane is writing a newer version into `staging` (holding the
-        lock for the whole copy), the pending one cannot be swapped in, and inference goes on
-        with `active` and tries again at the next batch.
-        """
+        """Called between batches; never waits: during a staging write it retries next batch."""
         if self._pending is None:
             return False
         if not self._lock.acquire(blocking=False):
@@ -383,7 +375,7 @@ class Rollout:
             # While no learner subscribes (the actor is restarting), a put would go nowhere:
             # hold the chunk instead, and let the full ship queue pause the simulators.
             with ctx.waiting():
-                while ctx.running and not self._learner_listening():
+                while ctx.running and not self.fabric.traj_matched():
                     ctx.sleep(0.05)
             with ctx.busy():
                 self._publish(shipment)
@@ -400,13 +392,6 @@ class Rollout:
         self.chunks_shipped += 1
         self._count()
 
-    def _learner_listening(self) -> bool:
-        pub = self.fabric._publisher("data", self.fabric.keys.traj(self.cfg.name))
-        try:
-            return bool(pub.matching_status.matching)
-        except Exception:  # matching status unavailable: ship as before
-            return True
-
     def _count(self, clean: bool = False) -> None:
         self.counters.write({
             "kind": "rollout", "produced": self.chunks_produced, "shipped": self.chunks_shipped,
@@ -415,15 +400,15 @@ class Rollout:
 
     # -- status -------------------------------------------------------------------------------
     def status_extra(self) -> dict[str, Any]:
-        ms = sorted(self.infer_ms[-512:])
+        ms = self.infer_ms[-512:]
         return {
             "chunks_produced": self.chunks_shipped,
             "bytes_produced": self.bytes_shipped,
             "episodes": self.episodes,
             "env_step_cpu_s": self.step_cpu_s,
             "train_success_rate": self.successes / self.episodes if self.episodes else 0.0,
-            "infer_ms_p50": ms[len(ms) // 2] if ms else 0.0,
-            "infer_ms_p99": ms[min(len(ms) - 1, int(len(ms) * 0.99))] if ms else 0.0,
+            "infer_ms_p50": sample_percentile(ms, 0.5),
+            "infer_ms_p99": sample_percentile(ms, 0.99),
             # cumulative bucket counts (dvla.roles.swimlane.LatencyHistogram): diff two readings
             "infer_latency_counts": self.infer_latency.counts(),
             "swaps": self.pool.swaps,

@@ -23,7 +23,7 @@ from typing import Any, ContextManager, Generic, TypeVar
 
 __all__ = [
     "BoundedQueue", "LatencyHistogram", "LaneContext", "LaneError", "LaneStats", "Swimlane", "current_lane",
-    "histogram_diff", "histogram_percentile", "pin_cpus", "set_torch_threads",
+    "histogram_diff", "histogram_percentile", "sample_percentile", "pin_cpus", "set_torch_threads",
 ]
 
 log = logging.getLogger("dvla.swimlane")
@@ -38,7 +38,6 @@ DEFAULT_WINDOW_S = 10.0
 
 _SAMPLES_PER_WINDOW = 20
 """How many (time, counters) samples a window keeps; bounds memory and sampling cost."""
-
 
 
 class _Section:
@@ -95,7 +94,6 @@ class LaneStats:
         self._busy_cm = _Section(self._enter_busy, self._exit_busy)
         self._wait_cm = _Section(self._enter_wait, self._exit_wait)
 
-
     def busy(self) -> _Section:
         """``with stats.busy():`` around real work."""
         return self._busy_cm
@@ -145,7 +143,6 @@ class LaneStats:
             if self._busy_depth > 0:  # resume the enclosing busy section
                 self._busy_since = now
             self._maybe_sample(now)
-
 
     def _totals(self, now: float) -> tuple[float, float]:
         """Busy and wait seconds including a section still open at ``now``."""
@@ -635,6 +632,12 @@ def histogram_diff(later: dict[str, int], earlier: dict[str, int]) -> dict[str, 
         if d:
             out[b] = d
     return out
+
+
+def sample_percentile(values: list, q: float) -> float:
+    """Nearest-rank ``q``-quantile (0-1) of ``values``; 0.0 for none."""
+    s = sorted(values)
+    return float(s[min(len(s) - 1, int(len(s) * q))]) if s else 0.0
 
 
 def histogram_percentile(counts: dict[str, int], q: float) -> float:
