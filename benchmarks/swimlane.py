@@ -52,9 +52,8 @@ from dvla.config import BudgetConfig, NodeConfig, RackConfig, RolePlacement, Top
 from dvla.fabric.messages import RoleStatus
 from dvla.orchestrator.plan import role_cpus
 from benchmarks.ports import free_port_block
-from dvla.roles.swimlane import histogram_diff, histogram_percentile
 
-from .stats import weighted_percentile
+from .stats import histogram_diff, histogram_percentile, weighted_percentile
 
 HEADLINE_KEYS = (
     "sim_only_sps",

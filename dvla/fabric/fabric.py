@@ -23,7 +23,7 @@ from typing import Any, Callable
 import zenoh
 
 from .accounting import Accounting
-from .codec import CodecError, decode, encode
+from .codec import CodecError, decode, encode, encode_into
 from .keys import KeySpace
 from .signing import SignatureError, Signer, Verifier
 
@@ -149,6 +149,8 @@ class Fabric:
         self._declared: list[Any] = []
         self._publishers: dict[str, Any] = {}
         self._pub_lock = threading.Lock()
+        self._traj_lock = threading.Lock()
+        self._traj_buf = bytearray()
         self.ctrl = _open_retrying(ctrl_conf, open_timeout_s, "ctrl")
         try:
             self.data = _open_retrying(data_conf, open_timeout_s, "data") if data_conf is not None else None
@@ -164,10 +166,11 @@ class Fabric:
         soon as this returns."""
         if chunk.rollout != self.name:
             raise ValueError(f"{self.name}: chunk of rollout {chunk.rollout!r} (receivers reject it)")
-        raw = encode(chunk)
-        self._publisher(DATA, self.keys.traj(self.name)).put(raw)
-        self.accounting.sent(DATA, len(raw), self.name)
-        return len(raw)
+        with self._traj_lock:  # one reused buffer: Zenoh copies it during the put
+            n = encode_into(chunk, self._traj_buf)
+            self._publisher(DATA, self.keys.traj(self.name)).put(self._traj_buf)
+        self.accounting.sent(DATA, n, self.name)
+        return n
 
     def subscribe_traj(self, maxsize: int, expect: type, block_s: float = 1.0, rollout: str = "*") -> Inbox:
         """Bounded inbox of decoded TrajectoryChunks from every (or one) rollout, for a lane

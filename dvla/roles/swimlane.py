@@ -18,12 +18,12 @@ import queue
 import threading
 import time
 import traceback
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any, ContextManager, Generic, TypeVar
 
 __all__ = [
     "BoundedQueue", "LatencyHistogram", "LaneContext", "LaneError", "LaneStats", "Swimlane", "current_lane",
-    "histogram_diff", "histogram_percentile", "sample_percentile", "pin_cpus", "set_torch_threads",
+    "sample_percentile", "pin_cpus", "set_torch_threads",
 ]
 
 log = logging.getLogger("dvla.swimlane")
@@ -38,21 +38,6 @@ DEFAULT_WINDOW_S = 10.0
 
 _SAMPLES_PER_WINDOW = 20
 """How many (time, counters) samples a window keeps; bounds memory and sampling cost."""
-
-
-class _Section:
-    """A reusable ``with`` block calling ``enter`` and ``exit`` (lanes enter one per item)."""
-
-    __slots__ = ("_enter", "_exit")
-
-    def __init__(self, enter: Callable[[], None], exit: Callable[[], None]) -> None:
-        self._enter, self._exit = enter, exit
-
-    def __enter__(self) -> None:
-        self._enter()
-
-    def __exit__(self, *exc: object) -> None:
-        self._exit()
 
 
 class LaneStats:
@@ -91,16 +76,24 @@ class LaneStats:
         )
         self._last_sample_t = self._started
         self._samples_lock = threading.Lock()
-        self._busy_cm = _Section(self._enter_busy, self._exit_busy)
-        self._wait_cm = _Section(self._enter_wait, self._exit_wait)
 
-    def busy(self) -> _Section:
+    @contextlib.contextmanager
+    def busy(self) -> Iterator[None]:
         """``with stats.busy():`` around real work."""
-        return self._busy_cm
+        self._enter_busy()
+        try:
+            yield
+        finally:
+            self._exit_busy()
 
-    def waiting(self) -> _Section:
+    @contextlib.contextmanager
+    def waiting(self) -> Iterator[None]:
         """``with stats.waiting():`` around blocking on a queue, a peer or a timer."""
-        return self._wait_cm
+        self._enter_wait()
+        try:
+            yield
+        finally:
+            self._exit_wait()
 
     def count(self, n: int = 1) -> None:
         """Record ``n`` finished items (steps, batches, messages: the lane decides)."""
@@ -337,11 +330,11 @@ class LaneContext:
         """True until the role is stopping; lane loops are ``while ctx.running:``."""
         return not self.stop.is_set()
 
-    def busy(self) -> _Section:
+    def busy(self) -> ContextManager[None]:
         """``with ctx.busy():`` around real work."""
         return self.stats.busy()
 
-    def waiting(self) -> _Section:
+    def waiting(self) -> ContextManager[None]:
         """``with ctx.waiting():`` around blocking that is not a :class:`BoundedQueue` call."""
         return self.stats.waiting()
 
@@ -621,44 +614,10 @@ class LatencyHistogram:
         with self._lock:
             return {label: {str(b): n for b, n in sorted(c.items())} for label, c in self._counts.items()}
 
-def histogram_diff(later: dict[str, int], earlier: dict[str, int]) -> dict[str, int]:
-    """Counts recorded between two readings of one label's buckets."""
-    out = {}
-    for b in sorted(set(later) | set(earlier), key=int):
-        n = int(later.get(b, 0))
-        d = n - int(earlier.get(b, 0))
-        if d < 0:
-            raise ValueError(f"bucket {b} went down ({earlier.get(b)} -> {n}): readings of different lanes?")
-        if d:
-            out[b] = d
-    return out
-
-
 def sample_percentile(values: list, q: float) -> float:
     """Nearest-rank ``q``-quantile (0-1) of ``values``; 0.0 for none."""
     s = sorted(values)
     return float(s[min(len(s) - 1, int(len(s) * q))]) if s else 0.0
-
-
-def histogram_percentile(counts: dict[str, int], q: float) -> float:
-    """The ``q``-th percentile (0-100) of bucketed counts, as its bucket's upper edge (ms).
-
-    Nearest-rank: the smallest bucket edge at or above which ``q``% of the samples lie.
-    0.0 for no samples.
-    """
-    if not 0.0 <= q <= 100.0:
-        raise ValueError(f"percentile must be in [0, 100], got {q}")
-    items = sorted((int(b), int(n)) for b, n in counts.items() if int(n) > 0)
-    total = sum(n for _b, n in items)
-    if total == 0:
-        return 0.0
-    rank = max(1, math.ceil(q / 100.0 * total))
-    seen = 0
-    for b, n in items:
-        seen += n
-        if seen >= rank:
-            return bucket_upper_ms(b)
-    return bucket_upper_ms(items[-1][0])  # unreachable: rank <= total
 
 
 

@@ -24,6 +24,7 @@ from dvla.fabric.codec import (
     Limits,
     decode,
     encode,
+    encode_into,
 )
 from dvla.fabric.errors import FabricError
 from dvla.fabric.messages import (
@@ -223,6 +224,16 @@ def test_trajectory_round_trip_is_zero_copy(vision):
         assert np.shares_memory(arr, whole), name
         assert not arr.flags.writeable, name  # bytes input: read-only views
     assert out.horizon == 4 and out.num_envs == 3
+
+
+def test_encode_into_reuses_one_buffer_for_messages_of_any_size():
+    buf = bytearray(b"stale" * 10_000)
+    for msg in (make_traj(vision=True), make_traj(), make_traj(vision=True)):
+        n = encode_into(msg, buf)
+        assert n == len(buf) and bytes(buf) == encode(msg)
+        assert_same(msg, decode(buf, expect=TrajectoryChunk))
+    with pytest.raises(CodecError):
+        encode_into(make_traj(), buf, Limits(max_message_bytes=64))
 
 
 def test_array_data_is_aligned_within_message():
