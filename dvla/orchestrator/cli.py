@@ -1,10 +1,13 @@
-"""The `dvla` command line: one Typer app, one module per command under `commands/`."""
+"""The `dvla` command line: one Typer app, one module per command under `commands/`; `dvla bench`
+is the benchmarks package's app (benchmarks/cli.py), which imports each harness when it runs."""
 
 from __future__ import annotations
 
 import typer
 
-from .commands import bench, doctor, down, logs, plan, status, up
+from benchmarks.cli import app as bench_app
+
+from .commands import doctor, down, logs, plan, status, up
 
 app = typer.Typer(
     name="dvla",
@@ -19,7 +22,7 @@ app.command("down")(down.down)
 app.command("logs")(logs.logs)
 app.command("plan")(plan.plan)
 app.command("doctor")(doctor.doctor)
-app.add_typer(bench.app, name="bench")
+app.add_typer(bench_app, name="bench")
 
 
 def main() -> None:

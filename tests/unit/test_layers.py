@@ -4,7 +4,8 @@
 - no ``dvla.roles`` module imports the orchestrator or the benchmarks;
 - ``dvla.orchestrator`` imports no role module (it starts roles as processes, by module name);
 - ``dvla.learn`` and ``dvla.replication`` import neither roles nor the orchestrator;
-- only ``dvla/orchestrator/commands/bench.py`` imports the top-level ``benchmarks`` package;
+- only ``dvla/orchestrator/cli.py`` imports the top-level ``benchmarks`` package (it mounts its
+  ``dvla bench`` app);
 - ``benchmarks/`` uses dvla's public names only (no ``_private`` name, module or attribute);
 - the module import graph of dvla has no cycle.
 
@@ -20,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-BENCH_CLI = "dvla/orchestrator/commands/bench.py"
+BENCH_CLI = "dvla/orchestrator/cli.py"
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,5 @@
-"""`dvla bench ...`: benchmarks that compare against a baseline measured in the same run."""
+"""`dvla bench ...`: the benchmark commands (dvla's CLI mounts this app; every harness is imported
+when its command runs). Each compares against a baseline measured in the same run."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from typing import Annotated, Callable, Optional
 
 import typer
 
-from .common import fail
+from dvla.orchestrator.commands.common import fail
 
 app = typer.Typer(help="Benchmarks (each writes JSON with ratios against an in-run baseline).", no_args_is_help=True)
 
