@@ -33,6 +33,8 @@ class Snapshot:
     time_s: float
     statuses: dict[str, RoleStatus]
     env_steps: int
+    #: the learner's env steps per second over the last few seconds
+    steps_per_s: float
     version: int
 
 
@@ -81,7 +83,7 @@ class Monitor:
         elif t - self._rate_mark[0] >= 3.0:
             self._rate = (env_steps - self._rate_mark[1]) / (t - self._rate_mark[0])
             self._rate_mark = (t, env_steps)
-        snap = Snapshot(t, statuses, env_steps, version)
+        snap = Snapshot(t, statuses, env_steps, self._rate, version)
         lag = actors[0].extra.get("policy_lag_mean", 0.0) if actors else 0.0
         rollouts = [s.extra for s in statuses.values() if s.kind == "rollout"]
         p50 = max((float(e.get("infer_ms_p50", 0.0)) for e in rollouts), default=0.0)
