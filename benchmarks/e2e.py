@@ -18,7 +18,7 @@ def run_seeds(topology: Path, seeds: list[int], base_port: int, extra: list[str]
     runs = []
     with tempfile.TemporaryDirectory(prefix="dvla-bench-e2e-") as tmp:
         for seed in seeds:
-            cmd = [sys.executable, "-m", "dvla", "up", str(topology), "--seed", str(seed), "--quiet",
+            cmd = [sys.executable, "-m", "dvla", "up", str(topology), "--seed", str(seed), "--quiet", "--fresh",
                    "--runs", tmp, "--base-port", str(base_port), *extra]
             proc = subprocess.run(cmd, capture_output=True, text=True)
             result_files = list(Path(tmp).glob("*/result.json"))

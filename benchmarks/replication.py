@@ -206,7 +206,7 @@ def run_training(
             topo = dataclasses.replace(base, run=f"rep-{enc}", replication=dataclasses.replace(base.replication, encoding=enc))
             path = Path(tmp) / f"{enc}.yaml"
             path.write_text(dump_topology_yaml(topo))
-            cmd = [sys.executable, "-m", "dvla", "up", str(path), "--seed", str(seed), "--quiet", "--runs", tmp,
+            cmd = [sys.executable, "-m", "dvla", "up", str(path), "--seed", str(seed), "--quiet", "--fresh", "--runs", tmp,
                    "--base-port", str(port), "--max-env-steps", str(max_env_steps), "--until-success", str(until_success)]
             progress(f"training with {enc}: {max_env_steps} env steps")
             t0 = time.monotonic()

@@ -333,7 +333,7 @@ def measure_run(
             u.interrupt()
 
     port = base_port if base_port is not None else free_port_block()
-    opts = UpOptions(runs_root=runs_root, base_port=port, max_restarts=0)
+    opts = UpOptions(runs_root=runs_root, base_port=port, max_restarts=0, fresh=True)
     u = Up(topo, opts, on_tick=tick)
     try:
         code: int | None = u.run()

@@ -226,6 +226,47 @@ class ReplicationConfig:
 
 
 @dataclass(frozen=True, kw_only=True)
+class LearnerGroupConfig:
+    """The learner group: every actor of a topology is one data-parallel rank of it; rank 0 (the
+    first actor placed) publishes weights and writes checkpoints (docs/learners.md)."""
+
+    #: "ddp": every rank holds the whole model and gradients are averaged (DistributedDataParallel)
+    strategy: Literal["ddp"] = "ddp"
+    #: torch.distributed backend: "auto" (nccl when the task's device is CUDA, else gloo)
+    backend: Literal["auto", "gloo", "nccl"] = "auto"
+    #: rollout:learner ratio the placement must have, e.g. "3:1" or "1:1" (None: any)
+    ratio: str | None = None
+    #: where `ratio` holds: on every node that hosts rollouts or actors ("node"), or over the run ("run")
+    ratio_per: Literal["node", "run"] = "node"
+    #: which rank a rollout feeds: "nearest" (an actor on its node, else its rack, else any;
+    #: the least loaded first) or "round_robin" (in placement order, ignoring nodes)
+    routing: Literal["nearest", "round_robin"] = "nearest"
+    #: seconds a collective may wait for the other ranks; past it the group restarts from its
+    #: last checkpoint (the first batch of a rank waits for its rollouts to start)
+    timeout_s: float = 180.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class GroupRank:
+    """One actor's place in the learner group (resolved by the plan)."""
+
+    #: this actor's rank (0 publishes and checkpoints)
+    rank: int
+    #: ranks in the group
+    world_size: int
+    #: rendezvous: "tcp://<rank 0's address>:<port>" (torch.distributed's TCP store)
+    init_method: str
+    #: torch.distributed backend ("gloo", "nccl", or "auto": nccl on a CUDA device, else gloo)
+    backend: str
+    #: "ddp"
+    strategy: str
+    #: collective timeout, seconds
+    timeout_s: float
+    #: actor names by rank
+    members: tuple[str, ...]
+
+
+@dataclass(frozen=True, kw_only=True)
 class LinkConfig:
     """Link rates used by `dvla plan` and by `emulate: netns`."""
 
@@ -351,6 +392,8 @@ class Topology:
     ssh: SshConfig = field(default_factory=SshConfig)
     #: TLS on the planes' links (None: plain TCP)
     tls: TlsConfig | None = None
+    #: the learner group formed by the topology's actors
+    learners: LearnerGroupConfig = field(default_factory=LearnerGroupConfig)
     #: racks of nodes
     racks: tuple[RackConfig, ...] = ()
 
@@ -390,7 +433,7 @@ class RoleConfig:
     #: node and rack hosting the process
     node: str
     rack: str
-    #: seed of this process (master seed + index)
+    #: seed of this process (derived from the master seed and the process's index)
     seed: int
     #: "async", "sync" or "sim_only" (see Topology.mode)
     mode: str
@@ -419,6 +462,8 @@ class RoleConfig:
     lane_cpus: dict[str, tuple[int, ...]] | None = None
     #: sync mode: env steps a rollout ships per policy version (its share of one learner batch)
     lockstep_steps: int = 0
+    #: actors: this process's rank in the learner group (None for other roles)
+    group: GroupRank | None = None
     #: the task
     task: TaskConfig
     #: replication settings

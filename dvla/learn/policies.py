@@ -25,6 +25,8 @@ import torch
 from torch import Tensor, nn
 from torch.distributions import Normal
 
+from .group import all_reduce_sum
+
 __all__ = ["Policy", "MLPPolicy", "register_policy", "make_policy", "policy_obs_arg", "registered_policies",
            "sample_actions"]
 
@@ -121,6 +123,31 @@ def make_policy(spec: str, obs: Any, act_dim: int, **kwargs: Any) -> nn.Module:
     return policy
 
 
+@torch.no_grad()
+def fold_moments(mean: Tensor, var: Tensor, count: Tensor, x: Tensor) -> None:
+    """Fold the rows of ``x`` [n, D] into running ``mean``/``var``/``count`` buffers in place.
+
+    Chan et al.'s parallel update: exact for any split of the data. The batch's moments are
+    summed over the learner group first (dvla/learn/group.py), so every rank folds in the same
+    global batch and the buffers stay identical on every rank.
+    """
+    x = x.to(torch.float64)
+    moments = torch.cat([x.new_tensor([x.shape[0]]), x.sum(0), x.square().sum(0)])
+    n_all, s, sq = all_reduce_sum(moments).split([1, x.shape[1], x.shape[1]])
+    n = float(n_all)
+    if n == 0:
+        return
+    batch_mean = s / n
+    batch_var = (sq / n - batch_mean.square()).clamp(min=0)
+    old = count.to(torch.float64)
+    total = old + n
+    delta = batch_mean - mean.to(torch.float64)
+    m2 = var.to(torch.float64) * old + batch_var * n + delta.square() * old * n / total
+    mean.add_((delta * n / total).to(mean.dtype))
+    var.copy_(m2 / total)
+    count.copy_(total)
+
+
 def _layer(n_in: int, n_out: int, std: float) -> nn.Linear:
     # Orthogonal weights and zero biases keep early activations well scaled (CleanRL-style init).
     layer = nn.Linear(n_in, n_out)
@@ -181,18 +208,7 @@ class MLPPolicy(nn.Module):
         """Fold a batch of observations into the running statistics (no-op without obs_norm)."""
         if not self.obs_norm:
             return
-        obs = obs.reshape(-1, self.obs_dim).to(self.obs_mean.dtype)
-        n = obs.shape[0]
-        if n == 0:
-            return
-        # Chan et al.'s parallel variance update: exact for any batch split.
-        mean, var = obs.mean(0), obs.var(0, unbiased=False)
-        total = self.obs_count + n
-        delta = mean - self.obs_mean
-        m2 = self.obs_var * self.obs_count + var * n + delta.pow(2) * self.obs_count * n / total
-        self.obs_mean += delta * n / total
-        self.obs_var.copy_(m2 / total)
-        self.obs_count.copy_(total)
+        fold_moments(self.obs_mean, self.obs_var, self.obs_count, obs.reshape(-1, self.obs_dim))
 
     def _normalise(self, obs: Tensor) -> Tensor:
         if not self.obs_norm:

@@ -15,7 +15,6 @@ about ``target_kl``, so most samples start an update already outside the clip ra
 
 from __future__ import annotations
 
-import copy
 import time
 from dataclasses import dataclass, fields
 from typing import Any, Mapping
@@ -159,6 +158,11 @@ class PPOLearner:
     The ``target_kl`` early stop measures how far *this update* moved the policy (KL to the
     policy at its start), not the staleness the batch arrived with: otherwise data a few versions
     old could stop every update before its first step.
+
+    In a learner group (``group``, dvla/learn/group.py) each rank runs this on its own batch:
+    gradients are averaged by DDP, and each minibatch's advantage moments and KL estimate are
+    summed over the ranks, so the normalisation and the early-stop decision are the same on every
+    rank (and so is every optimizer step). ``seed`` seeds the minibatch order.
     """
 
     def __init__(
@@ -170,6 +174,7 @@ class PPOLearner:
         *,
         decoupled: bool | None = None,
         is_clip: float | None = None,
+        group: Any = None,
     ):
         self.policy = policy
         self.cfg = cfg
@@ -181,6 +186,9 @@ class PPOLearner:
         self._gen = torch.Generator()
         if seed is not None:
             self._gen.manual_seed(seed)
+        self.group = group
+        #: the training forward (policy.evaluate, through DDP in a group of several ranks)
+        self._forward = group.train_module(policy) if group is not None else policy.evaluate
 
     def _tensors(self, batch: Mapping[str, Any]) -> dict[str, Tensor]:
         missing = [k for k in BATCH_KEYS if k not in batch]
@@ -218,12 +226,18 @@ class PPOLearner:
             for start in range(0, mb_size * cfg.minibatches, mb_size):
                 idx = order[start : start + mb_size]
                 mb = {k: _take(v, idx) for k, v in b.items()}
-                logprob, entropy, value = self.policy.evaluate(mb["obs"], mb["actions"])
-                kl = _approx_kl(logprob.detach() - start_logprobs[idx])
+                logprob, entropy, value = self._forward(mb["obs"], mb["actions"])
+                log_ratio = logprob.detach() - start_logprobs[idx]
+                adv = mb["advantages"].double()
+                # One sum over the group: the KL estimate and advantage moments every rank uses.
+                n, kl_sum, a_sum, a_sq = self._sum([adv.numel(), _kl_sum(log_ratio), adv.sum(), adv.square().sum()])
+                kl = kl_sum / n
                 if cfg.target_kl is not None and kl > cfg.target_kl:
                     stopped = True
                     break
-                loss, parts = self._loss(mb, start_logprobs[idx], logprob, entropy, value)
+                adv_mean = a_sum / n
+                adv_std = max(a_sq / n - adv_mean * adv_mean, 0.0) ** 0.5
+                loss, parts = self._loss(mb, start_logprobs[idx], logprob, entropy, value, adv_mean, adv_std)
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 nn.utils.clip_grad_norm_(self.policy.parameters(), cfg.max_grad_norm)
@@ -244,13 +258,18 @@ class PPOLearner:
         )
         return out
 
+    def _sum(self, values: list[Any]) -> list[float]:
+        values = [float(v) for v in values]
+        return self.group.sum(values) if self.group is not None else values
+
     def _loss(
-        self, mb: dict[str, Tensor], start_logprob: Tensor, logprob: Tensor, entropy: Tensor, value: Tensor
+        self, mb: dict[str, Tensor], start_logprob: Tensor, logprob: Tensor, entropy: Tensor, value: Tensor,
+        adv_mean: float, adv_std: float,
     ) -> tuple[Tensor, dict]:
         cfg = self.cfg
-        adv = mb["advantages"]
-        # Per-minibatch normalisation keeps the step size independent of the reward scale.
-        adv = (adv - adv.mean()) / (adv.std(unbiased=False) + 1e-8)
+        # Per-minibatch normalisation (over the whole group's minibatch) keeps the step size
+        # independent of the reward scale.
+        adv = (mb["advantages"] - adv_mean) / (adv_std + 1e-8)
         if self.decoupled:
             ratio = (logprob - start_logprob).exp()
             weight = (start_logprob - mb["logprobs"]).exp().clamp(max=self.is_clip)
@@ -265,18 +284,6 @@ class PPOLearner:
         with torch.no_grad():
             clipfrac = ((ratio - 1).abs() > cfg.clip).float().mean().item()
         return loss, {"pg_loss": pg_loss.item(), "v_loss": v_loss.item(), "entropy": ent.item(), "clipfrac": clipfrac}
-
-    def state_dict(self) -> dict[str, Any]:
-        """Policy and optimizer state, for checkpoints."""
-        return {
-            "policy": copy.deepcopy(self.policy.state_dict()),
-            "optimizer": copy.deepcopy(self.optimizer.state_dict()),
-        }
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        self.policy.load_state_dict(state["policy"])
-        self.optimizer.load_state_dict(state["optimizer"])
-
 
 def make_adam(params: Any, **kwargs: Any) -> torch.optim.Adam:
     """Adam with the fused kernel (one kernel for all parameters) where this PyTorch has it."""
@@ -303,5 +310,9 @@ def _take(v: Any, idx: Tensor) -> Any:
 
 
 def _approx_kl(log_ratio: Tensor) -> float:
-    # The low-variance, always non-negative estimator k3 = (r - 1) - log r (Schulman 2020).
-    return float(((log_ratio.exp() - 1) - log_ratio).mean())
+    return _kl_sum(log_ratio) / max(1, log_ratio.numel())
+
+
+def _kl_sum(log_ratio: Tensor) -> float:
+    # The low-variance, always non-negative estimator k3 = (r - 1) - log r (Schulman 2020), summed.
+    return float(((log_ratio.exp() - 1) - log_ratio).double().sum())

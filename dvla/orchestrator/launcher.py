@@ -155,7 +155,36 @@ class Launcher:
             sup.restarts += 1
             sup.next_start = now + delay
             events.append(f"{sup.name} crashed (exit {code}); restarting in {delay:.1f} s")
+            if sup.proc.config.group is not None:
+                events.extend(self._restart_group(sup))
         return events
+
+    def _restart_group(self, crashed: Supervised) -> list[str]:
+        """A learner group cannot lose a rank: when one dies, the others are killed too (their
+        collectives would fail or hang) and the whole group restarts together, from rank 0's last
+        checkpoint, counted as one restart of each member."""
+        members = [s for s in self.children.values() if s.proc.config.group is not None]
+        killed = []
+        for sup in members:
+            if sup is crashed or sup.failed or sup.finished:
+                continue
+            if sup.alive():
+                _close_stdin(sup)
+                _signal(sup, signal.SIGKILL)
+                try:
+                    sup.exit_codes.append(sup.popen.wait(timeout=10))  # type: ignore[union-attr]
+                except subprocess.TimeoutExpired:
+                    pass
+                self._exited(sup, sup.exit_codes[-1] if sup.exit_codes else -9)
+                sup.popen = None
+                killed.append(sup.name)
+            sup.restarts = max(sup.restarts, crashed.restarts)
+            sup.next_start = max(sup.next_start, crashed.next_start)
+        crashed.next_start = max(s.next_start for s in members)
+        for sup in members:
+            sup.next_start = crashed.next_start
+        return [f"learner group restarts from its last checkpoint ({crashed.name} died"
+                + (f"; killed {', '.join(killed)})" if killed else ")")]
 
     def stop(self, names: list[str], timeout: float) -> None:
         """SIGTERM the named children, then SIGKILL whoever is still up after `timeout`."""

@@ -53,14 +53,14 @@ class Monitor:
     _rate: float = 0.0
 
     def __post_init__(self) -> None:
-        self._metrics = open(self.run_dir / "metrics.csv", "w", newline="")
-        self._mw = csv.writer(self._metrics)
-        self._mw.writerow(["time_s", "env_steps", "produced_steps", "steps_per_s", "version", "policy_lag_mean", "roles_up",
-                           # rollouts' per-step inference latency, the slowest rollout's percentiles
-                           "infer_ms_p50", "infer_ms_p99"])
-        self._evals = open(self.run_dir / "evals.csv", "w", newline="")
-        self._ew = csv.writer(self._evals)
-        self._ew.writerow(["time_s", "version", "env_steps", "success_once", "success_at_end", "return_mean", "episodes"])
+        # A resumed run appends to its files, its clock continuing from their last row.
+        self.t0 -= _last_time(self.run_dir / "metrics.csv")
+        self._metrics, self._mw = _append_csv(self.run_dir / "metrics.csv", [
+            "time_s", "env_steps", "produced_steps", "steps_per_s", "version", "policy_lag_mean", "roles_up",
+            # rollouts' per-step inference latency, the slowest rollout's percentiles
+            "infer_ms_p50", "infer_ms_p99"])
+        self._evals, self._ew = _append_csv(self.run_dir / "evals.csv", [
+            "time_s", "version", "env_steps", "success_once", "success_at_end", "return_mean", "episodes"])
         self._inbox = self.fabric.subscribe_ctrl(self.fabric.keys.eval_all(), 64, EvalResult)
 
     def now(self) -> float:
@@ -69,8 +69,8 @@ class Monitor:
     def collect(self) -> Snapshot:
         replies = self.fabric.query(self.fabric.keys.status_all(), expect=RoleStatus, timeout=1.5)
         statuses = {msg.name: msg for _sender, msg in replies}
-        actors = [s for s in statuses.values() if s.kind == "actor"]
-        env_steps = sum(s.env_steps for s in actors)
+        actors = sorted((s for s in statuses.values() if s.kind == "actor"), key=lambda s: s.name)
+        env_steps = max((s.env_steps for s in actors), default=0)  # every rank reports the group's
         produced = sum(s.env_steps for s in statuses.values() if s.kind == "rollout")
         if self.last is not None:
             env_steps = max(env_steps, self.last.env_steps)  # a restarting actor answers late
@@ -144,3 +144,22 @@ class Monitor:
             "evals": [e.__dict__ for e in self.evals],
             "success_reached": self.success_reached() or self.success_at_s is not None,
         }
+
+
+def _append_csv(path: Path, header: list[str]) -> tuple[Any, Any]:
+    """(file, csv writer) appending to `path`; the header is written when the file is new."""
+    new = not path.exists() or path.stat().st_size == 0
+    f = open(path, "a", newline="")
+    w = csv.writer(f)
+    if new:
+        w.writerow(header)
+    return f, w
+
+
+def _last_time(path: Path) -> float:
+    """time_s of the last row of an existing metrics file (0.0 when there is none)."""
+    try:
+        last = path.read_text().strip().splitlines()[-1].split(",")[0]
+        return float(last)
+    except (OSError, IndexError, ValueError):
+        return 0.0

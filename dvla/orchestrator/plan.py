@@ -15,7 +15,7 @@ import dataclasses
 import os
 from dataclasses import dataclass
 
-from ..config import NodeConfig, PlaneEndpoints, RackConfig, RoleConfig, RolePlacement, Topology
+from ..config import GroupRank, NodeConfig, PlaneEndpoints, RackConfig, RoleConfig, RolePlacement, Topology
 from .netns import netns_name, node_ip
 from .process import LOOPBACK, Plan, Process, is_local_host
 
@@ -88,16 +88,10 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
             warnings.append(
                 f"{s.name} has {len(s.children)} children, above fanout {topo.replication.fanout}: add a replicator on its rack"
             )
-    # Data plane: every rollout feeds one actor, same node first, then round robin.
-    rr = 0
-    for s in slots:
-        if s.kind != "rollout":
-            continue
-        local = [a for a in actors if a.node is s.node]
-        actor = local[0] if local else actors[rr % len(actors)]
-        rr += 0 if local else 1
-        s.actors.append(actor.name)
-        actor.rollouts.append(s.name)
+    # Data plane: every rollout feeds one rank of the learner group.
+    for rollout_name, actor_name in route_rollouts(topo, slots).items():
+        by_name[rollout_name].actors.append(actor_name)
+        by_name[actor_name].rollouts.append(rollout_name)
 
     # Ports: listeners only (actors: ctrl + data, replicators: ctrl).
     for s in slots:
@@ -107,6 +101,10 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
         elif s.kind == "replicator":
             s.ctrl_port = port
             port += 1
+    # The learner group's rendezvous: torch.distributed's TCP store on rank 0's node.
+    group_port = port if len(actors) > 1 else None
+    if group_port is not None:
+        port += 1
 
     tls_planes = topo.tls.planes if topo.tls is not None else ()
 
@@ -148,12 +146,42 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
             actors=tuple(s.actors), rollouts=tuple(s.rollouts),
             cpus=role_cpus(s.node, s.placement), lane_cpus=s.placement.lane_cpus,
             lockstep_steps=_lockstep_steps(topo, s, by_name), task=topo.task, replication=topo.replication,
+            group=_group_rank(topo, actors, s, f"tcp://{addresses[root.node.name]}:{group_port}") if group_port else None,
         )
         netns = netns_name(topo.run, s.node.name) if topo.emulate == "netns" else None
         processes.append(Process(config=cfg, host=s.node.host, netns=netns))
 
     entry = [ep(root, "ctrl")] + [ep(s, "ctrl") for s in slots if s.kind == "replicator"]
     return Plan(processes=tuple(processes), ctrl_entry=tuple(entry), addresses=addresses, warnings=tuple(warnings))
+
+
+def route_rollouts(topo: Topology, slots: list[_Slot]) -> dict[str, str]:
+    """rollout name -> the actor (learner rank) it ships to.
+
+    "nearest": an actor on the rollout's node, else on its rack, else any; among those the one
+    fed by the fewest rollouts so far (then placement order), so a node placed at 3:1 feeds its
+    own rank and rollouts on actor-less nodes spread evenly. "round_robin": placement order.
+    """
+    actors = [s for s in slots if s.kind == "actor"]
+    load = {a.name: 0 for a in actors}
+    out: dict[str, str] = {}
+    for i, s in enumerate(x for x in slots if x.kind == "rollout"):
+        if topo.learners.routing == "round_robin":
+            pick = actors[i % len(actors)]
+        else:
+            near = [a for a in actors if a.node is s.node] or [a for a in actors if a.rack is s.rack] or actors
+            pick = min(near, key=lambda a: load[a.name])
+        load[pick.name] += 1
+        out[s.name] = pick.name
+    return out
+
+
+def _group_rank(topo: Topology, actors: list[_Slot], s: _Slot, init_method: str) -> GroupRank | None:
+    if s.kind != "actor":
+        return None
+    g = topo.learners
+    return GroupRank(rank=actors.index(s), world_size=len(actors), init_method=init_method, backend=g.backend,
+                     strategy=g.strategy, timeout_s=g.timeout_s, members=tuple(a.name for a in actors))
 
 
 def _lockstep_steps(topo: Topology, s: _Slot, by_name: dict[str, _Slot]) -> int:

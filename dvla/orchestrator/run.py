@@ -63,8 +63,12 @@ class UpOptions:
     base_port: int | None = None
     #: runs/ directory
     runs_root: Path = Path("runs")
-    #: restarts allowed per role
+    #: restarts allowed per role (per learner group for the actors)
     max_restarts: int = 3
+    #: continue the run in its existing directory (an error when there is nothing to continue)
+    resume: bool = False
+    #: delete an existing run directory first (checkpoints included) and start over
+    fresh: bool = False
 
 
 def apply_overrides(topo: Topology, opts: UpOptions) -> Topology:
@@ -79,8 +83,11 @@ def apply_overrides(topo: Topology, opts: UpOptions) -> Topology:
     return dataclasses.replace(topo, task=task, **given(mode=opts.mode, seed=opts.seed))
 
 
-def prepare_run_dir(root: Path, run: str) -> Path:
-    """runs/<run>/, emptied of a previous run's files (refuses while that run is alive)."""
+def prepare_run_dir(root: Path, run: str, resume: bool = False, fresh: bool = False) -> tuple[Path, str | None]:
+    """runs/<run>/ and how the run starts in it: (path, None) for a new run, or (path, "...")
+    saying what it continues from. An existing directory is continued (its checkpoint resumed,
+    its metrics and accounting appended to) and only deleted with `fresh`; refuses while the
+    run is alive."""
     run_dir = (root / run).resolve()
     state = run_dir / "state.json"
     if state.exists():
@@ -90,10 +97,24 @@ def prepare_run_dir(root: Path, run: str) -> Path:
             pid = None
         if pid and pid_alive(pid) and pid != os.getpid():
             raise RuntimeError(f"run {run!r} is already up (pid {pid}); `dvla down {run}` first")
-    if run_dir.exists():
+    if resume and fresh:
+        raise ValueError("--resume and --fresh exclude each other")
+    if fresh and run_dir.exists():
         shutil.rmtree(run_dir)
-    run_dir.mkdir(parents=True)
-    return run_dir
+    manifest = run_dir / "checkpoints" / "MANIFEST.json"
+    if resume and not manifest.exists():
+        raise RuntimeError(f"--resume: {run_dir} holds no checkpoint (checkpoints/MANIFEST.json) to continue from")
+    continued = None
+    if manifest.exists():
+        try:
+            m = json.loads(manifest.read_text())
+            continued = f"checkpoint v{m['version']} ({m['env_steps']} env steps, weights {m['checksum']})"
+        except (OSError, ValueError, KeyError) as err:
+            raise RuntimeError(f"{manifest}: unreadable ({err}); --fresh starts the run over") from err
+    elif run_dir.exists() and any(run_dir.iterdir()):
+        continued = "no checkpoint yet: the run starts over, its files kept and appended to"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    return run_dir, continued
 
 
 def pid_alive(pid: int) -> bool:
@@ -115,8 +136,10 @@ def resolve_secret(topo: Topology, run_dir: Path) -> tuple[str, str]:
         return load_secret(topo.secret_file).hex(), topo.secret_file
     if os.environ.get("DVLA_SECRET"):
         return load_secret(None).hex(), "DVLA_SECRET"
-    secret = new_secret()
     path = run_dir / "secret"
+    if path.exists():  # a continued run keeps its secret
+        return load_secret(str(path)).hex(), str(path)
+    secret = new_secret()
     write_private(path, secret)
     return secret, str(path)
 
@@ -146,10 +169,10 @@ class Up:
         pinning = pinning_problems(self.topo)
         if pinning:  # caught before anything is created, not as a role that dies on start
             raise ValueError("\n".join(f"{self.topo.source}: {p}" for p in pinning))
-        self.run_dir = prepare_run_dir(opts.runs_root, self.topo.run)
+        self.run_dir, self.continued = prepare_run_dir(opts.runs_root, self.topo.run, opts.resume, opts.fresh)
         self.plan: Plan = make_plan(self.topo, str(self.run_dir), opts.base_port)
         self.secret, self.secret_source = resolve_secret(self.topo, self.run_dir)
-        self.events: list[str] = []
+        self.events: list[str] = [f"continuing {self.run_dir}: {self.continued}"] if self.continued else []
         self.reason: str | None = None
         self.monitor: Monitor | None = None
         self._interrupted = threading.Event()

@@ -791,9 +791,54 @@ def _check_tls(p: _Partial, ctx: _Context) -> None:
                 ctx.report(p.where("planes"), f"repeated plane in {named}")
 
 
+def _role_counts(node: _Partial) -> dict[str, int] | None:
+    """role kind -> processes placed on `node` (None when a placement could not be read)."""
+    roles = node.get("roles")
+    if not isinstance(roles, tuple):
+        return None
+    counts: dict[str, int] = {}
+    for placement in roles:
+        kind = placement.get("role") if isinstance(placement, _Partial) else INVALID
+        count = placement.get("count") if isinstance(placement, _Partial) else INVALID
+        if not isinstance(kind, str) or type(count) is not int:
+            return None
+        counts[kind] = counts.get(kind, 0) + count
+    return counts
+
+
+def _check_learners(p: _Partial, ctx: _Context) -> None:
+    """The learner group's ratio holds on every node (or over the run); nccl needs CUDA."""
+    group, task = p.get("learners"), p.get("task")
+    if not isinstance(group, _Partial):
+        return
+    if group.get("backend") == "nccl" and isinstance(task, _Partial) and task.get("device") == "cpu":
+        ctx.report(group.where("backend"), "nccl needs CUDA but task.device is 'cpu' (expected gloo or auto)")
+    ratio = group.get("ratio")
+    if not isinstance(ratio, str):
+        return
+    m = re.fullmatch(r"\s*([1-9][0-9]*)\s*:\s*([1-9][0-9]*)\s*", ratio)
+    if m is None:
+        ctx.report(group.where("ratio"), f"{ratio!r} is not a rollout:learner ratio (expected e.g. '3:1' or '1:1')")
+        return
+    want = (int(m[1]), int(m[2]))
+    nodes, complete = _placed_nodes(p)
+    counted = [(node, _role_counts(node)) for node in nodes]
+    if not complete or any(c is None for _n, c in counted):
+        return
+    if group.get("ratio_per") == "run":
+        counted = [(p, {k: sum(c.get(k, 0) for _n, c in counted) for k in ("rollout", "actor")})]  # type: ignore[union-attr]
+    for where, c in counted:
+        rollouts, actors = c.get("rollout", 0), c.get("actor", 0)  # type: ignore[union-attr]
+        if (rollouts or actors) and rollouts * want[1] != actors * want[0]:
+            name = where.get("name") if where is not p else "the run"
+            ctx.report(group.where("ratio"), f"ratio {ratio} but {name!s} places {rollouts} rollout(s) and {actors} actor(s)"
+                                             f" (expected {want[0]} rollouts per {want[1]} actor(s))")
+
+
 _CHECKS: dict[type, list[Callable[[_Partial, _Context], None]]] = {
     Topology: [
         _check_run_id, _check_has_racks, _check_names, _check_required_roles, _check_netns_hosts, _check_remote_addresses,
+        _check_learners,
     ],
     SshConfig: [_check_ssh],
     TlsConfig: [_check_tls],

@@ -1,18 +1,22 @@
-"""Actor role: the learner. Consumes trajectory chunks, runs PPO, publishes weight versions.
+"""Actor role: one rank of the learner group. Consumes its rollouts' trajectory chunks, runs PPO
+with the other ranks (dvla/learn/group.py); rank 0 publishes weight versions and checkpoints.
 
 Lanes (and what flows between them):
 - ``ingest``:  data-plane inbox -> policy-lag filter -> a free slot of the preallocated pool.
 - ``batch``:   gathers slots until one learner batch is full, re-checks lag, stacks it.
 - ``learn``:   values and GAE with the current critic, PPO epochs, a new version.
-- ``publish``: encodes the version (full / delta with error feedback), signs and sends it to the
-               tree; serves snapshots; writes checkpoints. Overlaps the next ``learn``.
+- ``publish``: rank 0 reserves the version number on disk, encodes it (full / delta with error
+               feedback), signs and sends it to the tree, logs it to ``versions.csv``, serves
+               snapshots, writes checkpoints; other ranks record their checksum. Overlaps ``learn``.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,10 +28,11 @@ from ..fabric import Fabric
 from ..fabric.fabric import DATA
 from ..fabric.messages import RoleStatus, TrajectoryChunk
 from ..learn import PPOLearner, Trajectories, gae_batch, make_policy
+from ..learn.group import LearnerGroup
 from ..learn.envs import probe_spec
 from ..learn.grpo import grpo_batch
-from ..replication import ParamLayout, flatten, unflatten_into
-from .checkpoint import load_checkpoint, save_checkpoint
+from ..replication import ParamLayout, checksum, flatten, unflatten_into
+from .checkpoint import Checkpoint, load_checkpoint, optimizer_tensors, reserve_versions, save_checkpoint
 from ..counters import CounterFile, source_key, split_seq
 from .runtime import main
 from .slots import SlotPool
@@ -43,29 +48,40 @@ class Actor:
         self.fabric = fabric
         task = cfg.task
         self.device = torch.device(resolve_device(task.device))
+        # Blocks until every rank has joined (a group of one joins nothing).
+        self.group = LearnerGroup(cfg.group, self.device, address=_listen_address(cfg))
+        self.is_root = self.group.is_root
         torch.manual_seed(cfg.seed)
         self.obs_spec, self.act_dim = probe_spec(task)  # flat: {"state"}; rgb: rgb/proprio/tokens
         self.policy = make_policy(task.policy, self.obs_spec, self.act_dim, **task.policy_kwargs).to(self.device)
-        self.learner = PPOLearner(self.policy, task.ppo, self.device)
+        self.learner = PPOLearner(self.policy, task.ppo, self.device, seed=cfg.seed, group=self.group)
         self.layout = ParamLayout.from_state_dict(self.policy.state_dict())
         self.ckpt_dir = Path(cfg.run_dir) / "checkpoints"
-        # A restarted actor resumes from its last checkpoint: versions stay monotonic and the
-        # first version it publishes is a full one.
-        resumed = load_checkpoint(self.ckpt_dir, self.policy, self.learner)
-        start = int(resumed["version"]) if resumed else 0
-        if resumed:
-            log.info("resumed from checkpoint: version %d, %d env steps", start, resumed["env_steps"])
-        self.resumed = resumed is not None
-        self.publisher = WeightPublisher(fabric, cfg.name, self.layout, cfg.replication, start)
+        # Rank 0 resumes from the last checkpoint and numbers versions above every one that may
+        # have been published before (the persisted high-water mark); the others get its state.
+        self.resumed: Checkpoint | None = None
+        if self.is_root:
+            self.resumed = load_checkpoint(self.ckpt_dir, self.policy, self.learner.optimizer, self._checksum)
+        start = self.resumed.high_water if self.resumed else 0
+        env_steps = self.resumed.env_steps if self.resumed else 0
+        start, env_steps = self.group.sync_from_root(self.policy, self.learner.optimizer, [start, env_steps])
+        if self.resumed:
+            log.info("resumed from checkpoint v%d (%s), %d env steps; numbering continues above v%d",
+                     self.resumed.version, self.resumed.checksum, env_steps, start)
+        self._first_version = start + 1  # this incarnation's first (checkpointed at once)
+        self.reserved = start  # versions up to here are covered by the high-water mark on disk
+        self.publisher = WeightPublisher(fabric, cfg.name, self.layout, cfg.replication, start) if self.is_root else None
         groups = env_group_sizes(task.envs_per_rollout)  # a chunk holds one env group's columns
         chunks_per_batch = -(-task.ppo.batch_steps // (task.chunk_steps * min(groups)))
         self.slots = SlotPool(
             n_slots=3 * chunks_per_batch + 8, T=task.chunk_steps, n_max=max(groups),
             obs_spec=self.obs_spec, act_dim=self.act_dim, pin=self.device.type == "cuda",
         )
+        #: newest version learned (the learn lane numbers the next one from here)
         self.policy_version = start
+        #: newest version through the publish lane (published by rank 0; recorded by the others)
         self.published_version = start
-        self.env_steps = int(resumed["env_steps"]) if resumed else 0  # consumed by the learner
+        self.env_steps = env_steps  # consumed by the whole group's learners
         self.learn_stats: dict[str, float] = {}
         self.lags: list[int] = []
         #: chunks received per lag (newest published version - behaviour version, at ingest),
@@ -75,11 +91,10 @@ class Actor:
         self.bytes_published = 0
         #: bytes and count of versions sent, split into full versions and deltas
         self.publish_bytes = {"full_versions": 0, "full_bytes": 0, "delta_versions": 0, "delta_bytes": 0}
+        #: version -> checksum of this rank's parameters after it (the newest few; equal on every rank)
+        self.checksums: dict[int, str] = {}
         self.receipts = Receipts(CounterFile(cfg.run_dir, cfg.name), fabric, self.slots.n_slots)
-        if self.resumed:
-            # Before the status queryable exists: status never shows the checkpoint's version
-            # below what was published before the restart.
-            self._skip_past_replicas()
+        self._ledger = open(Path(cfg.run_dir) / "versions.csv", "a", buffering=1) if self.is_root else None
 
     # -- wiring -------------------------------------------------------------------------------
     def build(self, sl: Swimlane) -> None:
@@ -87,43 +102,31 @@ class Actor:
         self.inbox = f.subscribe_traj(maxsize=INBOX, expect=TrajectoryChunk)  # rollouts -> ingest
         self.filled = sl.queue("filled", self.slots.n_slots)  # ingest -> batch: slot ids
         self.batches = sl.queue("batches", 1)  # batch -> learn: one stacked Trajectories
-        self.versions = sl.queue("versions", 2)  # learn -> publish: flat weights per version
-        self.publisher.serve()  # catch-up for children: the published version
+        self.versions = sl.queue("versions", 2)  # learn -> publish: NewVersion
+        if self.publisher is not None:
+            self.publisher.serve()  # catch-up for children: the published version
         self.max_lag = ppo.max_policy_lag
         sl.lane("ingest", self._ingest)
         sl.lane("batch", self._batch)
         sl.lane("learn", self._learn)
         sl.lane("publish", self._publish)
         # The first version: the initial (or resumed) weights, so rollouts can act at once.
-        self.versions.put(self._flat_weights(), threading.Event())
+        self.versions.put(self._new_version(checkpoint=True), threading.Event())
 
-    def _skip_past_replicas(self, wait_s: float = 5.0) -> None:
-        """After a restart, continue numbering above every version a replica already holds.
+    def _checksum(self, policy: torch.nn.Module) -> str:
+        return checksum(self._flat_weights(policy))
 
-        Versions published after the last checkpoint died with the old process; reusing their
-        numbers would make replicas ignore the new weights as stale. Children report what they
-        hold in their status (they reconnect to this router within about a second).
-        """
-        deadline = time.monotonic() + wait_s
-        highest = self.published_version
-        pending = set(self.cfg.children)
-        while pending and time.monotonic() < deadline:
-            for name in list(pending):
-                for _sender, st in self.fabric.query(self.fabric.keys.status(name), expect=RoleStatus, timeout=0.5):
-                    highest = max(highest, int(st.policy_version))
-                    pending.discard(name)
-            if pending:
-                time.sleep(0.2)
-        if highest > self.published_version:
-            log.info("replicas hold v%d > checkpoint v%d: numbering continues from there", highest, self.published_version)
-            self.publisher.renumber(highest)
-            self.policy_version = self.published_version = highest
-
-    def _flat_weights(self) -> np.ndarray:
+    def _flat_weights(self, policy: torch.nn.Module | None = None) -> np.ndarray:
         flat = np.empty(self.layout.numel, np.float32)
         with torch.no_grad():
-            flatten(self.policy.state_dict(), self.layout, out=flat)
+            flatten((policy or self.policy).state_dict(), self.layout, out=flat)
         return flat
+
+    def _new_version(self, checkpoint: bool) -> "NewVersion":
+        """The next version from the current weights (learn lane, between two updates)."""
+        self.policy_version += 1
+        opt = optimizer_tensors(self.learner.optimizer) if checkpoint and self.is_root else None
+        return NewVersion(self.policy_version, self._flat_weights(), self.env_steps, opt)
 
     # -- lanes --------------------------------------------------------------------------------
     def _ingest(self, ctx: LaneContext) -> None:
@@ -186,6 +189,7 @@ class Actor:
                 held, steps = [], 0
                 if not keep:
                     continue
+                keep.sort(key=self.slots.order)  # the same batch whatever the arrival order
                 batch = Trajectories.of(self.slots.stack(keep, self.device))
                 for s in keep:
                     self.fabric.accounting.add(DATA, "consumed", self.slots.rollout(s))
@@ -210,49 +214,65 @@ class Actor:
                 return
             with ctx.busy():
                 t0 = time.perf_counter()
-                if task.algorithm == "grpo":
-                    data = grpo_batch(batch, task)
-                else:
-                    data = gae_batch(self.policy, batch, task.ppo)
-                stats = self.learner.update(data)
-                self.env_steps += batch.steps
-                self.policy_version += 1
+                try:
+                    if task.algorithm == "grpo":
+                        data = grpo_batch(batch, task)
+                    else:
+                        data = gae_batch(self.policy, batch, task.ppo)
+                    stats = self.learner.update(data)
+                    steps = int(self.group.sum([batch.steps])[0])  # the group's env steps
+                except RuntimeError as err:
+                    if not ctx.running:  # a rank that stopped first closed the group: not an error
+                        log.info("learner group closed while stopping: %s", err)
+                        return
+                    raise
+                self.env_steps += steps
                 stats["learn_s"] = time.perf_counter() - t0
                 self.learn_stats = {k: float(v) for k, v in stats.items()}
-                flat = self._flat_weights()
-            self.versions.put(flat, ctx.stop, stats=ctx.stats)
+                item = self._new_version(checkpoint=(self.policy_version + 1) % CHECKPOINT_EVERY == 0)
+            self.versions.put(item, ctx.stop, stats=ctx.stats)
             ctx.count()
 
     def _publish(self, ctx: LaneContext) -> None:
-        every = 10  # checkpoint cadence (versions); the first version is checkpointed too
-        last: np.ndarray | None = None
         while ctx.running:
-            flat = self.versions.get(ctx.stop, stats=ctx.stats)
-            if flat is None:
+            item = self.versions.get(ctx.stop, stats=ctx.stats)
+            if item is None:
                 break
             with ctx.busy():
-                enc = self.publisher.encode(flat)
-                self.published_version = enc.version
-                sent = self.publisher.send(enc)
-                self.bytes_published += sent
-                kind = "full" if enc.encoding == "full" else "delta"
-                self.publish_bytes[f"{kind}_versions"] += 1
-                self.publish_bytes[f"{kind}_bytes"] += sent
-                if enc.version % every == 0 or last is None:
-                    self._checkpoint(flat)
-                last = flat
+                self.checksums[item.version] = checksum(item.flat)
+                for old in [v for v in self.checksums if v <= item.version - 64]:
+                    del self.checksums[old]
+                if self.publisher is not None:
+                    self._send(item)
+                self.published_version = item.version
             ctx.count()
-        if last is not None:
-            self._checkpoint(last)
 
-    def _checkpoint(self, flat: np.ndarray) -> None:
-        """Checkpoint the published version's weights (not the live, possibly mid-update ones)."""
+    def _send(self, item: "NewVersion") -> None:
+        """Rank 0: reserve the version number on disk, encode, send, log, checkpoint."""
+        assert self.publisher is not None and self._ledger is not None
+        self.reserved = reserve_versions(self.ckpt_dir, item.version, self.reserved)
+        enc = self.publisher.encode(item.flat)
+        if enc.version != item.version:
+            raise RuntimeError(f"publisher numbered v{enc.version} for learned v{item.version}")
+        sent = self.publisher.send(enc)
+        self.bytes_published += sent
+        kind = "full" if enc.encoding == "full" else "delta"
+        self.publish_bytes[f"{kind}_versions"] += 1
+        self.publish_bytes[f"{kind}_bytes"] += sent
+        self._ledger.write(f"{enc.version},{enc.checksum},{enc.encoding},{item.env_steps},{time.time():.3f},{os.getpid()}\n")
+        if item.optimizer is not None:
+            self._checkpoint(item.version, item.env_steps, item.optimizer)
+
+    def _checkpoint(self, version: int, env_steps: int, optimizer: tuple[dict[str, torch.Tensor], str]) -> None:
+        """Checkpoint the weights *as published* with `version` (what every replica holds), with
+        the optimizer state taken right after that version was learned."""
+        assert self.publisher is not None
         sd = {k: v.detach().clone() for k, v in self.policy.state_dict().items()}
-        unflatten_into(flat, sd, self.layout)
+        unflatten_into(self.publisher.encoder.published, sd, self.layout)
         try:
-            save_checkpoint(self.ckpt_dir, sd, self.learner, self.published_version, self.env_steps)
+            save_checkpoint(self.ckpt_dir, sd, optimizer, version, env_steps, self.publisher.checksum)
         except OSError as err:
-            log.warning("checkpoint failed: %s", err)
+            log.warning("checkpoint of v%d failed: %s", version, err)
 
     # -- status -------------------------------------------------------------------------------
     def status_extra(self) -> dict[str, Any]:
@@ -269,13 +289,47 @@ class Actor:
             "policy_lag_p99": sample_percentile(lags, 0.99),
             "policy_lag_counts": {str(k): v for k, v in sorted(dict(self.ingest_lag_counts).items())},
             "bytes_published": self.bytes_published,
+            "rank": self.group.rank,
+            "world_size": self.group.world_size,
+            "checksums": {str(v): c for v, c in sorted(dict(self.checksums).items())[-16:]},
+            "resumed_from": None if self.resumed is None else {"version": self.resumed.version, "checksum": self.resumed.checksum},
             "publish_bytes": dict(self.publish_bytes),
-            "published_checksum": self.publisher.checksum,
+            "published_checksum": self.publisher.checksum if self.publisher is not None else "",
             "learn": self.learn_stats,
         }
 
     def close(self) -> None:
+        # Lanes are joined: when the last learned version is also the last published one, the
+        # optimizer state belongs to it and the run's end is checkpointed.
+        if self.publisher is not None and self.published_version == self.policy_version > self._first_version:
+            self._checkpoint(self.published_version, self.env_steps, optimizer_tensors(self.learner.optimizer))
+        if self._ledger is not None:
+            self._ledger.close()
+        self.group.close()
         self.receipts.close()
+
+
+@dataclass
+class NewVersion:
+    """learn -> publish: one version's weights, and what is checkpointed with it."""
+
+    version: int
+    flat: np.ndarray
+    #: env steps the group had learned from when this version was made
+    env_steps: int
+    #: optimizer state right after this version was learned (rank 0, when it is checkpointed)
+    optimizer: tuple[dict[str, torch.Tensor], str] | None
+
+
+#: versions between two checkpoints (the first version of an incarnation is checkpointed too)
+CHECKPOINT_EVERY = 10
+
+
+def _listen_address(cfg: RoleConfig) -> str | None:
+    """The address this actor's data plane binds (where its rank talks to the others)."""
+    if not cfg.data.listen:
+        return None
+    return cfg.data.listen[0].split("/", 1)[-1].rpartition(":")[0].strip("[]")
 
 
 #: decoded chunks the data-plane inbox holds before backpressure

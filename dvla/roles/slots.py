@@ -64,6 +64,7 @@ class SlotPool:
         self._n = [0] * S
         self._version = [0] * S
         self._rollout = [""] * S
+        self._seq = [0] * S
         self._free: FreeList[int] = FreeList(range(S))
 
     def acquire(self, stop: threading.Event) -> int | None:
@@ -99,6 +100,7 @@ class SlotPool:
         self._n[slot] = n
         self._version[slot] = c.policy_version
         self._rollout[slot] = c.rollout
+        self._seq[slot] = c.seq
         return None
 
     def steps(self, slot: int) -> int:
@@ -109,6 +111,10 @@ class SlotPool:
 
     def rollout(self, slot: int) -> str:
         return self._rollout[slot]
+
+    def order(self, slot: int) -> tuple[str, int]:
+        """(rollout, seq) of the chunk in `slot`: a batch order that does not depend on arrival."""
+        return self._rollout[slot], self._seq[slot]
 
     def stack(self, slots: list[int], device: torch.device) -> dict[str, Any]:
         """One [T, N_total, ...] batch on `device` from the given slots (env columns side by side);

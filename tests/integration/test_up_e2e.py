@@ -88,9 +88,15 @@ def test_up_tiny_end_to_end(tmp_path: Path) -> None:
         assert s["policy_version"] >= 2, f"{name} never advanced past its first version"
         assert s["error"] is None
 
-    for rel in ("topology.yaml", "metrics.csv", "evals.csv", "checkpoints/policy.safetensors",
-                "checkpoints/meta.json", "plots/training.png"):
+    for rel in ("topology.yaml", "metrics.csv", "evals.csv", "versions.csv", "checkpoints/MANIFEST.json",
+                "checkpoints/high_water.json", "plots/training.png"):
         assert (run_dir / rel).exists(), rel
+    manifest = json.loads((run_dir / "checkpoints" / "MANIFEST.json").read_text())
+    # the run's end is checkpointed: the last version published, with the checksum it was published with
+    assert manifest["version"] == actor_version
+    assert manifest["checksum"] == summaries["actor-node0-0"]["extra"]["published_checksum"]
+    for f in ("policy.safetensors", "optimizer.safetensors"):
+        assert (run_dir / "checkpoints" / manifest["dir"] / f).exists(), f
     assert all((run_dir / "logs" / f"{r}.log").stat().st_size > 0 for r in ROLES)
     assert not (run_dir / "state.json").exists()
     assert pids_of_run(run_dir) == []

@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 import torch
 
+from dvla.learn.optstate import optimizer_from_tensors, optimizer_to_tensors
+
 from dvla.config import PPOConfig
 from dvla.learn.grpo import grpo_advantages
 from dvla.learn.policies import MLPPolicy, Policy, make_policy, register_policy
@@ -145,12 +147,14 @@ def test_ppo_target_kl_stops_early_and_checkpoint_roundtrip():
     learner = PPOLearner(policy, cfg, "cpu", seed=0)
     stats = learner.update(batch)
     assert stats["early_stop"] == 1.0 and stats["epochs_run"] < 50
-    state = learner.state_dict()
+    # the optimizer state survives the tensors-and-JSON form checkpoints use (no pickle)
+    tensors, meta = optimizer_to_tensors(learner.optimizer.state_dict())
     other_policy, _ = _fixed_batch(seed=1)
     other = PPOLearner(other_policy, cfg, "cpu")
-    other.load_state_dict(state)
-    for a, b in zip(policy.parameters(), other_policy.parameters()):
-        torch.testing.assert_close(a, b)
+    other.optimizer.load_state_dict(optimizer_from_tensors(tensors, meta, other.optimizer.state_dict()))
+    for a, b in zip(learner.optimizer.state.values(), other.optimizer.state.values()):
+        for k in a:
+            torch.testing.assert_close(a[k], b[k])
 
 
 def test_ppo_rejects_bad_batches():

@@ -25,7 +25,7 @@ import torch
 from torch import Tensor, nn
 from torch.distributions import Normal
 
-from ..policies import register_policy
+from ..policies import fold_moments, register_policy
 from .tokenizer import PAD_ID
 
 __all__ = ["TinyVLA", "PRESETS", "preset_kwargs", "count_parameters"]
@@ -138,17 +138,7 @@ class TinyVLA(nn.Module):
         """Fold a batch's proprioception into the running statistics (Chan's parallel update)."""
         if not self.n_proprio:
             return
-        x = obs["proprio"].reshape(-1, self.n_proprio).to(self.proprio_mean.dtype)
-        n = x.shape[0]
-        if n == 0:
-            return
-        mean, var = x.mean(0), x.var(0, unbiased=False)
-        total = self.proprio_count + n
-        delta = mean - self.proprio_mean
-        m2 = self.proprio_var * self.proprio_count + var * n + delta.pow(2) * self.proprio_count * n / total
-        self.proprio_mean += delta * n / total
-        self.proprio_var.copy_(m2 / total)
-        self.proprio_count.copy_(total)
+        fold_moments(self.proprio_mean, self.proprio_var, self.proprio_count, obs["proprio"].reshape(-1, self.n_proprio))
 
     def _encode(self, obs: Mapping[str, Tensor]) -> Tensor:
         """[B, 2, d_model]: the two readout tokens after the encoder."""

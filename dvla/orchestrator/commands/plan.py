@@ -38,15 +38,21 @@ def plan(
         }
         for x in p.processes
     ]
+    group = _group(p)
     mb = param_mb if param_mb is not None else DEFAULT_PARAM_MB
     estimate = {"param_mb": mb, "param_mb_assumed": param_mb is None, **delivery_estimate(topo, p, int(mb * 1e6))}
     if format == Format.json:
-        doc = {"topology": topology_to_dict(topo), "processes": procs, "warnings": list(p.warnings), "broadcast": estimate}
+        doc = {"topology": topology_to_dict(topo), "processes": procs, "warnings": list(p.warnings), "broadcast": estimate,
+               "learner_group": group}
         typer.echo(json.dumps(doc, indent=1, sort_keys=True))
         return
     typer.echo(f"run {topo.run}: {len(procs)} processes on {len(topo.nodes())} nodes, mode {topo.mode}, emulate {topo.emulate}")
     for x in procs:
         typer.echo(f"  {x['name']:<28} {x['rack']}/{x['node']:<10} parent={x['parent'] or '-'}{_pinning(x)}")
+    typer.echo(f"learner group: {len(group['ranks'])} rank(s), {group['strategy']} over {group['backend']}"
+               + (f", rendezvous {group['rendezvous']}" if group["rendezvous"] else "") + "; data routing:")
+    for r in group["ranks"]:
+        typer.echo(f"  rank {r['rank']} {r['actor']} <- {', '.join(r['rollouts']) or '(no rollouts)'}")
     typer.echo("weight tree:")
     _tree(typer.echo, procs, p.root_actor, "  ")
     typer.echo(
@@ -57,6 +63,17 @@ def plan(
     )
     for w in p.warnings:
         typer.echo(f"warning: {w}", err=True)
+
+
+def _group(p: Any) -> dict[str, Any]:
+    """The learner group as `dvla plan` shows it: ranks, rendezvous and which rollouts feed each."""
+    actors = [x.config for x in p.processes if x.config.kind == "actor"]
+    g = actors[0].group
+    return {
+        "strategy": g.strategy if g else "ddp", "backend": g.backend if g else "none (one rank)",
+        "rendezvous": g.init_method if g else None, "timeout_s": g.timeout_s if g else None,
+        "ranks": [{"rank": i, "actor": a.name, "node": a.node, "rollouts": list(a.rollouts)} for i, a in enumerate(actors)],
+    }
 
 
 def _pinning(proc: dict[str, Any]) -> str:

@@ -28,11 +28,15 @@ def up(
     base_port: Annotated[Optional[int], typer.Option(help="first TCP port of the run")] = None,
     runs: Annotated[Path, typer.Option(help="directory of run directories")] = RUNS_ROOT,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no live view; one line per 10 s")] = False,
+    resume: Annotated[bool, typer.Option("--resume", help="continue the run from its last checkpoint (error if none)")] = False,
+    fresh: Annotated[bool, typer.Option("--fresh", help="delete the run directory (checkpoints included) and start over")] = False,
     detach: Annotated[
         bool, typer.Option("--detach", "-d", help="run in the background (log: RUN_DIR/orchestrator.log); return once the roles are started")
     ] = False,
 ) -> None:
-    """Start every role of TOPOLOGY as its own process and supervise them until the run ends."""
+    """Start every role of TOPOLOGY as its own process and supervise them until the run ends.
+
+    An existing run directory is continued (from its last checkpoint); --fresh starts over."""
     if mode is not None and mode not in ("async", "sync"):
         raise fail(f"--mode: expected async or sync, got {mode!r}")
     if max_env_steps is not None and max_env_steps < 1:
@@ -42,7 +46,7 @@ def up(
     topo = topology_or_exit(topology)
     opts = UpOptions(
         max_env_steps=max_env_steps, until_success=until_success, max_wall_s=max_wall_s,
-        mode=mode, seed=seed, base_port=base_port, runs_root=runs,
+        mode=mode, seed=seed, base_port=base_port, runs_root=runs, resume=resume, fresh=fresh,
     )
     live = sys.stdout.isatty() and not quiet and not detach
     last_line = [0.0]
