@@ -158,6 +158,34 @@ def vla(
     _save(doc, json_path, format_table)
 
 
+@app.command("learners")
+def learners(
+    json_path: Annotated[Path, typer.Option("--json", help="write the results (JSON) here")],
+    updates: Annotated[Optional[int], typer.Option(help="timed updates per rank count, after one warm-up update")] = None,
+    batch: Annotated[Optional[int], typer.Option(help="samples per rank per update")] = None,
+    quick: Annotated[bool, typer.Option("--quick", help="tiny counts: checks the machinery, not the speed")] = False,
+) -> None:
+    """The data-parallel learner group: PPO samples/s of tiny-vla with 1 and 2 gloo ranks (one process
+    each, one thread each), gradient all-reduce seconds per update and their share of the update,
+    speedup and scaling efficiency; checks that both ranks end with bit-identical parameters."""
+    import dataclasses
+
+    from benchmarks.learners import LearnersBenchConfig, format_table, run_bench
+
+    cfg = LearnersBenchConfig.quick() if quick else LearnersBenchConfig()
+    cfg = dataclasses.replace(cfg, **{k: v for k, v in (("updates", updates), ("batch", batch)) if v is not None})
+    if cfg.updates < 1 or cfg.batch < cfg.minibatches:
+        raise fail(f"--updates must be >= 1 and --batch >= {cfg.minibatches} (got {cfg.updates}, {cfg.batch})")
+    try:
+        doc = run_bench(cfg, quick=quick, progress=lambda m: typer.echo(f"[bench] {m}", err=True))
+    except (RuntimeError, OSError, ValueError) as err:
+        raise fail(f"bench learners: {err}", code=1)
+    doc["command"] = "dvla " + " ".join(sys.argv[1:])
+    _save(doc, json_path, format_table)
+    if not doc["params_identical"]:
+        raise typer.Exit(1)
+
+
 @app.command("chaos")
 def chaos(
     json_path: Annotated[Path, typer.Option("--json", help="write the results (JSON) here")],

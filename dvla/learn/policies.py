@@ -18,6 +18,7 @@ Register a class with ``@register_policy("name")`` to make it addressable by nam
 from __future__ import annotations
 
 import importlib
+import inspect
 import math
 from typing import Any, Callable, Mapping, Protocol, Sequence, runtime_checkable
 
@@ -48,12 +49,17 @@ class Policy(Protocol):
     def load_state_dict(self, state_dict: Any, strict: bool = True, assign: bool = False) -> Any: ...
 
 
-def sample_actions(policy: Any, obs: Any, deterministic: bool = False) -> tuple[Tensor, Tensor]:
-    """(action, logprob) from the policy's optional ``sample``, else from ``act`` (value dropped)."""
+def sample_actions(policy: Any, obs: Any, deterministic: bool = False,
+                   generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
+    """(action, logprob) from the policy's optional ``sample``, else from ``act`` (value dropped).
+
+    ``generator`` (the noise source, for reproducible sampling) is passed on to policies whose
+    ``sample``/``act`` take a ``generator`` keyword; others draw from torch's global generator."""
     sample = getattr(policy, "sample", None)
+    extra = {"generator": generator} if generator is not None and _takes_generator(sample or policy.act) else {}
     if sample is not None:
-        return sample(obs, deterministic)
-    action, logprob, _ = policy.act(obs, deterministic)
+        return sample(obs, deterministic, **extra)
+    action, logprob, _ = policy.act(obs, deterministic, **extra)
     return action, logprob
 
 
@@ -148,6 +154,16 @@ def fold_moments(mean: Tensor, var: Tensor, count: Tensor, x: Tensor) -> None:
     count.copy_(total)
 
 
+_TAKES_GENERATOR: dict[Any, bool] = {}
+
+
+def _takes_generator(method: Any) -> bool:
+    key = getattr(method, "__func__", method)
+    if key not in _TAKES_GENERATOR:
+        _TAKES_GENERATOR[key] = "generator" in inspect.signature(method).parameters
+    return _TAKES_GENERATOR[key]
+
+
 def _layer(n_in: int, n_out: int, std: float) -> nn.Linear:
     # Orthogonal weights and zero biases keep early activations well scaled (CleanRL-style init).
     layer = nn.Linear(n_in, n_out)
@@ -223,12 +239,14 @@ class MLPPolicy(nn.Module):
         return self.critic(self._normalise(obs)).squeeze(-1)
 
     @torch.no_grad()
-    def act(self, obs: Tensor, deterministic: bool = False) -> tuple[Tensor, Tensor, Tensor]:
-        action, logprob = self.sample(obs, deterministic)
+    def act(self, obs: Tensor, deterministic: bool = False,
+            generator: torch.Generator | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        action, logprob = self.sample(obs, deterministic, generator)
         return action, logprob, self.value(obs)
 
     @torch.no_grad()
-    def sample(self, obs: Tensor, deterministic: bool = False) -> tuple[Tensor, Tensor]:
+    def sample(self, obs: Tensor, deterministic: bool = False,
+               generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
         """``act`` without running the critic (what rollouts and the evaluator need).
 
         The Gaussian is written out instead of built as a ``Normal``: a = mean + std * eps,
@@ -240,7 +258,7 @@ class MLPPolicy(nn.Module):
         log_std = self.log_std.expand_as(mean)
         if deterministic:
             return mean, (-log_std - _HALF_LOG_2PI).sum(-1)
-        eps = torch.randn_like(mean)
+        eps = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
         action = mean + log_std.exp() * eps
         return action, (-0.5 * eps.square() - log_std - _HALF_LOG_2PI).sum(-1)
 

@@ -98,7 +98,8 @@ def accounting_from_counters(run_dir: Path) -> dict[str, Any] | None:
 class _Received(NamedTuple):
     """What one actor incarnation received of one rollout incarnation (seqs within it)."""
 
-    actor: int
+    #: (actor role, incarnation): a rollout feeds one rank, but several actors have incarnation 0
+    actor: tuple[str, int]
     first: int
     last: int
     got: int
@@ -110,12 +111,12 @@ class _Missing:
 
     #: inside an actor's received range: the fabric dropped them or could not decode them
     inner: int
-    #: (actor incarnation, chunks) missing between two actor incarnations: died with the first
-    between: list[tuple[int, int]]
+    #: ((actor, incarnation), chunks) missing between two actor incarnations: died with the first
+    between: list[tuple[tuple[str, int], int]]
     #: after the last chunk received: died with the rollout, or with the actor at the end
     tail: int
     #: the actor incarnation that received the last chunk (None: none received any)
-    last_actor: int | None
+    last_actor: tuple[str, int] | None
 
 
 def _missing(produced: int, received: list[_Received]) -> _Missing:
@@ -125,7 +126,8 @@ def _missing(produced: int, received: list[_Received]) -> _Missing:
     inner = sum(x.last - x.first + 1 - x.got for x in received)
     # chunks before the first receipt went missing in the absence of an actor: count them with
     # the first actor incarnation's predecessor (the one that died), else as mid-stream
-    between = [(received[0].actor - 1, received[0].first)] if received[0].first else []
+    role, inc = received[0].actor
+    between = [((role, inc - 1), received[0].first)] if received[0].first else []
     between += [(a.actor, b.first - a.last - 1) for a, b in zip(received, received[1:])]
     return _Missing(inner=inner, between=between, tail=produced - 1 - received[-1].last, last_actor=received[-1].actor)
 
@@ -153,8 +155,8 @@ class _Ledger:
     rejected: Counter[str] = field(default_factory=Counter)
     #: one entry per killed incarnation (result.json's lost_by_incarnation)
     lost: list[dict[str, Any]] = field(default_factory=list)
-    #: actor incarnation -> its entry in `lost`
-    killed_actors: dict[int, dict[str, Any]] = field(default_factory=dict)
+    #: (actor, incarnation) -> its entry in `lost`
+    killed_actors: dict[tuple[str, int], dict[str, Any]] = field(default_factory=dict)
     #: "<rollout>#<incarnation>" -> what each actor incarnation received of it
     received: dict[str, list[_Received]] = field(default_factory=dict)
     #: rollout name -> chunks the actors' fabric dropped under backpressure / could not decode
@@ -172,7 +174,7 @@ class _Ledger:
         held = 0  # received but never settled (consumed, dropped or rejected)
         own_rejects: Counter[str] = Counter()
         for src, c in a.get("sources", {}).items():
-            self.received.setdefault(src, []).append(_Received(a["incarnation"], c["first"], c["last"], c["got"]))
+            self.received.setdefault(src, []).append(_Received((a["role"], a["incarnation"]), c["first"], c["last"], c["got"]))
             settled = 0
             for key, n in c.items():
                 if key == "consumed":
@@ -198,7 +200,7 @@ class _Ledger:
         entry = {"role": a["role"], "incarnation": a["incarnation"], "pid": a["pid"], "where": "actor",
                  "died_ns": a["updated_ns"], "lost": held, "in_actor": held, "in_transit": 0,
                  "lost_bound": a["slots"] + 2 + a["inbox_cap"]}
-        self.killed_actors[a["incarnation"]] = entry
+        self.killed_actors[(a["role"], a["incarnation"])] = entry
         self.lost.append(entry)
 
     def add_rollout(self, name: str, incarnations: list[dict[str, Any]], mean_bytes: float) -> None:

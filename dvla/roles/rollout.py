@@ -66,6 +66,8 @@ class _Group:
     envs: EnvGroup
     obs: np.ndarray
     t: int = 0
+    #: steps recorded since the process started (names the sampling noise of the next one)
+    steps: int = 0
     versions: list[int] = field(default_factory=list)
     #: this group's preallocated chunks
     chunks: ChunkPool | None = None
@@ -147,6 +149,7 @@ class Rollout:
         # of the simulators' share.
         torch.distributions.Distribution.set_default_validate_args(False)
         self.groups: list[_Group] = []
+        self._noise = torch.Generator()
         seed = cfg.seed * 10_000
         for gid, size in enumerate(env_group_sizes(task.envs_per_rollout)):
             envs = EnvGroup(task, size, seed + gid * 1000, **grpo_envs(task))
@@ -242,9 +245,13 @@ class Rollout:
         swapped = self.pool.maybe_swap()
         g = self.groups[gid]
         t0 = time.perf_counter()
+        # Sampling noise is a function of (process seed, group, step): the same seed replays the
+        # same actions whatever the threads' timing (an action recomputed for new weights included).
+        # (A generator of the infer lane's own: simulators may draw from torch's global one.)
+        self._noise.manual_seed((self.cfg.seed * 4 + gid) * 2**32 + g.steps)
         with torch.no_grad():
             obs = obs_to_torch(g.obs)
-            action, logprob = sample_actions(self.pool.active, obs)
+            action, logprob = sample_actions(self.pool.active, obs, generator=self._noise)
         ms = (time.perf_counter() - t0) * 1e3
         seq1 = self.pool.stage_seq
         self.infer_latency.record("swap" if swapped or seq0 % 2 == 1 else "no_swap", ms)
@@ -325,6 +332,7 @@ class Rollout:
         g.obs = step.next_obs
         g.versions.append(version)
         g.t += 1
+        g.steps += 1
         self.env_steps += g.envs.n
         done = int(step.episode_done.sum())
         if done:

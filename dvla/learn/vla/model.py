@@ -171,9 +171,12 @@ class TinyVLA(nn.Module):
         return self.value_head(self._encode(obs)[:, 1]).squeeze(-1)
 
     @torch.no_grad()
-    def act(self, obs: Mapping[str, Tensor], deterministic: bool = False) -> tuple[Tensor, Tensor, Tensor]:
+    def act(self, obs: Mapping[str, Tensor], deterministic: bool = False,
+            generator: torch.Generator | None = None) -> tuple[Tensor, Tensor, Tensor]:
         dist, value = self._heads(obs)
-        action = dist.mean if deterministic else dist.sample()
+        mean = dist.mean
+        noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
+        action = mean if deterministic else mean + dist.stddev * noise
         return action, dist.log_prob(action).sum(-1), value
 
     def evaluate(self, obs: Mapping[str, Tensor], action: Tensor) -> tuple[Tensor, Tensor, Tensor]:

@@ -1,0 +1,352 @@
+"""`dvla bench learners`: what the data-parallel learner group buys on this machine.
+
+The same PPO update runs in one rank, then in two ranks of a real gloo process group; every rank
+is its own spawned OS process with ``torch.set_num_threads(1)`` and learns on its own batch of
+``batch`` samples (same size on every rank), exactly as an actor of a learner group does it:
+:class:`~dvla.learn.group.LearnerGroup` for the rendezvous and DDP, :class:`~dvla.learn.ppo.PPOLearner`
+for the update, ``sync_from_root`` before the first one.
+
+Figures:
+
+* **samples/s** per rank count: samples learned across all ranks / wall time of ``updates``
+  updates, after one warm-up update and a barrier (the slowest rank's wall time counts).
+* **all-reduce seconds per update**: a DDP communication hook (same arithmetic as DDP's default:
+  divide by the world size, then ``all_reduce``) stamps each gradient bucket's all-reduce at
+  launch and when its future completes; the seconds per update are the length of the union of
+  those in-flight intervals. They include waiting for the slower peer, and may overlap the
+  backward pass that DDP runs alongside them.
+* **comm share**: all-reduce seconds / update seconds (the learner's own ``update_s``).
+* **params identical**: the checksum of every rank's flattened float32 state dict after the
+  last update, compared.
+
+Workload: ``tiny-vla`` (the ``tiny`` preset of topologies/local-vla.yaml: 64x64 rgb, 8 px
+patches, 16 instruction tokens, 18 proprio values, 8 actions; PPO with that topology's
+batch_steps, minibatches and update_epochs). ``target_kl`` is off so every update does the same
+work.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import statistics
+import time
+import traceback
+from dataclasses import asdict, dataclass
+from typing import Any, Callable
+
+__all__ = ["LearnersBenchConfig", "run_bench", "format_table"]
+
+INSTRUCTION = "push the cube to the red and white target"
+COMM_METHOD = ("DDP comm hook (divide by world size, then dist.all_reduce, as DDP's default): each gradient "
+               "bucket's all-reduce is timed from launch to its future's completion; comm_s per update is the "
+               "length of the union of those intervals (includes waiting for the peer; may overlap backward)")
+
+
+@dataclass(frozen=True)
+class LearnersBenchConfig:
+    """One bench run (``quick``: tiny counts, checks the machinery only)."""
+
+    #: samples per rank per update
+    batch: int = 400
+    #: timed updates per rank count (after one warm-up update)
+    updates: int = 8
+    #: rank counts measured; the first is the baseline
+    ranks: tuple[int, ...] = (1, 2)
+    #: tiny-vla preset and its inputs
+    size: str = "tiny"
+    image_size: int = 64
+    patch_size: int = 8
+    instruction_tokens: int = 16
+    proprio: int = 18
+    act_dim: int = 8
+    #: PPO update shape
+    update_epochs: int = 2
+    minibatches: int = 4
+    lr: float = 3e-4
+    #: collective timeout of the group, seconds
+    timeout_s: float = 120.0
+
+    @staticmethod
+    def quick() -> "LearnersBenchConfig":
+        return LearnersBenchConfig(batch=32, updates=2, image_size=32, instruction_tokens=8, update_epochs=1)
+
+
+# --- one rank (runs in its own process) -----------------------------------------------------
+
+
+def _timed_group_class() -> type:
+    """A :class:`LearnerGroup` whose DDP module times its gradient all-reduces, and which times
+    its scalar sums (built lazily: the parent process need not import torch.distributed)."""
+    import torch.distributed as dist
+    from torch.nn.parallel import DistributedDataParallel
+
+    from dvla.learn.group import LearnerGroup
+
+    class TimedGroup(LearnerGroup):
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            super().__init__(*args, **kwargs)
+            self.comm: list[tuple[float, float, int]] = []  # (launched, done, bytes) per bucket
+            self.sum_s = 0.0
+
+        def train_module(self, policy: Any) -> Any:
+            module = super().train_module(policy)
+            if isinstance(module, DistributedDataParallel):
+                module.register_comm_hook(None, self._allreduce_hook)
+            return module
+
+        def _allreduce_hook(self, state, bucket):  # noqa: ANN001, ANN202 (DDP checks the annotations)
+            tensor = bucket.buffer()
+            launched = time.perf_counter()
+            tensor.div_(self.world_size)
+            fut = dist.all_reduce(tensor, async_op=True).get_future()
+
+            def done(f: Any) -> Any:
+                self.comm.append((launched, time.perf_counter(), tensor.numel() * tensor.element_size()))
+                return f.value()[0]
+
+            return fut.then(done)
+
+        def sum(self, values: list[float]) -> list[float]:
+            t = time.perf_counter()
+            out = super().sum(values)
+            self.sum_s += time.perf_counter() - t
+            return out
+
+        def take_comm(self) -> tuple[float, int, int]:
+            """(seconds in flight, bytes, all-reduces) since the last call."""
+            spans, self.comm = sorted(self.comm), []
+            busy, end = 0.0, float("-inf")
+            for start, stop, _ in spans:  # length of the union of the intervals
+                if stop > end:
+                    busy += stop - max(start, end)
+                    end = stop
+            return busy, sum(b for _, _, b in spans), len(spans)
+
+    return TimedGroup
+
+
+def _batch(cfg: LearnersBenchConfig, policy: Any, seed: int) -> dict[str, Any]:
+    """A PPO batch of random images and state, with the policy's own actions and log-probs."""
+    import numpy as np
+    import torch
+
+    from dvla.learn.vla.tokenizer import tokenize
+
+    g = torch.Generator().manual_seed(seed)
+    n, s = cfg.batch, cfg.image_size
+    obs = {
+        "rgb": torch.randint(0, 256, (n, s, s, 3), generator=g).to(torch.uint8),
+        "proprio": torch.randn(n, cfg.proprio, generator=g),
+        "tokens": torch.as_tensor(np.stack([tokenize(INSTRUCTION, cfg.instruction_tokens)] * n)),
+    }
+    with torch.no_grad():
+        actions, logprobs, _ = policy.act(obs)
+    return {"obs": obs, "actions": actions, "logprobs": logprobs,
+            "advantages": torch.randn(n, generator=g), "returns": torch.randn(n, generator=g)}
+
+
+def _rank_main(cfg: LearnersBenchConfig, rank: int, world: int, init_method: str, cmd: Any, out: Any) -> None:
+    """One learner rank: set up, one warm-up update, then a timed round of ``n`` updates for each
+    ``n`` read from ``cmd`` (None: report the parameter checksum and stop). Reports go to ``out``."""
+    tag = {"world": world, "rank": rank}
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+        from dvla.config import GroupRank, PPOConfig
+        from dvla.learn.envs import ArraySpec
+        from dvla.learn.policies import make_policy
+        from dvla.learn.ppo import PPOLearner
+        from dvla.replication import ParamLayout, checksum, flatten
+
+        spec = GroupRank(rank=rank, world_size=world, init_method=init_method, backend="gloo", strategy="ddp",
+                         timeout_s=cfg.timeout_s, members=tuple(f"actor{i}" for i in range(world)))
+        group = _timed_group_class()(spec if world > 1 else None, torch.device("cpu"), "127.0.0.1")
+        try:
+            obs_spec = {
+                "rgb": ArraySpec((cfg.image_size, cfg.image_size, 3), "uint8"),
+                "proprio": ArraySpec((cfg.proprio,), "float32"),
+                "tokens": ArraySpec((cfg.instruction_tokens,), "int32", vocab=4096),
+            }
+            torch.manual_seed(0)
+            policy = make_policy("tiny-vla", obs_spec, cfg.act_dim, size=cfg.size, patch_size=cfg.patch_size)
+            ppo = PPOConfig(lr=cfg.lr, batch_steps=cfg.batch, minibatches=cfg.minibatches,
+                            update_epochs=cfg.update_epochs, target_kl=None)
+            learner = PPOLearner(policy, ppo, "cpu", seed=0, group=group)
+            group.sync_from_root(policy, learner.optimizer, [0])
+            batch = _batch(cfg, policy, seed=1000 + rank)  # each rank learns on its own data
+            learner.update(batch)  # warm-up
+            out.put({**tag, "ready": True})
+            while (n := cmd.get()) is not None:
+                group.sum([0.0])  # barrier: the round's updates start together
+                group.take_comm()
+                group.sum_s = 0.0
+                update_s, comm_s, comm_bytes, comm_ops = [], [], 0, 0
+                t0 = time.perf_counter()
+                for _ in range(n):
+                    update_s.append(learner.update(batch)["update_s"])
+                    busy, nbytes, ops = group.take_comm()
+                    comm_s.append(busy)
+                    comm_bytes, comm_ops = comm_bytes + nbytes, comm_ops + ops
+                out.put({**tag, "round": {"wall_s": time.perf_counter() - t0, "update_s": update_s, "comm_s": comm_s,
+                                          "scalar_sum_s": group.sum_s, "grad_bytes": comm_bytes, "allreduces": comm_ops}})
+            out.put({**tag, "final": {"checksum": checksum(flatten(policy, ParamLayout.from_state_dict(policy))),
+                                      "parameters": sum(p.numel() for p in policy.parameters())}})
+        finally:
+            group.close()
+    except BaseException:
+        out.put({**tag, "error": traceback.format_exc()})
+
+
+# --- the parent: every rank count's processes at once, taking turns --------------------------
+
+
+class _Ranks:
+    """The spawned rank processes of every rank count, and their reports."""
+
+    def __init__(self, cfg: LearnersBenchConfig) -> None:
+        import multiprocessing as mp
+
+        from .ports import free_port_block
+
+        ctx = mp.get_context("spawn")
+        self.out = ctx.Queue()
+        self.cmd: dict[tuple[int, int], Any] = {}
+        self.procs: dict[tuple[int, int], Any] = {}
+        for world in cfg.ranks:
+            init_method = f"tcp://127.0.0.1:{free_port_block(1)}"
+            for rank in range(world):
+                q = self.cmd[world, rank] = ctx.Queue()
+                self.procs[world, rank] = ctx.Process(target=_rank_main, args=(cfg, rank, world, init_method, q, self.out),
+                                                      daemon=True)
+        for p in self.procs.values():
+            p.start()
+        self.timeout_s = cfg.timeout_s
+
+    def send(self, world: int, n: int | None) -> None:
+        for (w, rank), q in self.cmd.items():
+            if w == world:
+                q.put(n)
+
+    def collect(self, key: str, worlds: list[int]) -> dict[tuple[int, int], Any]:
+        """The ``key`` report of every rank of ``worlds``, or RuntimeError (a rank failed or hung)."""
+        import queue
+
+        want = {k for k in self.procs if k[0] in worlds}
+        got: dict[tuple[int, int], Any] = {}
+        deadline = time.monotonic() + self.timeout_s
+        while set(got) != want:
+            try:
+                msg = self.out.get(timeout=1.0)
+            except queue.Empty:
+                dead = {k: p.exitcode for k, p in self.procs.items() if k in want - set(got) and not p.is_alive()}
+                if dead or time.monotonic() > deadline:
+                    raise RuntimeError(f"ranks {sorted(want - set(got))} sent no {key!r} report "
+                                       f"(exited: {dead or 'none'}; waited up to {self.timeout_s:.0f} s)")
+                continue
+            if "error" in msg:
+                raise RuntimeError(f"rank {msg['rank']} of {msg['world']} failed:\n{msg['error']}")
+            got[msg["world"], msg["rank"]] = msg[key]
+        return got
+
+    def close(self) -> None:
+        for p in self.procs.values():
+            p.join(10)
+        for p in self.procs.values():
+            if p.is_alive():
+                p.terminate()
+                p.join(10)
+
+
+def _summary(cfg: LearnersBenchConfig, world: int, rounds: list[dict[int, Any]], final: dict[int, Any]) -> dict[str, Any]:
+    """One rank count's figures from its rounds (``{rank: report}`` each) and final reports."""
+    walls = [max(r["wall_s"] for r in rnd.values()) for rnd in rounds]
+    per_rank = {rank: {k: [x for rnd in rounds for x in rnd[rank][k]] for k in ("update_s", "comm_s")}
+                for rank in range(world)}
+    update = sum(sum(r["update_s"]) for r in per_rank.values())
+    comm = sum(sum(r["comm_s"]) for r in per_rank.values())
+    n = world * cfg.updates  # updates run, all ranks
+    return {
+        "ranks": world,
+        "wall_s": sum(walls),
+        "samples_per_s": world * cfg.batch * cfg.updates / sum(walls),
+        "round_samples_per_s": [world * cfg.batch * len(rnd[0]["update_s"]) / w for rnd, w in zip(rounds, walls)],
+        "update_s_median": statistics.median(s for r in per_rank.values() for s in r["update_s"]),
+        "allreduce_s_per_update": comm / n,
+        "comm_share": comm / update,
+        "scalar_sum_s_per_update": sum(r["scalar_sum_s"] for rnd in rounds for r in rnd.values()) / n,
+        "grad_bytes_per_update": sum(r["grad_bytes"] for rnd in rounds for r in rnd.values()) / n,
+        "allreduces_per_update": sum(r["allreduces"] for rnd in rounds for r in rnd.values()) / n,
+        "params_identical": len({f["checksum"] for f in final.values()}) == 1,
+        "per_rank": [{"rank": rank, **per_rank[rank], **final[rank]} for rank in range(world)],
+    }
+
+
+def run_bench(cfg: LearnersBenchConfig | None = None, *, quick: bool = False,
+              progress: Callable[[str], None] = lambda _m: None) -> dict[str, Any]:
+    """Measure every rank count of ``cfg`` (the first is the baseline); returns the JSON document."""
+    cfg = cfg or (LearnersBenchConfig.quick() if quick else LearnersBenchConfig())
+    if cfg.batch < cfg.minibatches or cfg.updates < 1 or not cfg.ranks or min(cfg.ranks) < 1:
+        raise ValueError("batch must be >= minibatches, updates >= 1 and every rank count >= 1")
+    started = time.monotonic()
+    load_start = os.getloadavg()
+    runs: dict[str, Any] = {}
+    for world in cfg.ranks:
+        progress(f"{world} rank(s): 1 warm-up + {cfg.updates} updates of {cfg.batch} samples per rank")
+        runs[str(world)] = _summary(cfg, _run(cfg, world))
+        r = runs[str(world)]
+        progress(f"{world} rank(s): {r['samples_per_s']:.1f} samples/s, all-reduce "
+                 f"{r['allreduce_s_per_update'] * 1e3:.1f} ms/update ({100 * r['comm_share']:.1f}% of the update)")
+    base = runs[str(cfg.ranks[0])]
+    figures: dict[str, float] = {}
+    ratios: dict[str, float] = {}
+    for world, r in runs.items():
+        figures[f"samples_per_s_{world}"] = r["samples_per_s"]
+        figures[f"update_s_{world}"] = r["update_s_median"]
+        figures[f"allreduce_s_per_update_{world}"] = r["allreduce_s_per_update"]
+        figures[f"comm_share_{world}"] = r["comm_share"]
+        if r is not base:
+            speedup = r["samples_per_s"] / base["samples_per_s"]
+            ratios[f"speedup_{world}_over_{cfg.ranks[0]}"] = speedup
+            ratios[f"scaling_efficiency_{world}"] = speedup / (int(world) / cfg.ranks[0])
+    multi = [r for r in runs.values() if r["ranks"] > 1]
+    parameters = base["per_rank"][0]["parameters"]
+    return {
+        "config": {**asdict(cfg), "ranks": list(cfg.ranks)},
+        "quick": quick,
+        "workload": {
+            "policy": "tiny-vla", "size": cfg.size, "parameters": parameters,
+            "why": ("tiny-vla as topologies/local-vla.yaml trains it: on this CPU its PPO update is slower than "
+                    "its rollouts, so the learner is the stage a second rank should speed up"),
+        },
+        "method": {
+            "samples_per_s": "samples learned by all ranks / slowest rank's wall time of the timed updates "
+                             "(each sample is used update_epochs times)",
+            "allreduce": COMM_METHOD,
+            "comm_share": "sum of all-reduce seconds / sum of the learner's update_s, over ranks and updates",
+            "params_identical": "xxh3-128 checksum of each rank's flattened float32 state dict after the last update",
+        },
+        "figures": figures,
+        "ratios": ratios,
+        "params_identical": all(r["params_identical"] for r in multi) if multi else True,
+        "runs": runs,
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
+                    "load_avg_start": load_start, "load_avg_end": os.getloadavg()},
+        "elapsed_s": time.monotonic() - started,
+    }
+
+
+def format_table(doc: dict[str, Any]) -> str:
+    """A short human summary of :func:`run_bench`'s document."""
+    cfg, w = doc["config"], doc["workload"]
+    lines = [f"learner group, {w['policy']} {w['size']} ({w['parameters'] / 1e6:.2f} M params), "
+             f"{cfg['batch']} samples/rank/update, {cfg['updates']} timed updates:",
+             f"{'ranks':>5}{'samples/s':>11}{'update s':>10}{'all-reduce ms':>15}{'comm share':>12}"]
+    for world, r in doc["runs"].items():
+        lines.append(f"{world:>5}{r['samples_per_s']:>11.1f}{r['update_s_median']:>10.3f}"
+                     f"{r['allreduce_s_per_update'] * 1e3:>15.1f}{100 * r['comm_share']:>11.1f}%")
+    for name, v in doc["ratios"].items():
+        lines.append(f"  {name}: {v:.2f}")
+    lines.append(f"  params identical across ranks: {doc['params_identical']}")
+    return "\n".join(lines)
