@@ -1,15 +1,17 @@
 """`dvla bench learners`: what the data-parallel learner group buys on this machine.
 
-The same PPO update runs in one rank, then in two ranks of a real gloo process group; every rank
-is its own spawned OS process with ``torch.set_num_threads(1)`` and learns on its own batch of
-``batch`` samples (same size on every rank), exactly as an actor of a learner group does it:
+The same PPO update runs in a group of one rank and in a real two-rank gloo process group. Every
+rank is its own spawned OS process with ``torch.set_num_threads(1)`` and learns on its own batch
+of ``batch`` samples (same size on every rank), as an actor of a learner group does:
 :class:`~dvla.learn.group.LearnerGroup` for the rendezvous and DDP, :class:`~dvla.learn.ppo.PPOLearner`
-for the update, ``sync_from_root`` before the first one.
+for the update, ``sync_from_root`` before the first one. All rank processes start together and do
+one warm-up update; then the rank counts take turns, ``round_updates`` timed updates at a time in
+ABBA order, so background load on a shared machine falls on both alike.
 
 Figures:
 
-* **samples/s** per rank count: samples learned across all ranks / wall time of ``updates``
-  updates, after one warm-up update and a barrier (the slowest rank's wall time counts).
+* **samples/s** per rank count: samples learned across all ranks / wall time of its ``updates``
+  timed updates (each round starts with a barrier; the slowest rank's wall time counts).
 * **all-reduce seconds per update**: a DDP communication hook (same arithmetic as DDP's default:
   divide by the world size, then ``all_reduce``) stamps each gradient bucket's all-reduce at
   launch and when its future completes; the seconds per update are the length of the union of
@@ -51,6 +53,8 @@ class LearnersBenchConfig:
     batch: int = 400
     #: timed updates per rank count (after one warm-up update)
     updates: int = 8
+    #: the rank counts take turns, this many updates at a time (ABBA order)
+    round_updates: int = 2
     #: rank counts measured; the first is the baseline
     ranks: tuple[int, ...] = (1, 2)
     #: tiny-vla preset and its inputs
@@ -69,7 +73,8 @@ class LearnersBenchConfig:
 
     @staticmethod
     def quick() -> "LearnersBenchConfig":
-        return LearnersBenchConfig(batch=32, updates=2, image_size=32, instruction_tokens=8, update_epochs=1)
+        return LearnersBenchConfig(batch=32, updates=2, round_updates=1, image_size=32, instruction_tokens=8,
+                                   update_epochs=1)
 
 
 # --- one rank (runs in its own process) -----------------------------------------------------
@@ -259,6 +264,10 @@ class _Ranks:
                 p.join(10)
 
 
+def _summary_rate(cfg: LearnersBenchConfig, world: int, rnd: dict[int, Any]) -> float:
+    return world * cfg.batch * len(rnd[0]["update_s"]) / max(r["wall_s"] for r in rnd.values())
+
+
 def _summary(cfg: LearnersBenchConfig, world: int, rounds: list[dict[int, Any]], final: dict[int, Any]) -> dict[str, Any]:
     """One rank count's figures from its rounds (``{rank: report}`` each) and final reports."""
     walls = [max(r["wall_s"] for r in rnd.values()) for rnd in rounds]
@@ -287,17 +296,28 @@ def run_bench(cfg: LearnersBenchConfig | None = None, *, quick: bool = False,
               progress: Callable[[str], None] = lambda _m: None) -> dict[str, Any]:
     """Measure every rank count of ``cfg`` (the first is the baseline); returns the JSON document."""
     cfg = cfg or (LearnersBenchConfig.quick() if quick else LearnersBenchConfig())
-    if cfg.batch < cfg.minibatches or cfg.updates < 1 or not cfg.ranks or min(cfg.ranks) < 1:
-        raise ValueError("batch must be >= minibatches, updates >= 1 and every rank count >= 1")
+    if cfg.batch < cfg.minibatches or min(cfg.updates, cfg.round_updates) < 1 or not cfg.ranks or min(cfg.ranks) < 1:
+        raise ValueError("batch must be >= minibatches, updates and round_updates >= 1, every rank count >= 1")
     started = time.monotonic()
     load_start = os.getloadavg()
-    runs: dict[str, Any] = {}
-    for world in cfg.ranks:
-        progress(f"{world} rank(s): 1 warm-up + {cfg.updates} updates of {cfg.batch} samples per rank")
-        runs[str(world)] = _summary(cfg, _run(cfg, world))
-        r = runs[str(world)]
-        progress(f"{world} rank(s): {r['samples_per_s']:.1f} samples/s, all-reduce "
-                 f"{r['allreduce_s_per_update'] * 1e3:.1f} ms/update ({100 * r['comm_share']:.1f}% of the update)")
+    progress(f"starting {sum(cfg.ranks)} rank processes ({' + '.join(map(str, cfg.ranks))}); one warm-up update each")
+    ranks = _Ranks(cfg)
+    try:
+        ranks.collect("ready", list(cfg.ranks))
+        rounds: dict[int, list[dict[int, Any]]] = {w: [] for w in cfg.ranks}
+        sizes = [min(cfg.round_updates, cfg.updates - i) for i in range(0, cfg.updates, cfg.round_updates)]
+        for i, n in enumerate(sizes):
+            for world in (cfg.ranks if i % 2 == 0 else cfg.ranks[::-1]):  # ABBA: both see the same background
+                ranks.send(world, n)
+                rounds[world].append({r: rep for (_w, r), rep in ranks.collect("round", [world]).items()})
+            progress(f"round {i + 1}/{len(sizes)}: " + ", ".join(
+                f"{w} rank(s) {_summary_rate(cfg, w, rounds[w][-1]):.1f} samples/s" for w in cfg.ranks))
+        for world in cfg.ranks:
+            ranks.send(world, None)
+        final = ranks.collect("final", list(cfg.ranks))
+    finally:
+        ranks.close()
+    runs = {str(w): _summary(cfg, w, rounds[w], {r: f for (fw, r), f in final.items() if fw == w}) for w in cfg.ranks}
     base = runs[str(cfg.ranks[0])]
     figures: dict[str, float] = {}
     ratios: dict[str, float] = {}
