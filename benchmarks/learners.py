@@ -197,7 +197,8 @@ def _rank_main(cfg: LearnersBenchConfig, rank: int, world: int, init_method: str
                 out.put({**tag, "round": {"wall_s": time.perf_counter() - t0, "update_s": update_s, "comm_s": comm_s,
                                           "scalar_sum_s": group.sum_s, "grad_bytes": comm_bytes, "allreduces": comm_ops}})
             out.put({**tag, "final": {"checksum": checksum(flatten(policy, ParamLayout.from_state_dict(policy))),
-                                      "parameters": sum(p.numel() for p in policy.parameters())}})
+                                      "parameters": sum(p.numel() for p in policy.parameters()),
+                                      "pid": os.getpid()}})
         finally:
             group.close()
     except BaseException:

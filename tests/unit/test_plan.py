@@ -131,3 +131,72 @@ def test_delivery_estimate_follows_the_busiest_link() -> None:
     est = delivery_estimate(fast, make_plan(fast, "runs/x"), size)
     assert est["tree_bottleneck"] == "r0n1 NIC out"
     assert est["tree_s"] == pytest.approx(4 * size * 8 / 1e9 + (1 << 20) * 8 / 1e9)
+
+
+def _routing(text: str) -> dict[str, list[str]]:
+    plan = make_plan(parse_topology(text), "/tmp/run", base_port=20000)
+    return {p.config.name: list(p.config.rollouts) for p in plan.processes if p.config.kind == "actor"}
+
+
+def _group_topology(nodes: str, learners: str = "") -> str:
+    return f"run: g\n{learners}task: {{budget: {{max_env_steps: 1000}}}}\nracks:\n{nodes}"
+
+
+def test_routing_at_3_to_1_per_node_keeps_each_rollout_on_its_nodes_rank() -> None:
+    nodes = """  - name: r0
+    nodes:
+      - {name: n0, roles: [{role: actor}, {role: replicator}, {role: rollout, count: 3}]}
+      - {name: n1, roles: [{role: actor}, {role: rollout, count: 3}]}
+"""
+    routes = _routing(_group_topology(nodes, 'learners: {ratio: "3:1"}\n'))
+    assert routes == {"actor-n0-0": ["rollout-n0-0", "rollout-n0-1", "rollout-n0-2"],
+                      "actor-n1-0": ["rollout-n1-0", "rollout-n1-1", "rollout-n1-2"]}
+    plan = make_plan(parse_topology(_group_topology(nodes)), "/tmp/run", base_port=20000)
+    ranks = [p.config.group for p in plan.processes if p.config.kind == "actor"]
+    assert [(g.rank, g.world_size) for g in ranks] == [(0, 2), (1, 2)]
+    # one rendezvous, on rank 0's node, at a port no plane uses
+    assert len({g.init_method for g in ranks}) == 1 and ranks[0].init_method.startswith("tcp://127.0.0.1:")
+    used = {ep for p in plan.processes for ep in p.config.ctrl.listen + p.config.data.listen}
+    assert not any(ep.endswith(":" + ranks[0].init_method.rsplit(":", 1)[1]) for ep in used)
+    # the weight tree stays rooted at rank 0 only
+    assert plan.by_name("actor-n1-0").config.children == ()
+
+
+def test_routing_at_1_to_1_on_one_node_and_to_the_least_loaded_nearby_rank() -> None:
+    one_node = "  - name: r0\n    nodes:\n      - {name: n0, roles: [{role: actor, count: 2}, {role: rollout, count: 2}]}\n"
+    assert _routing(_group_topology(one_node, 'learners: {ratio: "1:1"}\n')) == {
+        "actor-n0-0": ["rollout-n0-0"], "actor-n0-1": ["rollout-n0-1"]}
+    # rollouts on actor-less nodes go to a rank on their rack first, spread evenly
+    racks = """  - name: ra
+    nodes:
+      - {name: a0, roles: [{role: actor, count: 2}]}
+      - {name: a1, roles: [{role: rollout, count: 4}]}
+  - name: rb
+    nodes:
+      - {name: b0, roles: [{role: actor}]}
+      - {name: b1, roles: [{role: rollout}]}
+"""
+    routes = _routing(_group_topology(racks))
+    assert routes == {"actor-a0-0": ["rollout-a1-0", "rollout-a1-2"], "actor-a0-1": ["rollout-a1-1", "rollout-a1-3"],
+                      "actor-b0-0": ["rollout-b1-0"]}
+    assert sorted(sum(_routing(_group_topology(racks, "learners: {routing: round_robin}\n")).values(), [])) == sorted(
+        sum(routes.values(), []))
+
+
+@pytest.mark.parametrize("learners, message", [
+    ('learners: {ratio: "3:1"}\n', "ratio 3:1 but n0 places 2 rollout(s) and 2 actor(s)"),
+    ('learners: {ratio: "3/1"}\n', "is not a rollout:learner ratio"),
+    ('learners: {ratio: "1:1", ratio_per: run}\n', None),
+    ('learners: {strategy: fsdp}\n', "strategy"),
+    ('learners: {backend: nccl}\ntask: {device: cpu, budget: {max_env_steps: 10}}\n', "nccl needs CUDA"),
+])
+def test_learner_group_settings_are_checked(learners: str, message: str | None) -> None:
+    nodes = "  - name: r0\n    nodes:\n      - {name: n0, roles: [{role: actor, count: 2}, {role: rollout, count: 2}]}\n"
+    text = _group_topology(nodes, learners)
+    if "task:" in learners:
+        text = text.replace("task: {budget: {max_env_steps: 1000}}\n", "", 1)
+    if message is None:
+        parse_topology(text)
+        return
+    with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        parse_topology(text)
