@@ -21,16 +21,19 @@ Figures:
 * **params identical**: the checksum of every rank's flattened float32 state dict after the
   last update, compared.
 
-Workload: ``tiny-vla`` (the ``tiny`` preset of topologies/local-vla.yaml: 64x64 rgb, 8 px
-patches, 16 instruction tokens, 18 proprio values, 8 actions; PPO with that topology's
-batch_steps, minibatches and update_epochs). ``target_kl`` is off so every update does the same
-work.
+Workload: ``tiny-vla`` at the ``base`` preset (5.9 M parameters) on the inputs of
+topologies/local-vla.yaml (64x64 rgb, 8 px patches, 16 instruction tokens, 18 proprio values,
+8 actions) and that topology's PPO shape (4 minibatches, 2 epochs), with a smaller batch so the
+bench stays short (a sample costs the same at 64 or 400 per batch). ``base`` is the smallest
+preset whose learner is the slow stage on a CPU core (see :data:`WHY`). ``target_kl`` is off so
+every update does the same work.
 """
 
 from __future__ import annotations
 
 import os
 import platform
+import queue
 import statistics
 import time
 import traceback
@@ -40,6 +43,11 @@ from typing import Any, Callable
 __all__ = ["LearnersBenchConfig", "run_bench", "format_table"]
 
 INSTRUCTION = "push the cube to the red and white target"
+WHY = ("tiny-vla base, the smallest preset whose PPO learner is not far faster than its rollouts on a CPU core. "
+       "With this PPO shape one learner core took in ~290 samples/s at tiny, ~76 at small and ~20 at base (this "
+       "2-core machine, quiet), while a rollout process steps 2 rendered 64x64 envs at ~28, ~27 and ~21 env "
+       "steps/s (`dvla bench vla`, docs/benchmarks.md): at base the learner is the (slightly) slower stage, at "
+       "tiny and small a second learner rank would only wait for data. Compare samples_per_s_1 with ~21.")
 COMM_METHOD = ("DDP comm hook (divide by world size, then dist.all_reduce, as DDP's default): each gradient "
                "bucket's all-reduce is timed from launch to its future's completion; comm_s per update is the "
                "length of the union of those intervals (includes waiting for the peer; may overlap backward)")
@@ -47,18 +55,18 @@ COMM_METHOD = ("DDP comm hook (divide by world size, then dist.all_reduce, as DD
 
 @dataclass(frozen=True)
 class LearnersBenchConfig:
-    """One bench run (``quick``: tiny counts, checks the machinery only)."""
+    """One bench run (``quick``: tiny counts and model, checks the machinery only)."""
 
     #: samples per rank per update
-    batch: int = 400
+    batch: int = 64
     #: timed updates per rank count (after one warm-up update)
-    updates: int = 8
+    updates: int = 4
     #: the rank counts take turns, this many updates at a time (ABBA order)
     round_updates: int = 2
     #: rank counts measured; the first is the baseline
     ranks: tuple[int, ...] = (1, 2)
     #: tiny-vla preset and its inputs
-    size: str = "tiny"
+    size: str = "base"
     image_size: int = 64
     patch_size: int = 8
     instruction_tokens: int = 16
@@ -70,11 +78,13 @@ class LearnersBenchConfig:
     lr: float = 3e-4
     #: collective timeout of the group, seconds
     timeout_s: float = 120.0
+    #: longest wait for one report of a rank (a rank that dies is noticed at once)
+    report_timeout_s: float = 600.0
 
     @staticmethod
     def quick() -> "LearnersBenchConfig":
-        return LearnersBenchConfig(batch=32, updates=2, round_updates=1, image_size=32, instruction_tokens=8,
-                                   update_epochs=1)
+        return LearnersBenchConfig(batch=32, updates=2, round_updates=1, size="tiny", image_size=32,
+                                   instruction_tokens=8, update_epochs=1, report_timeout_s=120.0)
 
 
 # --- one rank (runs in its own process) -----------------------------------------------------
@@ -100,7 +110,7 @@ def _timed_group_class() -> type:
                 module.register_comm_hook(None, self._allreduce_hook)
             return module
 
-        def _allreduce_hook(self, state, bucket):  # noqa: ANN001, ANN202 (DDP checks the annotations)
+        def _allreduce_hook(self, state, bucket):  # unannotated: DDP rejects string annotations here
             tensor = bucket.buffer()
             launched = time.perf_counter()
             tensor.div_(self.world_size)
@@ -151,10 +161,21 @@ def _batch(cfg: LearnersBenchConfig, policy: Any, seed: int) -> dict[str, Any]:
             "advantages": torch.randn(n, generator=g), "returns": torch.randn(n, generator=g)}
 
 
+def _next_command(cmd: Any, parent: int) -> int | None:
+    """The next round's update count from the parent (None: stop; also when the parent is gone)."""
+    while True:
+        try:
+            return cmd.get(timeout=2.0)
+        except queue.Empty:
+            if os.getppid() != parent:
+                return None
+
+
 def _rank_main(cfg: LearnersBenchConfig, rank: int, world: int, init_method: str, cmd: Any, out: Any) -> None:
     """One learner rank: set up, one warm-up update, then a timed round of ``n`` updates for each
     ``n`` read from ``cmd`` (None: report the parameter checksum and stop). Reports go to ``out``."""
     tag = {"world": world, "rank": rank}
+    parent = os.getppid()
     try:
         import torch
 
@@ -183,7 +204,7 @@ def _rank_main(cfg: LearnersBenchConfig, rank: int, world: int, init_method: str
             batch = _batch(cfg, policy, seed=1000 + rank)  # each rank learns on its own data
             learner.update(batch)  # warm-up
             out.put({**tag, "ready": True})
-            while (n := cmd.get()) is not None:
+            while (n := _next_command(cmd, parent)) is not None:
                 group.sum([0.0])  # barrier: the round's updates start together
                 group.take_comm()
                 group.sum_s = 0.0
@@ -194,8 +215,10 @@ def _rank_main(cfg: LearnersBenchConfig, rank: int, world: int, init_method: str
                     busy, nbytes, ops = group.take_comm()
                     comm_s.append(busy)
                     comm_bytes, comm_ops = comm_bytes + nbytes, comm_ops + ops
-                out.put({**tag, "round": {"wall_s": time.perf_counter() - t0, "update_s": update_s, "comm_s": comm_s,
-                                          "scalar_sum_s": group.sum_s, "grad_bytes": comm_bytes, "allreduces": comm_ops}})
+                wall_s = time.perf_counter() - t0
+                out.put({**tag, "round": {"wall_s": wall_s, "update_s": update_s, "comm_s": comm_s,
+                                          "scalar_sum_s": group.sum_s, "grad_bytes": comm_bytes,
+                                          "allreduces": comm_ops}})
             out.put({**tag, "final": {"checksum": checksum(flatten(policy, ParamLayout.from_state_dict(policy))),
                                       "parameters": sum(p.numel() for p in policy.parameters()),
                                       "pid": os.getpid()}})
@@ -217,6 +240,7 @@ class _Ranks:
         from .ports import free_port_block
 
         ctx = mp.get_context("spawn")
+        self.wait_s = cfg.report_timeout_s
         self.out = ctx.Queue()
         self.cmd: dict[tuple[int, int], Any] = {}
         self.procs: dict[tuple[int, int], Any] = {}
@@ -224,32 +248,30 @@ class _Ranks:
             init_method = f"tcp://127.0.0.1:{free_port_block(1)}"
             for rank in range(world):
                 q = self.cmd[world, rank] = ctx.Queue()
-                self.procs[world, rank] = ctx.Process(target=_rank_main, args=(cfg, rank, world, init_method, q, self.out),
-                                                      daemon=True)
+                args = (cfg, rank, world, init_method, q, self.out)
+                self.procs[world, rank] = ctx.Process(target=_rank_main, args=args, daemon=True)
         for p in self.procs.values():
             p.start()
-        self.timeout_s = cfg.timeout_s
 
     def send(self, world: int, n: int | None) -> None:
-        for (w, rank), q in self.cmd.items():
+        """Tell every rank of ``world``: run ``n`` timed updates (None: finish)."""
+        for (w, _rank), q in self.cmd.items():
             if w == world:
                 q.put(n)
 
     def collect(self, key: str, worlds: list[int]) -> dict[tuple[int, int], Any]:
         """The ``key`` report of every rank of ``worlds``, or RuntimeError (a rank failed or hung)."""
-        import queue
-
         want = {k for k in self.procs if k[0] in worlds}
         got: dict[tuple[int, int], Any] = {}
-        deadline = time.monotonic() + self.timeout_s
+        deadline = time.monotonic() + self.wait_s
         while set(got) != want:
             try:
                 msg = self.out.get(timeout=1.0)
             except queue.Empty:
                 dead = {k: p.exitcode for k, p in self.procs.items() if k in want - set(got) and not p.is_alive()}
                 if dead or time.monotonic() > deadline:
-                    raise RuntimeError(f"ranks {sorted(want - set(got))} sent no {key!r} report "
-                                       f"(exited: {dead or 'none'}; waited up to {self.timeout_s:.0f} s)")
+                    raise RuntimeError(f"ranks (world, rank) {sorted(want - set(got))} sent no {key!r} report "
+                                       f"(exited: {dead or 'none'}; waited up to {self.wait_s:.0f} s)")
                 continue
             if "error" in msg:
                 raise RuntimeError(f"rank {msg['rank']} of {msg['world']} failed:\n{msg['error']}")
@@ -257,6 +279,7 @@ class _Ranks:
         return got
 
     def close(self) -> None:
+        """Join every rank (they have been told to finish, or are stopped now)."""
         for p in self.procs.values():
             p.join(10)
         for p in self.procs.values():
@@ -265,29 +288,32 @@ class _Ranks:
                 p.join(10)
 
 
-def _summary_rate(cfg: LearnersBenchConfig, world: int, rnd: dict[int, Any]) -> float:
+def _rate(cfg: LearnersBenchConfig, world: int, rnd: dict[int, Any]) -> float:
+    """Samples/s of one round (``{rank: report}``)."""
     return world * cfg.batch * len(rnd[0]["update_s"]) / max(r["wall_s"] for r in rnd.values())
 
 
-def _summary(cfg: LearnersBenchConfig, world: int, rounds: list[dict[int, Any]], final: dict[int, Any]) -> dict[str, Any]:
+def _summary(cfg: LearnersBenchConfig, world: int, rounds: list[dict[int, Any]],
+             final: dict[int, Any]) -> dict[str, Any]:
     """One rank count's figures from its rounds (``{rank: report}`` each) and final reports."""
-    walls = [max(r["wall_s"] for r in rnd.values()) for rnd in rounds]
+    wall = sum(max(r["wall_s"] for r in rnd.values()) for rnd in rounds)
     per_rank = {rank: {k: [x for rnd in rounds for x in rnd[rank][k]] for k in ("update_s", "comm_s")}
                 for rank in range(world)}
     update = sum(sum(r["update_s"]) for r in per_rank.values())
     comm = sum(sum(r["comm_s"]) for r in per_rank.values())
-    n = world * cfg.updates  # updates run, all ranks
+    n = world * cfg.updates  # updates run, all ranks together
+    total = lambda key: sum(r[key] for rnd in rounds for r in rnd.values())  # noqa: E731
     return {
         "ranks": world,
-        "wall_s": sum(walls),
-        "samples_per_s": world * cfg.batch * cfg.updates / sum(walls),
-        "round_samples_per_s": [world * cfg.batch * len(rnd[0]["update_s"]) / w for rnd, w in zip(rounds, walls)],
+        "wall_s": wall,
+        "samples_per_s": world * cfg.batch * cfg.updates / wall,
+        "round_samples_per_s": [_rate(cfg, world, rnd) for rnd in rounds],
         "update_s_median": statistics.median(s for r in per_rank.values() for s in r["update_s"]),
         "allreduce_s_per_update": comm / n,
         "comm_share": comm / update,
-        "scalar_sum_s_per_update": sum(r["scalar_sum_s"] for rnd in rounds for r in rnd.values()) / n,
-        "grad_bytes_per_update": sum(r["grad_bytes"] for rnd in rounds for r in rnd.values()) / n,
-        "allreduces_per_update": sum(r["allreduces"] for rnd in rounds for r in rnd.values()) / n,
+        "scalar_sum_s_per_update": total("scalar_sum_s") / n,
+        "grad_bytes_per_update": total("grad_bytes") / n,
+        "allreduces_per_update": total("allreduces") / n,
         "params_identical": len({f["checksum"] for f in final.values()}) == 1,
         "per_rank": [{"rank": rank, **per_rank[rank], **final[rank]} for rank in range(world)],
     }
@@ -311,8 +337,8 @@ def run_bench(cfg: LearnersBenchConfig | None = None, *, quick: bool = False,
             for world in (cfg.ranks if i % 2 == 0 else cfg.ranks[::-1]):  # ABBA: both see the same background
                 ranks.send(world, n)
                 rounds[world].append({r: rep for (_w, r), rep in ranks.collect("round", [world]).items()})
-            progress(f"round {i + 1}/{len(sizes)}: " + ", ".join(
-                f"{w} rank(s) {_summary_rate(cfg, w, rounds[w][-1]):.1f} samples/s" for w in cfg.ranks))
+            progress(f"round {i + 1}/{len(sizes)}: "
+                     + ", ".join(f"{w} rank(s) {_rate(cfg, w, rounds[w][-1]):.1f} samples/s" for w in cfg.ranks))
         for world in cfg.ranks:
             ranks.send(world, None)
         final = ranks.collect("final", list(cfg.ranks))
@@ -330,19 +356,14 @@ def run_bench(cfg: LearnersBenchConfig | None = None, *, quick: bool = False,
         if r is not base:
             speedup = r["samples_per_s"] / base["samples_per_s"]
             ratios[f"speedup_{world}_over_{cfg.ranks[0]}"] = speedup
-            ratios[f"scaling_efficiency_{world}"] = speedup / (int(world) / cfg.ranks[0])
-    multi = [r for r in runs.values() if r["ranks"] > 1]
-    parameters = base["per_rank"][0]["parameters"]
+            ratios[f"scaling_efficiency_{world}"] = speedup / (r["ranks"] / base["ranks"])
     return {
         "config": {**asdict(cfg), "ranks": list(cfg.ranks)},
         "quick": quick,
-        "workload": {
-            "policy": "tiny-vla", "size": cfg.size, "parameters": parameters,
-            "why": ("tiny-vla as topologies/local-vla.yaml trains it: on this CPU its PPO update is slower than "
-                    "its rollouts, so the learner is the stage a second rank should speed up"),
-        },
+        "workload": {"policy": "tiny-vla", "size": cfg.size, "parameters": base["per_rank"][0]["parameters"],
+                     "why": WHY if not quick else "quick: the tiny preset, checks the machinery only"},
         "method": {
-            "samples_per_s": "samples learned by all ranks / slowest rank's wall time of the timed updates "
+            "samples_per_s": "samples learned by all ranks / the slowest rank's wall time of the timed updates "
                              "(each sample is used update_epochs times)",
             "allreduce": COMM_METHOD,
             "comm_share": "sum of all-reduce seconds / sum of the learner's update_s, over ranks and updates",
@@ -350,7 +371,7 @@ def run_bench(cfg: LearnersBenchConfig | None = None, *, quick: bool = False,
         },
         "figures": figures,
         "ratios": ratios,
-        "params_identical": all(r["params_identical"] for r in multi) if multi else True,
+        "params_identical": all(r["params_identical"] for r in runs.values()),
         "runs": runs,
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
                     "load_avg_start": load_start, "load_avg_end": os.getloadavg()},

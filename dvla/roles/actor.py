@@ -156,7 +156,11 @@ class Actor:
                     log.warning("chunk %d from %s rejected: %s", chunk.seq, chunk.rollout, err)
                     continue
                 self.receipts.hold(slot, src)
-            self.filled.put(slot, ctx.stop, stats=ctx.stats)
+            if not self.filled.put(slot, ctx.stop, stats=ctx.stats):  # stopping with the batch lane full
+                self.fabric.accounting.dropped(DATA, "shutdown", chunk.rollout)
+                self.receipts.release(slot, "dropped.shutdown")
+                self.slots.release(slot)
+                break
             ctx.count()
         # Shutdown: chunks still arriving or queued are counted, never silently lost. Rollouts
         # are stopped first, so a short quiet period catches their last chunks.
