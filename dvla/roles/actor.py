@@ -43,6 +43,10 @@ log = logging.getLogger("dvla.actor")
 
 
 class Actor:
+    #: set by the runtime when the role stopped on an error: its counter file is then not marked
+    #: clean, so chunks in flight to it are accounted as lost with it, like a kill's
+    failed = False
+
     def __init__(self, cfg: RoleConfig, fabric: Fabric) -> None:
         self.cfg = cfg
         self.fabric = fabric
@@ -310,7 +314,7 @@ class Actor:
         if self._ledger is not None:
             self._ledger.close()
         self.group.close()
-        self.receipts.close()
+        self.receipts.close(clean=not self.failed)
 
 
 @dataclass
@@ -400,8 +404,8 @@ class Receipts:
             self.file.write({"kind": "actor", "sources": sources, "fabric": fabric, "inbox_cap": INBOX,
                              "slots": self.n_slots, "clean": clean})
 
-    def close(self) -> None:
-        self._write(clean=True)
+    def close(self, clean: bool = True) -> None:
+        self._write(clean=clean)
         self.file.close()
 
 

@@ -211,7 +211,9 @@ def main(role_factory: Any, argv: list[str] | None = None) -> int:
 
         signal.signal(signal.SIGTERM, _on_signal)
         signal.signal(signal.SIGINT, _on_signal)
-        return int(host.run())
+        code = host.run()
+        role.failed = code != ExitStatus.OK  # what its close() may record (e.g. counter files)
+        return int(code)
     except Exception:
         log.exception("%s failed", cfg.name)
         return ExitStatus.ERROR
