@@ -221,6 +221,13 @@ class ReplicationConfig:
     snapshot_every: int = 10
     #: max children per tree node
     fanout: int = 8
+    #: most relays one tree node forwards each version to: the root actor sends to its own rack's
+    #: head replicator and to this many other racks' heads, a rack head to this many other racks'
+    #: heads, a replicator to this many of its rack's other replicators. Every such copy leaves the
+    #: sender's NIC (and, between racks, its rack uplink), so 1 chains the relays and each link
+    #: carries one copy per version, at the price of one chunk of pipeline latency per hop
+    #: (docs/replication.md, "Tree shape")
+    relay_fanout: int = 1
     #: bytes per weight chunk
     chunk_bytes: int = 1 << 20
 
@@ -274,6 +281,38 @@ class LinkConfig:
     node_gbit: float = 10.0
     #: rack uplink rate, Gbit/s
     rack_uplink_gbit: float = 10.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class SimulateConfig:
+    """Inputs of `dvla plan --simulate` (docs/scale.md): the cluster the topology stands for and
+    the rates measured on it. Every key has a `dvla plan` flag that overrides it."""
+
+    #: nodes to model: the topology's racks are repeated (names numbered) up to this many nodes
+    #: (None: the topology as written)
+    nodes: int | None = None
+    #: racks to spread `nodes` over (None: as many as the repeated racks give)
+    racks: int | None = None
+    #: model parameters (None: 1.1 MB worth, about the default MLP policy)
+    params: float | None = None
+    #: bytes per parameter of the weights as published: "fp32" or "bf16"
+    dtype: Literal["fp32", "bf16"] = "fp32"
+    #: share of the parameters that are trained and replicated (1.0; LoRA adapters: ~0.01)
+    trainable_fraction: float = 1.0
+    #: env steps per second one rollout's simulators make (this machine, PushCube-v1 state: ~340)
+    env_steps_per_s: float = 340.0
+    #: data-plane bytes per env step (observation, action, reward, log-prob, framing)
+    step_bytes: float = 200.0
+    #: env steps per second one learner rank consumes, communication excluded (this machine,
+    #: the default MLP: ~2,900)
+    learner_steps_per_s: float = 2900.0
+    #: memory per node, GiB (None: not checked); a rollout holds two copies of the trained weights
+    node_memory_gib: float | None = None
+    #: one-way latency of one link, seconds
+    hop_latency_s: float = 50e-6
+    #: rate at which one replicator or rollout verifies and forwards a version, Gbit/s (None: it
+    #: keeps up with its links)
+    process_gbit: float | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -394,6 +433,8 @@ class Topology:
     tls: TlsConfig | None = None
     #: the learner group formed by the topology's actors
     learners: LearnerGroupConfig = field(default_factory=LearnerGroupConfig)
+    #: what `dvla plan --simulate` models (cluster size, model size, measured rates)
+    simulate: SimulateConfig = field(default_factory=SimulateConfig)
     #: racks of nodes
     racks: tuple[RackConfig, ...] = ()
 

@@ -34,6 +34,8 @@ class _Slot:
     rollouts: list[str] = dataclasses.field(default_factory=list)
     ctrl_port: int | None = None
     data_port: int | None = None
+    #: children assigned so far while the tree is built
+    load: int = 0
 
 
 def node_address(topo: Topology, rack_index: int, node_index: int, node: NodeConfig) -> str:
@@ -64,13 +66,10 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
     root = actors[0]
     warnings: list[str] = []
 
-    # Weight tree: root actor -> rack replicator -> (node replicators) -> leaves.
+    # Weight tree: root actor -> rack heads (a tree of racks) -> the rack's replicators -> leaves.
+    _relay_tree(topo, slots, root)
     for rack in topo.racks:
         reps = [s for s in slots if s.kind == "replicator" and s.rack is rack]
-        if reps:
-            reps[0].parent = root.name
-            for r in reps[1:]:
-                r.parent = reps[0].name
         leaves = [s for s in slots if s.kind in ("rollout", "evaluator") and s.rack is rack]
         for leaf in leaves:
             if not reps:
@@ -78,7 +77,8 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
                 continue
             same_node = [r for r in reps if r.node is leaf.node]
             candidates = same_node + [r for r in reps if r not in same_node]
-            parent = min(candidates, key=lambda r: (len(r.children) >= topo.replication.fanout, r not in same_node, len(r.children)))
+            parent = min(candidates, key=lambda r: (r.load >= topo.replication.fanout, r not in same_node, r.load))
+            parent.load += 1
             leaf.parent = parent.name
     for s in slots:
         if s.parent is not None:
@@ -153,6 +153,31 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
 
     entry = [ep(root, "ctrl")] + [ep(s, "ctrl") for s in slots if s.kind == "replicator"]
     return Plan(processes=tuple(processes), ctrl_entry=tuple(entry), addresses=addresses, warnings=tuple(warnings))
+
+
+def _relay_tree(topo: Topology, slots: list[_Slot], root: _Slot) -> None:
+    """Parents of the replicators. Inside a rack the replicators form a ``relay_fanout``-ary tree
+    under the rack's head (its first replicator); racks with replicators form a ``relay_fanout``-ary
+    tree too (the root actor's rack first), each rack's child racks fed by the rack's last
+    replicator. The root actor feeds its own rack's head only (or, without one, the first racks'
+    heads). With the default 1 the relays form one chain, so every NIC and rack uplink carries a
+    version once towards other relays (docs/replication.md, "Tree shape")."""
+    k = topo.replication.relay_fanout
+    reps_of = {rack.name: [s for s in slots if s.kind == "replicator" and s.rack is rack] for rack in topo.racks}
+    # position 0: the root actor's own rack (fed by the root actor itself; None: it has no
+    # replicator, and the root feeds position 0's children directly); racks 1.. the k-ary tree
+    others = [reps_of[r.name] for r in topo.racks if reps_of[r.name] and r is not root.rack]
+    racks: list[list[_Slot] | None] = [reps_of[root.rack.name] or None, *others]
+    for i, reps in enumerate(racks):
+        if reps is None:
+            continue
+        up = None if i == 0 else racks[(i - 1) // k]
+        reps[0].parent = up[-1].name if up is not None else root.name
+        for j, r in enumerate(reps[1:], start=1):
+            r.parent = reps[(j - 1) // k].name
+    for s in slots:
+        if s.kind == "replicator" and s.parent is not None:
+            next(x for x in slots if x.name == s.parent).load += 1
 
 
 def route_rollouts(topo: Topology, slots: list[_Slot]) -> dict[str, str]:

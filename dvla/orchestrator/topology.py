@@ -34,6 +34,7 @@ from dvla.config import (
     BudgetConfig,
     EvalConfig,
     LinkConfig,
+    SimulateConfig,
     NodeConfig,
     PPOConfig,
     RackConfig,
@@ -545,9 +546,15 @@ _RANGES: dict[type, dict[str, _Range]] = {
         "topk_fraction": _FRACTION,
         "snapshot_every": _AT_LEAST_1,
         "fanout": _AT_LEAST_1,
+        "relay_fanout": _AT_LEAST_1,
         "chunk_bytes": _Range(low=MIN_CHUNK_BYTES, high=MAX_CHUNK_BYTES, note="(4 KiB to 64 MiB)"),
     },
     LinkConfig: {"node_gbit": _POSITIVE, "rack_uplink_gbit": _POSITIVE},
+    SimulateConfig: {
+        "nodes": _AT_LEAST_1, "racks": _AT_LEAST_1, "params": _AT_LEAST_1, "trainable_fraction": _FRACTION,
+        "env_steps_per_s": _POSITIVE, "step_bytes": _POSITIVE, "learner_steps_per_s": _POSITIVE,
+        "node_memory_gib": _POSITIVE, "hop_latency_s": _AT_LEAST_0, "process_gbit": _POSITIVE,
+    },
     RolePlacement: {"count": _AT_LEAST_1},
     SshConfig: {"port": _Range(low=1, high=65535), "connect_timeout_s": _AT_LEAST_1},
 }

@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 TWO_RACKS = """
 run: t2
-replication: {fanout: 3}
+replication: {fanout: 4}
 racks:
   - name: ra
     nodes:
@@ -53,7 +53,8 @@ def test_tree_follows_racks_and_fanout() -> None:
     plan = make_plan(parse_topology(TWO_RACKS, "two.yaml"), "/tmp/run")
     cfg = {p.config.name: p.config for p in plan.processes}
     assert cfg["replicator-a0-0"].parent == "actor-a0-0"
-    assert cfg["replicator-b0-0"].parent == "actor-a0-0"
+    # the next rack hangs off the root rack's (last) replicator: the actor's NIC carries one copy
+    assert cfg["replicator-b0-0"].parent == "replicator-a0-0"
     for leaf in ("rollout-a0-0", "rollout-a1-0", "rollout-a1-1"):
         assert cfg[leaf].parent == "replicator-a0-0"
     for leaf in ("rollout-b0-0", "rollout-b1-0", "evaluator-b1-0"):
@@ -64,12 +65,45 @@ def test_tree_follows_racks_and_fanout() -> None:
     for c in cfg.values():
         for child in c.children:
             assert cfg[child].parent == c.name
-    # the actor has 3 children (2 replicators + rack c's rollout): at the fanout cap, no warning
+    # replicator-a0-0 has 4 children (3 rollouts + rack b's head): at the fanout cap, no warning
     assert plan.warnings == ()
 
 
+def _racks(n_racks: int, reps_per_rack: int, relay_fanout: int) -> str:
+    racks = []
+    for r in range(n_racks):
+        nodes = [f"      - {{name: n{r}x{j}, roles: [{{role: replicator}}, {{role: rollout}}]}}" for j in range(reps_per_rack)]
+        if r == 0:
+            nodes.insert(0, "      - {name: root, roles: [{role: actor}]}")
+        racks.append(f"  - name: r{r}\n    nodes:\n" + "\n".join(nodes))
+    return f"run: chain\nreplication: {{relay_fanout: {relay_fanout}}}\nracks:\n" + "\n".join(racks) + "\n"
+
+
+def test_relay_fanout_one_chains_replicators_within_and_across_racks() -> None:
+    plan = make_plan(parse_topology(_racks(3, 3, 1), "chain.yaml"), "/tmp/run")
+    parent = {p.config.name: p.config.parent for p in plan.processes}
+    chain = ["actor-root-0"] + [f"replicator-n{r}x{j}-0" for r in range(3) for j in range(3)]
+    for up, down in zip(chain, chain[1:]):
+        assert parent[down] == up, (down, parent[down], up)
+    # every relay forwards to at most one relay on another node: one copy per NIC and uplink
+    relay_children = {name: [c for c, p in parent.items() if p == name and c.startswith("replicator")] for name in chain}
+    assert max(len(v) for v in relay_children.values()) == 1
+    assert all(parent[f"rollout-n{r}x{j}-0"] == f"replicator-n{r}x{j}-0" for r in range(3) for j in range(3))
+
+
+def test_relay_fanout_two_builds_binary_trees() -> None:
+    plan = make_plan(parse_topology(_racks(5, 3, 2), "tree.yaml"), "/tmp/run")
+    parent = {p.config.name: p.config.parent for p in plan.processes}
+    # inside a rack: head -> two replicators
+    assert parent["replicator-n0x1-0"] == parent["replicator-n0x2-0"] == "replicator-n0x0-0"
+    # racks 1 and 2 hang off rack 0's last replicator, racks 3 and 4 off rack 1's
+    assert parent["replicator-n1x0-0"] == parent["replicator-n2x0-0"] == "replicator-n0x2-0"
+    assert parent["replicator-n3x0-0"] == parent["replicator-n4x0-0"] == "replicator-n1x2-0"
+    assert parent["replicator-n0x0-0"] == "actor-root-0"
+
+
 def test_fanout_overflow_is_warned() -> None:
-    text = TWO_RACKS.replace("fanout: 3", "fanout: 2")
+    text = TWO_RACKS.replace("fanout: 4", "fanout: 2")
     plan = make_plan(parse_topology(text, "two.yaml"), "/tmp/run")
     assert any("above fanout 2" in w for w in plan.warnings)
 
@@ -107,30 +141,6 @@ def test_ports_are_unique() -> None:
     plan = make_plan(parse_topology(TWO_RACKS, "two.yaml"), "/tmp/run", base_port=30000)
     eps = [e for p in plan.processes for e in p.config.ctrl.listen + p.config.data.listen]
     assert len(eps) == len(set(eps)) == 2 + 2  # actor ctrl+data, two replicator ctrl
-
-
-def test_delivery_estimate_follows_the_busiest_link() -> None:
-    from dvla.orchestrator.estimate import delivery_estimate
-
-    topo = load_topology(ROOT / "topologies" / "8node.yaml")
-    topo = dataclasses.replace(topo, links=LinkConfig(node_gbit=1.0, rack_uplink_gbit=0.2))
-    plan = make_plan(topo, "runs/x")
-    size = 64 << 20
-    est = delivery_estimate(topo, plan, size)
-    cross_s = size * 8 / 0.2e9
-    # Tree: one copy crosses the rack uplink; the pipeline adds one 1 MiB chunk per extra level.
-    assert est["tree_bottleneck"] in ("r0 uplink out", "r1 uplink in")
-    assert est["tree_s"] == pytest.approx(cross_s + (1 << 20) * 8 / 0.2e9)
-    assert est["tree_root_copies"] == 2  # one per rack replicator
-    # Star: the four rollouts of rack r1 each take their own copy across the uplink.
-    assert est["star_s"] == pytest.approx(4 * cross_s)
-    assert est["star_root_copies"] == 9  # 8 rollouts + the evaluator
-    assert est["bound_s"] == pytest.approx(cross_s)
-    # Faster uplinks move the bottleneck to a replicator's NIC (4 remote copies from r0n1).
-    fast = dataclasses.replace(topo, links=LinkConfig(node_gbit=1.0, rack_uplink_gbit=10.0))
-    est = delivery_estimate(fast, make_plan(fast, "runs/x"), size)
-    assert est["tree_bottleneck"] == "r0n1 NIC out"
-    assert est["tree_s"] == pytest.approx(4 * size * 8 / 1e9 + (1 << 20) * 8 / 1e9)
 
 
 def _routing(text: str) -> dict[str, list[str]]:

@@ -8,10 +8,10 @@ from typing import Annotated, Any, Optional
 
 import typer
 
-from ..estimate import delivery_estimate
+from ..simulate import simulate_broadcast
 from ..plan import make_plan
 from ..topology import topology_to_dict
-from .common import Format, topology_or_exit
+from .common import Format, fail, topology_or_exit
 
 
 #: weights size assumed without --param-mb: about the default MLP policy's (1.1 MB)
@@ -22,9 +22,27 @@ def plan(
     topology: Annotated[Path, typer.Argument(help="topology YAML file")],
     format: Annotated[Format, typer.Option("--format", "-f", help="table or json")] = Format.table,
     param_mb: Annotated[Optional[float], typer.Option(help="weights size (MB) for the broadcast estimate")] = None,
+    simulate: Annotated[bool, typer.Option("--simulate", help="model the whole pipeline at scale (docs/scale.md)")] = False,
+    nodes: Annotated[Optional[int], typer.Option(help="--simulate: nodes (the topology's racks repeated)")] = None,
+    racks: Annotated[Optional[int], typer.Option(help="--simulate: racks the nodes are spread over")] = None,
+    params: Annotated[Optional[str], typer.Option(help="--simulate: model parameters, e.g. 7e9, 500M, 7B, 1T")] = None,
+    dtype: Annotated[Optional[str], typer.Option(help="--simulate: fp32 or bf16 weights")] = None,
+    encoding: Annotated[Optional[str], typer.Option(help="--simulate: full, delta-bf16 or delta-topk")] = None,
+    trainable_fraction: Annotated[Optional[float], typer.Option(help="--simulate: share of parameters trained (LoRA: ~0.01)")] = None,
+    env_rate: Annotated[Optional[float], typer.Option(help="--simulate: env steps/s of one rollout's simulators")] = None,
+    step_bytes: Annotated[Optional[float], typer.Option(help="--simulate: data-plane bytes per env step")] = None,
+    learner_rate: Annotated[Optional[float], typer.Option(help="--simulate: env steps/s one learner rank consumes")] = None,
+    node_memory_gib: Annotated[Optional[float], typer.Option(help="--simulate: memory per node, GiB")] = None,
+    hop_latency_s: Annotated[Optional[float], typer.Option(help="--simulate: one-way latency per link, s")] = None,
+    process_gbit: Annotated[Optional[float], typer.Option(help="--simulate: Gbit/s one relay verifies and forwards")] = None,
+    sizes: Annotated[str, typer.Option(help="--simulate: node counts of the speedup table ('' for none)")] = "8,16,32,64,128,256,512,1024",
+    plot: Annotated[Optional[Path], typer.Option(help="--simulate: speedup plot (PNG) path")] = None,
 ) -> None:
     """Validate TOPOLOGY and show where every process runs and how weights travel."""
     topo = topology_or_exit(topology)
+    if simulate:
+        _simulate(topo, locals(), format)
+        return
     p = make_plan(topo, run_dir=f"runs/{topo.run}")
     procs = [
         {
@@ -40,7 +58,10 @@ def plan(
     ]
     group = _group(p)
     mb = param_mb if param_mb is not None else DEFAULT_PARAM_MB
-    estimate = {"param_mb": mb, "param_mb_assumed": param_mb is None, **delivery_estimate(topo, p, int(mb * 1e6))}
+    bc = simulate_broadcast(topo, p, int(mb * 1e6))
+    estimate = {"param_mb": mb, "param_mb_assumed": param_mb is None, "tree_s": bc.tree_s, "star_s": bc.star_s,
+                "bound_s": bc.bound_s, "bound_link": bc.bound_link, "tree_bottleneck": bc.tree_bottleneck,
+                "star_bottleneck": bc.star_bottleneck, "depth": bc.depth}
     if format == Format.json:
         doc = {"topology": topology_to_dict(topo), "processes": procs, "warnings": list(p.warnings), "broadcast": estimate,
                "learner_group": group}
@@ -59,10 +80,34 @@ def plan(
         f"one version of {estimate['param_mb']:.1f} MB{' (assumed: --param-mb sets it)' if estimate['param_mb_assumed'] else ''}"
         f" as a full copy: ~{estimate['tree_s']:.3f} s through the tree (busiest link: {estimate['tree_bottleneck'] or 'none'}),"
         f" ~{estimate['star_s']:.3f} s as a star (busiest link: {estimate['star_bottleneck'] or 'none'});"
-        f" link bound {estimate['bound_s']:.3f} s"
+        f" S/B bound {estimate['bound_s']:.3f} s ({estimate['bound_link']}); simulated, see `--simulate`"
     )
     for w in p.warnings:
         typer.echo(f"warning: {w}", err=True)
+
+
+def _simulate(topo: Any, opts: dict[str, Any], format: Format) -> None:
+    from .simulate import parse_params, resolve, run_simulation
+
+    if opts["dtype"] not in (None, "fp32", "bf16"):
+        raise fail(f"--dtype: expected fp32 or bf16, got {opts['dtype']!r}")
+    if opts["encoding"] not in (None, "full", "delta-bf16", "delta-topk"):
+        raise fail(f"--encoding: expected full, delta-bf16 or delta-topk, got {opts['encoding']!r}")
+    try:
+        sizes = tuple(int(x) for x in opts["sizes"].split(",") if x.strip())
+    except ValueError:
+        raise fail(f"--sizes: expected comma-separated node counts, got {opts['sizes']!r}")
+    if any(n < 1 for n in sizes):
+        raise fail(f"--sizes: node counts must be >= 1, got {opts['sizes']!r}")
+    flags = {"nodes": opts["nodes"], "racks": opts["racks"], "dtype": opts["dtype"],
+             "params": parse_params(opts["params"]) if opts["params"] is not None else None,
+             "trainable_fraction": opts["trainable_fraction"], "env_steps_per_s": opts["env_rate"],
+             "step_bytes": opts["step_bytes"], "learner_steps_per_s": opts["learner_rate"],
+             "node_memory_gib": opts["node_memory_gib"], "hop_latency_s": opts["hop_latency_s"],
+             "process_gbit": opts["process_gbit"]}
+    plot = opts["plot"] if opts["plot"] is not None else Path("runs") / "simulate" / f"{topo.run}-speedup.png"
+    run_simulation(topo, resolve(topo, flags), opts["encoding"], plot if sizes else None, sizes, typer.echo,
+                   format == Format.json)
 
 
 def _group(p: Any) -> dict[str, Any]:
