@@ -85,31 +85,41 @@ def version_bytes(cfg: SimulateConfig, topo: Topology) -> tuple[int, int]:
     return max(1, full), max(1, delta)
 
 
+#: the `dvla plan` flag of each `simulate:` key (named in errors beside the key)
+FLAG = {"nodes": "--nodes", "racks": "--racks", "params": "--params", "env_steps_per_s": "--env-rate",
+        "step_bytes": "--step-bytes", "learner_steps_per_s": "--learner-rate", "trainable_fraction": "--trainable-fraction",
+        "hop_latency_s": "--hop-latency-s", "node_memory_gib": "--node-memory-gib", "process_gbit": "--process-gbit"}
+
+
+def _bad(key: str, text: str) -> ScaleError:
+    return ScaleError(f"simulate.{key} ({FLAG[key]}): {text}")
+
+
 def check_inputs(cfg: SimulateConfig, topo: Topology) -> None:
-    """Raises ScaleError naming the key when the model cannot describe the cluster."""
+    """Raises ScaleError naming the key and its flag when the model cannot describe the cluster."""
     for key in ("nodes", "racks"):
         v = getattr(cfg, key)
         if v is not None and v < 1:
-            raise ScaleError(f"simulate.{key} (--{key}): must be >= 1, got {v}")
-    for key in ("env_steps_per_s", "step_bytes", "learner_steps_per_s", "trainable_fraction"):
+            raise _bad(key, f"must be >= 1, got {v}")
+    for key in ("env_steps_per_s", "step_bytes", "learner_steps_per_s", "trainable_fraction", "node_memory_gib",
+                "process_gbit", "params"):
         v = getattr(cfg, key)
-        if not (math.isfinite(v) and v > 0):
-            raise ScaleError(f"simulate.{key} (--{key.replace('_', '-')}): must be a positive number, got {v}")
-    if cfg.params is not None and not (math.isfinite(cfg.params) and cfg.params >= 1):
-        raise ScaleError(f"simulate.params (--params): must be >= 1, got {cfg.params}")
-    if cfg.hop_latency_s < 0 or not math.isfinite(cfg.hop_latency_s):
-        raise ScaleError(f"simulate.hop_latency_s (--hop-latency-s): must be >= 0, got {cfg.hop_latency_s}")
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise _bad(key, f"must be a positive number, got {v}")
+    if cfg.trainable_fraction > 1:
+        raise _bad("trainable_fraction", f"must be at most 1, got {cfg.trainable_fraction}")
+    if not (math.isfinite(cfg.hop_latency_s) and cfg.hop_latency_s >= 0):
+        raise _bad("hop_latency_s", f"must be >= 0, got {cfg.hop_latency_s}")
     if cfg.nodes is not None and cfg.racks is not None and cfg.racks > cfg.nodes:
-        raise ScaleError(f"simulate.racks (--racks): {cfg.racks} racks cannot hold {cfg.nodes} nodes")
+        raise _bad("racks", f"{cfg.racks} racks cannot hold {cfg.nodes} nodes")
     if cfg.node_memory_gib is not None:
         full, _ = version_bytes(cfg, topo)
         params = cfg.params if cfg.params is not None else DEFAULT_PARAMS
         # a rollout holds the whole model plus a staging copy of the trained weights
         need = params * BYTES_PER_PARAM[cfg.dtype] + full
         if need > cfg.node_memory_gib * (1 << 30):
-            raise ScaleError(
-                f"simulate.params (--params): a {params:.3g}-parameter {cfg.dtype} model needs {need / (1 << 30):,.0f} GiB "
-                f"per rollout (model + staging copy), more than simulate.node_memory_gib = {cfg.node_memory_gib:g} GiB")
+            raise _bad("params", f"a {params:.3g}-parameter {cfg.dtype} model needs {need / (1 << 30):,.0f} GiB per rollout "
+                       f"(model + staging copy), more than simulate.node_memory_gib = {cfg.node_memory_gib:g} GiB")
 
 
 def tile(topo: Topology, nodes: int | None, racks: int | None) -> Topology:

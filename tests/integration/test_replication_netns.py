@@ -98,7 +98,8 @@ def test_tree_converges_repairs_and_heals(tmp_path: Path) -> None:
         for n in rack1:
             assert _held(held[n], 4)["checksum"] == want
             assert held[n]["weights"]["reattach"] >= 1, held[n]["weights"]
-            assert _held(held[n], 4)["parent"] == cluster.source
+            # the next ancestor: the root rack's replicator, which feeds rack r1's head
+            assert _held(held[n], 4)["parent"] == cluster.plan.by_name(n).config.ancestors[1]
         cluster.wait_held(4, timeout_s=30)
 
         # ... restarted (without faults this time), it catches up and its children come back
