@@ -237,6 +237,13 @@ def simulate_pipeline(topo: Topology, cfg: SimulateConfig, *, star: bool = True,
                 yield env.timeout(wait)
                 span = (start, start + wait)
             else:
+                # steps acted on by a policy more than max_policy_lag versions old are dropped,
+                # so the learner can run at most that far ahead of the rollouts' weights
+                old = v - 1 - ppo.max_policy_lag
+                if old >= 1:
+                    yield arrived[old]
+                    for a in feed:
+                        taken[a] = max(taken[a], feed[a] * (arrivals[old] - t_prod))
                 # DDP: the update starts once every rank holds its batch
                 need = max((taken[a] + share) / feed[a] for a in feed if feed[a] > 0)
                 yield env.timeout(max(0.0, t_prod + need - env.now))
