@@ -226,7 +226,7 @@ class ReplicationConfig:
     #: heads, a replicator to this many of its rack's other replicators. Every such copy leaves the
     #: sender's NIC (and, between racks, its rack uplink), so 1 chains the relays and each link
     #: carries one copy per version, at the price of one chunk of pipeline latency per hop
-    #: (docs/replication.md, "Tree shape")
+    #: (docs/scale.md, "The tree at scale")
     relay_fanout: int = 1
     #: bytes per weight chunk
     chunk_bytes: int = 1 << 20
