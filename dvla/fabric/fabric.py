@@ -68,6 +68,8 @@ class Inbox:
         self._plane = plane
         self._block_s = block_s
         self.maxsize = maxsize
+        #: the Zenoh subscriber feeding it (control plane), for Fabric.unsubscribe
+        self.subscription: Any = None
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key, raw, peer = _take(sample, self._acct, self._plane)
@@ -254,8 +256,21 @@ class Fabric:
         inbox = Inbox(maxsize, _decode, self.accounting, CTRL, block_s)
         # Zenoh's default hand-off thread here (unlike the data plane): a full weights inbox
         # must not hold the receive task that also brings commands and status queries.
-        self._declared.append(self.ctrl.declare_subscriber(key, inbox._on_sample))
+        inbox.subscription = self.ctrl.declare_subscriber(key, inbox._on_sample)
+        self._declared.append(inbox.subscription)
         return inbox
+
+    def unsubscribe(self, inbox: Inbox) -> None:
+        """Ends `inbox`'s subscription (call it from a lane, never from a Zenoh callback)."""
+        sub, inbox.subscription = inbox.subscription, None
+        if sub is None:
+            return
+        if sub in self._declared:
+            self._declared.remove(sub)
+        try:
+            sub.undeclare()
+        except Exception:  # the session is closing: nothing left to stop
+            pass
 
     def on_ctrl(self, key: str, expect: type | tuple[type, ...] | None, handler: Callable[[str, Any], None]) -> None:
         """Call `handler(sender, msg)` for each verified message on `key`, from Zenoh's thread.

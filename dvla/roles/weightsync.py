@@ -73,6 +73,7 @@ class WeightSync:
         self.parents = parents
         self.on_version = on_version
         self.on_message = on_message
+        self.inbox_size = inbox_size
         self.decoder = WeightDecoder(layout)
         self.assembler: ChunkAssembler | None = None
         self.manifest: WeightManifest | None = None
@@ -90,16 +91,28 @@ class WeightSync:
         #: how long one snapshot query waits for its reply (a full snapshot of a large model)
         self.fetch_timeout_s = 5.0 + layout.nbytes / 25e6
         self._current: str | None = None
-        self._inboxes: dict[str, Any] = {}
-        for p in parents:
-            # One inbox per possible parent, declared up front: switching parent never
-            # redeclares anything from a Zenoh callback.
-            self._inboxes[p] = fabric.subscribe_ctrl(
-                fabric.keys.weights(p), inbox_size, (WeightManifest, WeightChunk),
-                sign_key=fabric.keys.weights_signed(), with_envelope=True,
-            )
+        # Only the current parent's key is subscribed: every further subscription would bring
+        # each version once more over every link on the way (a chain of relays would carry a
+        # version once per ancestor). The lane switches it (never a Zenoh callback), and a
+        # switch asks for a snapshot, which covers what arrived meanwhile.
+        self._sub_parent: str | None = None
+        self._inbox: Any = None
         fabric.watch_alive(self._on_alive)
         self._select()
+        self._follow()
+
+    def _follow(self) -> None:
+        """Subscribe to the current parent's weights (and drop the previous one's)."""
+        parent = self.parent
+        if parent == self._sub_parent:
+            return
+        if self._inbox is not None:
+            self.fabric.unsubscribe(self._inbox)
+        self._inbox = self.fabric.subscribe_ctrl(
+            self.fabric.keys.weights(parent), self.inbox_size, (WeightManifest, WeightChunk),
+            sign_key=self.fabric.keys.weights_signed(), with_envelope=True,
+        )
+        self._sub_parent = parent
 
     # -- membership ---------------------------------------------------------------------------
     def _on_alive(self, role: str, alive: bool) -> None:
@@ -139,13 +152,9 @@ class WeightSync:
         if self._fetch is not None and not self._fetch.is_alive():
             with ctx.busy():
                 self._finish_fetch()
-        inbox = self._inboxes[self.parent]
+        self._follow()
         with ctx.waiting():
-            got = inbox.get(timeout=timeout)
-        # Messages from the non-current parents are discarded (they would duplicate versions).
-        for p, other in self._inboxes.items():
-            if p != self.parent:
-                other.drain_count()
+            got = self._inbox.get(timeout=timeout)
         if got is None:
             return
         _sender, msg, envelope = got
