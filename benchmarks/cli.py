@@ -140,6 +140,45 @@ def replication(
     _save(doc, json_path, format_table)
 
 
+@app.command("scale")
+def scale(
+    json_path: Annotated[Path, typer.Option("--json", help="write the results (JSON) here")],
+    nodes: Annotated[str, typer.Option(help="comma-separated cluster sizes: topologies/{N}node.yaml each")] = "8,16,32",
+    topologies: Annotated[Optional[list[Path]], typer.Option("--topologies", help="topology YAML (repeatable; replaces --nodes)")] = None,
+    size_mib: Annotated[float, typer.Option(help="size of one version, MiB (full encoding)")] = 64.0,
+    versions: Annotated[int, typer.Option(help="measured versions per cluster (after one warm-up version)")] = 3,
+    calibration_versions: Annotated[int, typer.Option(help="measured versions of the CPU calibration")] = 5,
+    calibration_sinks: Annotated[int, typer.Option(help="rollouts (a node each) under the calibration's replicator")] = 1,
+    calibration_gbit: Annotated[float, typer.Option(help="link rate of the calibration cluster, Gbit/s")] = 10.0,
+) -> None:
+    """The broadcast model (dvla/orchestrator/simulate.py) against the weight tree measured on emulated
+    clusters of 8, 16 and 32 nodes, with CPU costs calibrated on a three-node cluster (needs root)."""
+    from benchmarks.scale import format_table, run_bench
+
+    if topologies:
+        paths = list(topologies)
+    else:
+        try:
+            paths = [Path("topologies") / f"{int(n)}node.yaml" for n in nodes.split(",") if n.strip()]
+        except ValueError:
+            raise fail(f"--nodes: expected comma-separated integers, got {nodes!r}")
+    missing = [str(p) for p in paths if not p.is_file()]
+    if not paths or missing:
+        raise fail(f"no topology to run{': missing ' + ', '.join(missing) if missing else ''}")
+    if size_mib <= 0 or calibration_gbit <= 0 or min(versions, calibration_versions, calibration_sinks) < 1:
+        raise fail("--size-mib and --calibration-gbit must be positive; --versions, --calibration-versions and --calibration-sinks >= 1")
+    t0 = time.monotonic()
+    try:
+        doc = run_bench(paths, size_mib=size_mib, versions=versions, calibration_versions=calibration_versions,
+                        calibration_sinks=calibration_sinks, calibration_gbit=calibration_gbit,
+                        progress=lambda m: typer.echo(f"[bench] {m}", err=True))
+    except (RuntimeError, TimeoutError, OSError, ValueError) as err:
+        raise fail(f"bench scale: {err}", code=1)
+    doc["command"] = "dvla " + " ".join(sys.argv[1:])
+    doc["elapsed_s"] = time.monotonic() - t0
+    _save(doc, json_path, format_table)
+
+
 @app.command("vla")
 def vla(
     json_path: Annotated[Path, typer.Option("--json", help="write the results (JSON) here")],

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from dvla.config import LinkConfig, Topology
-from dvla.orchestrator.estimate import delivery_estimate
+from dvla.orchestrator.simulate import simulate_broadcast
 from benchmarks.ports import free_port_block
 from dvla.orchestrator.topology import dump_topology_yaml, load_topology
 from .repcluster import RepCluster, without_roles
@@ -56,13 +56,19 @@ def slowest_link_gbit(topo: Topology) -> float:
     return min(rates)
 
 
-def measure(cluster: RepCluster, versions: int, timeout_s: float, progress: Callable[[str], None]) -> dict[str, Any]:
-    """Publish `versions` + 1 versions one after the other; per-version delivery times."""
+def measure(cluster: RepCluster, versions: int, timeout_s: float, progress: Callable[[str], None],
+            counters: Callable[[], dict[str, int]] | None = None) -> dict[str, Any]:
+    """Publish `versions` + 1 versions one after the other; per-version delivery times.
+
+    `counters`, when given, reads cumulative byte counters (e.g. every link of the emulated
+    cluster); the result's ``counter_bytes`` is what they moved during the measured versions."""
     per_version = []
     tx0 = None
+    c0: dict[str, int] = {}
     for v in range(1, versions + 2):
         if v == 2:  # the warm-up version is done: count the actor node's bytes from here
             tx0 = cluster.node_tx_bytes(cluster.source)
+            c0 = counters() if counters is not None else {}
         cpu0 = cluster.cpu_by_process()
         cluster.publish(v)
         # Sinks stamp the moment they hold a version themselves (held_ns), so polling slowly does
@@ -109,6 +115,7 @@ def measure(cluster: RepCluster, versions: int, timeout_s: float, progress: Call
         progress(f"v{v}: all {len(times)} rollouts hold it after {max(times.values()):.2f} s"
                  f"{' (warm-up)' if v == 1 else ''}")
     tx1 = cluster.node_tx_bytes(cluster.source)
+    c1 = counters() if counters is not None else {}
     counted = [p["all_held_s"] for p in per_version if not p["warmup"]]
     return {
         "median_s": statistics.median(counted),
@@ -116,6 +123,7 @@ def measure(cluster: RepCluster, versions: int, timeout_s: float, progress: Call
         "max_s": max(counted),
         "versions": per_version,
         "source_node_tx_bytes": None if tx0 is None or tx1 is None else tx1 - tx0,
+        "counter_bytes": {k: c1[k] - c0[k] for k in c1 if k in c0},
         "cluster_cpu_s_median": statistics.median(p["cluster_cpu_s"] for p in per_version if not p["warmup"]),
     }
 
@@ -158,8 +166,8 @@ def run_transfer(
             tree.start()
             netns = tree.keep_netns()  # the star reuses the same namespaces and links
             try:
-                est = delivery_estimate(tree.topo, tree.plan, size_bytes)
-                out["predicted_tree_s"], out["predicted_star_s"] = est["tree_s"], est["star_s"]
+                est = simulate_broadcast(tree.topo, tree.plan, size_bytes)
+                out["predicted_tree_s"], out["predicted_star_s"] = est.tree_s, est.star_s
                 out["fanout"] = base.replication.fanout
                 out["tree_children"] = {n: tree.children_of(n) for n in [tree.source, *tree.relays]}
                 out["tree"] = measure(tree, versions, timeout_s, lambda m: progress("tree " + m))
