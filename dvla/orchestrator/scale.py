@@ -329,7 +329,7 @@ def _limit(util: float, produced: float, trained: float, cfg: SimulateConfig, ro
     if bc.tree_s > interval * 1.01:
         return "weight broadcast", f"a version takes {bc.tree_s:.2f} s to reach the rollouts, one is ready every {interval:.2f} s"
     if produced < rollouts * cfg.env_steps_per_s * 0.99:
-        return f"data link", f"rollouts slowed to {produced / rollouts:.0f} of {cfg.env_steps_per_s:.0f} env steps/s each ({data_link})"
+        return "data link", f"rollouts slowed to {produced / rollouts:.0f} of {cfg.env_steps_per_s:.0f} env steps/s each ({data_link})"
     return "rollouts", f"simulators at {cfg.env_steps_per_s:.0f} env steps/s each; learner ranks busy {util:.0%}"
 
 
