@@ -48,6 +48,20 @@ def _save(doc: dict, json_path: Path, format_table: Callable[[dict], str]) -> No
     typer.echo(f"wrote {json_path}  ({doc['elapsed_s']:.0f} s)")
 
 
+def _run_and_save(name: str, json_path: Path, format_table: Callable[[dict], str],
+                  run: Callable[[Callable[[str], None]], dict]) -> None:
+    """Run a bench (progress on stderr), stamp its command and duration, save and print it; a
+    failure is one line naming the bench."""
+    t0 = time.monotonic()
+    try:
+        doc = run(lambda m: typer.echo(f"[bench] {m}", err=True))
+    except (RuntimeError, TimeoutError, OSError, ValueError) as err:
+        raise fail(f"bench {name}: {err}", code=1)
+    doc["command"] = "dvla " + " ".join(sys.argv[1:])
+    doc["elapsed_s"] = time.monotonic() - t0
+    _save(doc, json_path, format_table)
+
+
 def _f(x: float | None) -> str:
     return "-" if x is None else f"{x:.1f}"
 
@@ -128,16 +142,9 @@ def replication(
 
     if size_mib <= 0 or versions < 1 or node_gbit <= 0 or uplink_gbit <= 0 or training_steps < 0:
         raise fail("--size-mib, --versions, --node-gbit and --uplink-gbit must be positive, --training-steps >= 0")
-    t0 = time.monotonic()
-    try:
-        doc = run_bench(topology, train_topology, size_mib=size_mib, versions=versions, node_gbit=node_gbit,
-                        uplink_gbit=uplink_gbit, training_steps=training_steps, transfer=transfer,
-                        progress=lambda m: typer.echo(f"[bench] {m}", err=True))
-    except (RuntimeError, TimeoutError, OSError, ValueError) as err:
-        raise fail(f"bench replication: {err}", code=1)
-    doc["command"] = "dvla " + " ".join(sys.argv[1:])
-    doc["elapsed_s"] = time.monotonic() - t0
-    _save(doc, json_path, format_table)
+    _run_and_save("replication", json_path, format_table, lambda progress: run_bench(
+        topology, train_topology, size_mib=size_mib, versions=versions, node_gbit=node_gbit, uplink_gbit=uplink_gbit,
+        training_steps=training_steps, transfer=transfer, progress=progress))
 
 
 @app.command("scale")
@@ -167,16 +174,9 @@ def scale(
         raise fail(f"no topology to run{': missing ' + ', '.join(missing) if missing else ''}")
     if size_mib <= 0 or calibration_gbit <= 0 or min(versions, calibration_versions, calibration_sinks) < 1:
         raise fail("--size-mib and --calibration-gbit must be positive; --versions, --calibration-versions and --calibration-sinks >= 1")
-    t0 = time.monotonic()
-    try:
-        doc = run_bench(paths, size_mib=size_mib, versions=versions, calibration_versions=calibration_versions,
-                        calibration_sinks=calibration_sinks, calibration_gbit=calibration_gbit,
-                        progress=lambda m: typer.echo(f"[bench] {m}", err=True))
-    except (RuntimeError, TimeoutError, OSError, ValueError) as err:
-        raise fail(f"bench scale: {err}", code=1)
-    doc["command"] = "dvla " + " ".join(sys.argv[1:])
-    doc["elapsed_s"] = time.monotonic() - t0
-    _save(doc, json_path, format_table)
+    _run_and_save("scale", json_path, format_table, lambda progress: run_bench(
+        paths, size_mib=size_mib, versions=versions, calibration_versions=calibration_versions,
+        calibration_sinks=calibration_sinks, calibration_gbit=calibration_gbit, progress=progress))
 
 
 @app.command("vla")

@@ -226,7 +226,6 @@ def simulate_pipeline(topo: Topology, cfg: SimulateConfig, *, star: bool = True,
         return max(v for v, a in enumerate(arrivals) if a <= t) if arrivals else 0
 
     def learner():
-        made = {a: 0.0 for a in feed}  # env steps produced per rank since the start (fluid)
         taken = {a: 0.0 for a in feed}
         t_prod = 0.0  # async: rollouts produce from the start
         for v in range(1, VERSIONS + 1):
@@ -248,9 +247,7 @@ def simulate_pipeline(topo: Topology, cfg: SimulateConfig, *, star: bool = True,
                 need = max((taken[a] + share) / feed[a] for a in feed if feed[a] > 0)
                 yield env.timeout(max(0.0, t_prod + need - env.now))
                 for a in feed:  # the pool keeps the newest POOL_BATCHES batches; older steps drop
-                    made[a] = feed[a] * (env.now - t_prod)
-                    rec["dropped"].append(max(0.0, made[a] - taken[a] - POOL_BATCHES * share))
-                    taken[a] = max(taken[a], made[a] - POOL_BATCHES * share)
+                    taken[a] = max(taken[a], feed[a] * (env.now - t_prod) - POOL_BATCHES * share)
                 first = min((taken[a] / feed[a] for a in feed if feed[a] > 0), default=env.now)
                 span = (t_prod + first, env.now)
                 for a in feed:
@@ -300,7 +297,7 @@ def simulate_pipeline(topo: Topology, cfg: SimulateConfig, *, star: bool = True,
     nodes = len(topo.nodes())
     return PipelinePrediction(
         nodes=nodes, racks=len(topo.racks), rollouts=len(rollout_rate), learner_ranks=len(feed),
-        env_steps_per_s=trained if not sync else trained, produced_env_steps_per_s=produced,
+        env_steps_per_s=trained, produced_env_steps_per_s=produced,
         learner_utilisation=min(1.0, util), comm_share=(comm / (compute + comm)) if compute + comm > 0 else 0.0,
         policy_lag_mean=sum(rec["lag"][WARMUP:]) / counted, policy_lag_max=max(rec["lag_max"][WARMUP:]),
         version_interval_s=span_s / counted, broadcast=bc_full, limit=limit, limit_detail=detail, data_link=data_link,

@@ -208,9 +208,6 @@ def _simulate(topo: Topology, plan: Plan, edges: list[tuple[str, str]], size_byt
         if not ev.triggered:
             ev.succeed()
 
-    def cpu_s(nd: _Node, nbytes: float) -> float:
-        return costs.per_mib(nd.kind) * nbytes / MIB
-
     def sender(e: _Edge):
         par, child = e.parent, e.child
         lat = costs.hop_latency_s * len(e.links)
@@ -226,7 +223,7 @@ def _simulate(topo: Topology, plan: Plan, edges: list[tuple[str, str]], size_byt
             yield env.all_of(waits)
             e.started[b].succeed()
             # the child can work on the block once its first chunk crossed (cut-through per chunk)
-            env.process(mark(child.first_ready[b], first[b] / e.rate + lat + cpu_s(child, 0)))
+            env.process(mark(child.first_ready[b], first[b] / e.rate + lat))
             yield env.timeout(block[b] / e.rate)
             if not par.done[b].triggered:  # the parent was slower: its last chunk leaves once it is done
                 yield par.done[b]
