@@ -6,25 +6,66 @@ from __future__ import annotations
 
 import threading
 from collections import defaultdict
+from collections.abc import Iterable
 from typing import Any
+
+from .keys import check_name
+
+OTHER_PEER = "<other>"
+"""Peer key under which every peer past the cap (or with a name no role can have) is counted.
+'<' cannot start a role name (``^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$``), so it never collides with
+one, and a reader that tells rollouts from foreign traffic by name counts it as foreign."""
+
+MAX_OTHER_PEERS = 64
+"""Default number of distinct peers outside the known set that get counters of their own."""
+
+RESERVED_PEERS = frozenset({OTHER_PEER, "<unauthenticated>"})
+"""Aggregate peer keys that are always counted under their own key: :data:`OTHER_PEER` and the
+fabric's ``UNAUTHENTICATED`` (traffic that failed authentication). Like it, none is a role name."""
 
 
 class Accounting:
-    """Thread-safe counters, written from Zenoh callbacks and lane threads alike."""
+    """Thread-safe counters, written from Zenoh callbacks and lane threads alike.
 
-    def __init__(self) -> None:
+    Plane totals are exact. Per-peer counters are bounded: the peer name comes from the last chunk
+    of a Zenoh key, which any session on the plane can choose, so only the ``known_peers`` (the
+    run's roles, added with :meth:`add_known_peers` when learned later) and the first
+    ``max_other_peers`` other valid role names get counters of their own; every further peer, and
+    every name that is not a valid role name (except the :data:`RESERVED_PEERS`), is aggregated
+    under :data:`OTHER_PEER`.
+    """
+
+    def __init__(self, known_peers: Iterable[str] = (), max_other_peers: int = MAX_OTHER_PEERS) -> None:
         self._lock = threading.Lock()
         # plane -> counter name -> value
         self._plane: dict[str, dict[str, int]] = defaultdict(lambda: defaultdict(int))
         # plane -> peer -> counter name -> value
         self._peer: dict[str, dict[str, dict[str, int]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(int)))
+        self._known: set[str] = {*RESERVED_PEERS, *known_peers}
+        self._others: set[str] = set()  # peers outside `_known` with counters of their own
+        self.max_other_peers = max_other_peers
+
+    def add_known_peers(self, names: Iterable[str]) -> None:
+        """Give these peers counters of their own whatever the cap (what they sent before, past
+        the cap, stays under :data:`OTHER_PEER`)."""
+        with self._lock:
+            self._known.update(names)
+
+    def _key(self, peer: str) -> str:
+        """The peer key `peer` is counted under (call with the lock held)."""
+        if peer in self._known or peer in self._others:
+            return peer
+        if len(self._others) >= self.max_other_peers or not _valid_name(peer):
+            return OTHER_PEER
+        self._others.add(peer)
+        return peer
 
     def add(self, plane: str, counter: str, peer: str | None = None, n: int = 1, nbytes: int = 0) -> None:
         """Count `n` messages (of `nbytes` bytes in all, kept as ``<counter>_bytes``)."""
         with self._lock:
             _bump(self._plane[plane], counter, n, nbytes)
             if peer is not None:
-                _bump(self._peer[plane][peer], counter, n, nbytes)
+                _bump(self._peer[plane][self._key(peer)], counter, n, nbytes)
 
     def sent(self, plane: str, nbytes: int, peer: str | None = None) -> None:
         self.add(plane, "sent", peer, 1, nbytes)
@@ -43,6 +84,7 @@ class Accounting:
         self.add(plane, f"dropped.{reason}", peer, n)
 
     def get(self, plane: str, counter: str, peer: str | None = None) -> int:
+        """A plane total, or one peer's counter (0 for a peer aggregated under :data:`OTHER_PEER`)."""
         with self._lock:
             if peer is None:
                 return int(self._plane.get(plane, {}).get(counter, 0))
@@ -65,3 +107,11 @@ def _bump(counters: dict[str, int], counter: str, n: int, nbytes: int) -> None:
     counters[counter] += n
     if nbytes:
         counters[counter + "_bytes"] += nbytes
+
+
+def _valid_name(peer: str) -> bool:
+    try:
+        check_name("peer", peer)
+    except ValueError:
+        return False
+    return True

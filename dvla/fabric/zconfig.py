@@ -5,7 +5,9 @@ See docs/architecture.md ("Zenoh settings") for why each value is what it is:
   graph is the one the topology says (no surprise full mesh);
 - shared memory is a deliberate choice (it hides network costs between local processes);
 - BLOCK congestion control closes a transport after `wait_before_close`; we raise it well above
-  any wait our bounded queues can cause, and never block a Zenoh callback for long anyway.
+  any wait our bounded queues can cause, and never block a Zenoh callback for long anyway;
+- the largest message a session reassembles (`max_message_size`, Zenoh default 1 GiB) can be
+  capped to what the run's messages need (:func:`plane_max_message_size`).
 """
 
 from __future__ import annotations
@@ -21,6 +23,8 @@ import zenoh
 BLOCK_WAIT_BEFORE_CLOSE_US = 30_000_000
 #: reconnect quickly to a restarted peer/router (ms).
 RETRY_PERIOD_MS = (100, 1000)
+#: Zenoh's key for the largest message a session reassembles from fragments (default 1 GiB)
+MAX_MESSAGE_SIZE_KEY = "transport/link/rx/max_message_size"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -47,6 +51,7 @@ def plane_config(
     shared_memory: bool = False,
     lease_ms: int | None = None,
     tls: Any = None,
+    max_message_size: int | None = None,
 ) -> zenoh.Config:
     """A Zenoh config for one plane session (data or ctrl) of a dvla process.
 
@@ -55,6 +60,11 @@ def plane_config(
     `tls` (a :class:`TlsFiles`, or any object with `root_ca`, `cert`, `key` and `mtls`
     attributes such as dvla's `TlsConfig`) makes the session speak TLS: every endpoint must then
     be a ``tls/host:port`` locator, and without it none may be.
+
+    `max_message_size` (bytes; None: Zenoh's 1 GiB) caps the messages this session receives:
+    a larger one is dropped by Zenoh while it reassembles the fragments (at most this many bytes
+    are buffered for it), and the session stays up. It bounds what arrives over links, not what
+    a local peer hands over in shared memory (``shared_memory=True``).
     """
     if mode not in ("peer", "client", "router"):
         raise ValueError(f"zenoh mode must be peer, client or router, got {mode!r}")
@@ -81,7 +91,34 @@ def plane_config(
     )
     if lease_ms is not None:
         _set(conf, "transport/link/tx/lease", int(lease_ms))
+    if max_message_size is not None:
+        if isinstance(max_message_size, bool) or not isinstance(max_message_size, int) or max_message_size < 1:
+            raise ValueError(f"max_message_size must be a positive number of bytes, got {max_message_size!r}")
+        _set(conf, MAX_MESSAGE_SIZE_KEY, max_message_size)
     return conf
+
+
+def traj_chunk_bytes(*, chunk_steps: int, n_envs: int, obs_bytes: int, act_dim: int) -> int:
+    """Array bytes of one trajectory chunk of ``chunk_steps`` steps of ``n_envs`` envs whose
+    observation takes ``obs_bytes`` per env (all obs keys): ``obs`` and ``final_obs`` [T, N],
+    ``next_obs`` [N], float32 actions [T, N, A], log-probs and rewards [T, N], three bool flags."""
+    t, n = chunk_steps, n_envs
+    return t * n * (2 * obs_bytes + 4 * act_dim + 4 + 4 + 3) + n * obs_bytes
+
+
+def plane_max_message_size(largest_bytes: int, *, headroom: float = 1.25, overhead: int = 64 << 10,
+                           floor: int = 1 << 20) -> int:
+    """A `max_message_size` for a plane whose largest legitimate payload is ``largest_bytes``:
+    with ``headroom`` for what the estimate leaves out, ``overhead`` bytes for the codec's
+    framing and the signed envelope, and never below ``floor`` (status and small messages).
+
+    Data plane: the largest trajectory chunk (:func:`traj_chunk_bytes` with the larger env
+    group). Control plane: the larger of one weight chunk (``replication.chunk_bytes``) and a
+    full snapshot reply (4 bytes per replicated parameter, ``ParamLayout.numel``).
+    """
+    if largest_bytes < 0:
+        raise ValueError(f"largest_bytes must be >= 0, got {largest_bytes}")
+    return max(int(floor), int(largest_bytes * headroom) + int(overhead))
 
 
 def _set(conf: zenoh.Config, key: str, value: object) -> None:

@@ -15,6 +15,8 @@ about ``target_kl``, so most samples start an update already outside the clip ra
 
 from __future__ import annotations
 
+import logging
+import math
 import time
 from dataclasses import dataclass, fields
 from typing import Any, Mapping
@@ -26,6 +28,8 @@ from torch import Tensor, nn
 from dvla.config import PPOConfig
 
 __all__ = ["compute_gae", "Trajectories", "gae_batch", "PPOLearner"]
+
+log = logging.getLogger("dvla.ppo")
 
 
 # --- advantages -------------------------------------------------------------------------------
@@ -163,6 +167,12 @@ class PPOLearner:
     gradients are averaged by DDP, and each minibatch's advantage moments and KL estimate are
     summed over the ranks, so the normalisation and the early-stop decision are the same on every
     rank (and so is every optimizer step). ``seed`` seeds the minibatch order.
+
+    An update that meets a non-finite gradient norm, or leaves a non-finite parameter or buffer,
+    is refused: the step is not applied, the update stops, parameters and buffers are put back
+    as they were before it, ``updates_refused_nonfinite`` counts it and the returned statistics
+    carry ``refused_nonfinite`` = 1 (the caller must not publish a version for it). Adam's
+    moments keep the steps taken before the refusal: those gradients were finite and clipped.
     """
 
     def __init__(
@@ -189,6 +199,9 @@ class PPOLearner:
         self.group = group
         #: the training forward (policy.evaluate, through DDP in a group of several ranks)
         self._forward = group.train_module(policy) if group is not None else policy.evaluate
+        #: updates refused for a non-finite gradient norm, parameter or buffer
+        self.updates_refused_nonfinite = 0
+        self._kept: list[Tensor] = []  # parameters and buffers before the update, to restore
 
     def _tensors(self, batch: Mapping[str, Any]) -> dict[str, Tensor]:
         missing = [k for k in BATCH_KEYS if k not in batch]
@@ -212,6 +225,8 @@ class PPOLearner:
         cfg = self.cfg
         b = self._tensors(batch)
         size = _obs_len(b["obs"])
+        state = self._state()
+        self._keep(state)
         observe = getattr(self.policy, "observe", None)
         if callable(observe):
             observe(b["obs"])
@@ -220,7 +235,7 @@ class PPOLearner:
         behaviour_kl = _approx_kl(start_logprobs - b["logprobs"])
         mb_size = size // cfg.minibatches
         stats: dict[str, list[float]] = {k: [] for k in ("pg_loss", "v_loss", "entropy", "approx_kl", "clipfrac")}
-        epochs_run, stopped = 0, False
+        epochs_run, stopped, refused = 0, False, ""
         for _ in range(cfg.update_epochs):
             order = torch.randperm(size, generator=self._gen).to(self.device)
             for start in range(0, mb_size * cfg.minibatches, mb_size):
@@ -240,16 +255,33 @@ class PPOLearner:
                 loss, parts = self._loss(mb, start_logprobs[idx], logprob, entropy, value, adv_mean, adv_std)
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
-                nn.utils.clip_grad_norm_(self.policy.parameters(), cfg.max_grad_norm)
+                grad_norm = float(nn.utils.clip_grad_norm_(self.policy.parameters(), cfg.max_grad_norm))
+                # The gradients were averaged across the group by DDP in backward(): a non-finite
+                # value on any rank reached every rank, so every rank computes this norm from the
+                # same gradients and takes the same decision (the loss is rank-local: it would not).
+                if not math.isfinite(grad_norm):
+                    refused = f"gradient norm {grad_norm}"
+                    self.optimizer.zero_grad(set_to_none=True)
+                    break
                 self.optimizer.step()
                 for k, v in parts.items():
                     stats[k].append(v)
                 stats["approx_kl"].append(kl)
             epochs_run += 1
-            if stopped:
+            if stopped or refused:
                 break
+        # Parameters and buffers are identical on every rank; the flag is summed anyway (every
+        # rank calls this collective), so the group refuses together even if one rank went bad alone.
+        if self._sum([not _all_finite(state)])[0] > 0 and not refused:
+            refused = "a non-finite parameter or buffer after the update"
+        if refused:
+            self._restore(state)
+            self.updates_refused_nonfinite += 1
+            log.warning("update refused (%d so far): %s; parameters and buffers restored",
+                        self.updates_refused_nonfinite, refused)
         out = {k: float(np.mean(v)) if v else float("nan") for k, v in stats.items()}
         out.update(
+            refused_nonfinite=float(bool(refused)),
             epochs_run=epochs_run,
             early_stop=float(stopped),
             behaviour_kl=behaviour_kl,
@@ -257,6 +289,23 @@ class PPOLearner:
             update_s=time.perf_counter() - started,
         )
         return out
+
+    def _state(self) -> list[Tensor]:
+        """Parameters and floating-point buffers (observation statistics): what an update changes."""
+        return [*self.policy.parameters(), *(t for t in self.policy.buffers() if t.is_floating_point())]
+
+    @torch.no_grad()
+    def _keep(self, state: list[Tensor]) -> None:
+        if len(self._kept) != len(state) or any(k.shape != t.shape for k, t in zip(self._kept, state)):
+            self._kept = [t.detach().clone() for t in state]
+            return
+        for k, t in zip(self._kept, state):
+            k.copy_(t)
+
+    @torch.no_grad()
+    def _restore(self, state: list[Tensor]) -> None:
+        for k, t in zip(self._kept, state):
+            t.copy_(k)
 
     def _sum(self, values: list[Any]) -> list[float]:
         values = [float(v) for v in values]
@@ -292,6 +341,11 @@ def make_adam(params: Any, **kwargs: Any) -> torch.optim.Adam:
         return torch.optim.Adam(params, fused=True, **kwargs)
     except (RuntimeError, TypeError, ValueError):
         return torch.optim.Adam(params, **kwargs)
+
+
+def _all_finite(tensors: list[Tensor]) -> bool:
+    """Whether every value of every tensor is finite (one device sync)."""
+    return bool(torch.stack([torch.isfinite(t).all() for t in tensors]).all()) if tensors else True
 
 
 def _obs_tensors(obs: Any, device: torch.device) -> Any:

@@ -201,12 +201,24 @@ def inflate_delta(encoding: str, data: memoryview, numel: int) -> memoryview:
     """Inverse of :func:`deflate_delta`; never produces more than a raw payload of `numel` can be.
 
     Raises :class:`CorruptPayload` for data that does not decompress, or to a wrong size.
+
+    The output is capped before anything is allocated: ``zstandard`` sizes its output buffer
+    from the content size a frame header declares and ignores ``max_output_size`` then, so a
+    1 KB frame declaring 1 TiB would raise MemoryError (or take that much). The declared size is
+    read first and refused above the cap; a frame declaring none is held to ``max_output_size``;
+    the window (decoder memory) is capped too, and only one frame, with no trailing bytes, is
+    accepted. Every failure, MemoryError included, is a :class:`CorruptPayload`.
     """
     limit = 2 * numel if encoding == "delta-bf16" else 4 * numel
     try:
-        raw = zstandard.ZstdDecompressor().decompress(bytes(data), max_output_size=limit)
-    except zstandard.ZstdError as err:
-        raise CorruptPayload(f"{encoding}+zstd payload does not decompress: {err}") from None
+        declared = zstandard.frame_content_size(data)
+        if declared > limit:  # -1: not declared
+            raise CorruptPayload(f"{encoding}+zstd frame header says it inflates to {declared} bytes, over {limit}")
+        window = min(1 << 27, 1 << max(10, (limit - 1).bit_length()))  # 128 MiB: zstd's default cap
+        dctx = zstandard.ZstdDecompressor(max_window_size=window)
+        raw = dctx.decompress(data, max_output_size=limit, allow_extra_data=False)
+    except (zstandard.ZstdError, MemoryError, ValueError, TypeError) as err:
+        raise CorruptPayload(f"{encoding}+zstd payload does not decompress: {type(err).__name__}: {err}") from None
     if len(raw) > limit:
         raise CorruptPayload(f"{encoding}+zstd payload inflates beyond {limit} bytes")
     planes = np.frombuffer(raw, dtype=np.uint8)

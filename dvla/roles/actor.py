@@ -16,6 +16,7 @@ import logging
 import os
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,6 +26,7 @@ import torch
 
 from ..config import RoleConfig, env_group_sizes, resolve_device
 from ..fabric import Fabric
+from ..fabric.accounting import OTHER_PEER
 from ..fabric.fabric import DATA
 from ..fabric.messages import RoleStatus, TrajectoryChunk
 from ..learn import PPOLearner, Trajectories, gae_batch, make_policy
@@ -50,6 +52,8 @@ class Actor:
     def __init__(self, cfg: RoleConfig, fabric: Fabric) -> None:
         self.cfg = cfg
         self.fabric = fabric
+        # The run's roles get counters of their own in the accounting, however many others show up.
+        fabric.accounting.add_known_peers((*cfg.rollouts, *cfg.children, *(cfg.group.members if cfg.group else ())))
         task = cfg.task
         self.device = torch.device(resolve_device(task.device))
         # Blocks until every rank has joined (a group of one joins nothing).
@@ -85,6 +89,13 @@ class Actor:
         self.policy_version = start
         #: newest version through the publish lane (published by rank 0; recorded by the others)
         self.published_version = start
+        #: newest version whose weights may have left the group: set before rank 0 sends it (a
+        #: rollout may act on it at once). Other ranks set it as they record it, which is before
+        #: rank 0 can send it: the ranks learn each version in lockstep, and rank 0 still has to
+        #: checksum, reserve, encode and send it. No chunk may claim a newer policy version.
+        self.released_version = start
+        #: (rollout, reason) -> chunks rejected at ingest (for the log, which names the sender)
+        self._rejections: dict[tuple[str, str], int] = {}
         self.env_steps = env_steps  # consumed by the whole group's learners
         self.learn_stats: dict[str, float] = {}
         self.lags: list[int] = []
@@ -142,6 +153,10 @@ class Actor:
                 continue
             with ctx.busy():
                 src = self.receipts.got(chunk)
+                problem = chunk_problem(chunk, self.obs_spec, self.act_dim, self.released_version)
+                if problem is not None:
+                    self._reject(chunk, src, *problem)
+                    continue
                 lag = self.published_version - chunk.policy_version
                 self.ingest_lag_counts[lag] = self.ingest_lag_counts.get(lag, 0) + 1
                 if lag > self.max_lag:
@@ -155,9 +170,7 @@ class Actor:
                 err = self.slots.fill(slot, chunk)
                 if err is not None:
                     self.slots.release(slot)
-                    self.fabric.accounting.rejected(DATA, "shape", chunk.rollout)
-                    self.receipts.count(src, "rejected.shape")
-                    log.warning("chunk %d from %s rejected: %s", chunk.seq, chunk.rollout, err)
+                    self._reject(chunk, src, "shape", err)
                     continue
                 self.receipts.hold(slot, src)
             if not self.filled.put(slot, ctx.stop, stats=ctx.stats):  # stopping with the batch lane full
@@ -171,6 +184,18 @@ class Actor:
         while (chunk := self.inbox.get(timeout=0.5)) is not None:
             self.fabric.accounting.dropped(DATA, "shutdown", chunk.rollout)
             self.receipts.count(self.receipts.got(chunk), "dropped.shutdown")
+
+    def _reject(self, chunk: TrajectoryChunk, src: str, reason: str, detail: str) -> None:
+        """Count a chunk that must not reach the learner; log the 1st, 10th, 100th, ... per sender
+        and reason (the counters count every one)."""
+        self.fabric.accounting.rejected(DATA, reason, chunk.rollout)
+        self.receipts.count(src, f"rejected.{reason}")
+        key = (chunk.rollout, reason)
+        if key not in self._rejections and len(self._rejections) >= 1024:  # bounded: the rest together
+            key = (OTHER_PEER, reason)
+        n = self._rejections[key] = self._rejections.get(key, 0) + 1
+        if n == 10 ** (len(str(n)) - 1):
+            log.warning("chunk %d from %s rejected (%s, %d so far from it): %s", chunk.seq, chunk.rollout, reason, n, detail)
 
     def _batch(self, ctx: LaneContext) -> None:
         target = self.cfg.task.ppo.batch_steps
@@ -237,6 +262,10 @@ class Actor:
                 self.env_steps += steps
                 stats["learn_s"] = time.perf_counter() - t0
                 self.learn_stats = {k: float(v) for k, v in stats.items()}
+                if stats.get("refused_nonfinite"):  # the same on every rank: no rank numbers a version
+                    log.warning("update refused as non-finite: no version from this batch (%d refused so far)",
+                                self.learner.updates_refused_nonfinite)
+                    continue
                 item = self._new_version(checkpoint=(self.policy_version + 1) % CHECKPOINT_EVERY == 0)
             self.versions.put(item, ctx.stop, stats=ctx.stats)
             ctx.count()
@@ -250,6 +279,7 @@ class Actor:
                 self.checksums[item.version] = checksum(item.flat)
                 for old in [v for v in self.checksums if v <= item.version - 64]:
                     del self.checksums[old]
+                self.released_version = item.version  # before sending: see __init__
                 if self.publisher is not None:
                     self._send(item)
                 self.published_version = item.version
@@ -297,6 +327,7 @@ class Actor:
             "policy_lag_p99": sample_percentile(lags, 0.99),
             "policy_lag_counts": {str(k): v for k, v in sorted(dict(self.ingest_lag_counts).items())},
             "bytes_published": self.bytes_published,
+            "updates_refused_nonfinite": self.learner.updates_refused_nonfinite,
             "rank": self.group.rank,
             "world_size": self.group.world_size,
             "checksums": {str(v): c for v, c in sorted(dict(self.checksums).items())[-16:]},
@@ -327,6 +358,47 @@ class NewVersion:
     env_steps: int
     #: optimizer state right after this version was learned (rank 0, when it is checkpointed)
     optimizer: tuple[dict[str, torch.Tensor], str] | None
+
+
+def chunk_problem(chunk: TrajectoryChunk, obs_spec: Mapping[str, Any], act_dim: int,
+                  newest_version: int) -> tuple[str, str] | None:
+    """``(reason, detail)`` when ``chunk`` must not reach the learner, else None.
+
+    The codec has already checked that the arrays agree with each other (T, N, dtypes, keys);
+    this checks the values and the run's declarations: ``future_version`` / ``negative_version``
+    (a policy version no actor of this group released, newest ``newest_version``), ``shape``
+    (observation keys, per-env shapes and dtypes as ``obs_spec`` says, ``act_dim`` actions),
+    ``nonfinite`` (NaN or inf in a float array) and ``out_of_range`` (token ids outside the
+    spec's vocabulary). One pass over each float array; integer images are not read.
+    """
+    v = chunk.policy_version
+    if v < 0:
+        return "negative_version", f"policy_version {v} < 0"
+    if v > newest_version:
+        return "future_version", f"policy_version {v} is newer than the newest released, {newest_version}"
+    if chunk.obs.keys() != obs_spec.keys():
+        return "shape", f"observation keys {sorted(chunk.obs)} != the run's {sorted(obs_spec)}"
+    for key, spec in obs_spec.items():
+        arr = chunk.obs[key]
+        if arr.shape[2:] != tuple(spec.shape) or arr.dtype != np.dtype(spec.dtype):
+            return "shape", f"obs[{key!r}] {arr.dtype}{list(arr.shape[2:])} != the run's {spec.dtype}{list(spec.shape)}"
+    if chunk.actions.shape[2:] != (act_dim,):
+        return "shape", f"actions {list(chunk.actions.shape)}, expected {act_dim} per step"
+    floats = {"rewards": chunk.rewards, "logprobs": chunk.logprobs, "actions": chunk.actions}
+    for part in ("obs", "next_obs", "final_obs"):
+        floats.update({f"{part}[{k!r}]": a for k, a in getattr(chunk, part).items() if a.dtype.kind == "f"})
+    for name, arr in floats.items():
+        if not np.isfinite(arr).all():
+            return "nonfinite", f"{name} holds NaN or inf"
+    for key, spec in obs_spec.items():
+        vocab = getattr(spec, "vocab", None)
+        if vocab is None:
+            continue
+        for part in ("obs", "next_obs", "final_obs"):
+            arr = getattr(chunk, part)[key]
+            if arr.size and (arr.min() < 0 or arr.max() >= vocab):
+                return "out_of_range", f"{part}[{key!r}] holds token ids outside [0, {vocab})"
+    return None
 
 
 #: versions between two checkpoints (the first version of an incarnation is checkpointed too)

@@ -53,3 +53,43 @@ def test_totals_are_exact_with_four_writers_and_a_reader() -> None:
     assert acct.get(DATA, "received", "peer-0") == acct.get(DATA, "received", "peer-1") == total // 2
     assert acct.get(DATA, "sent") == total
     assert seen == sorted(seen) and seen[-1] <= total  # a reader never sees a count go back
+
+
+def test_peers_are_bounded_and_totals_stay_exact() -> None:
+    from dvla.fabric.accounting import OTHER_PEER
+    from dvla.fabric.codec import encode
+    from dvla.fabric.keys import check_name
+    from dvla.fabric.messages import RoleStatus
+
+    acct = Accounting(known_peers=["rollout-0"], max_other_peers=4)
+    for i in range(100_000):  # 1-byte puts on as many distinct data/traj/<name> keys
+        acct.received(DATA, 1, f"intruder-{i}")
+    acct.received(DATA, 7, "rollout-0")
+    acct.rejected(DATA, "malformed", "bad/name*")  # not a role name: aggregated at once
+    snap = acct.snapshot()[DATA]
+    assert snap["received"] == 100_001 and snap["received_bytes"] == 100_007
+    peers = snap["peers"]
+    assert set(peers) == {"rollout-0", OTHER_PEER, *(f"intruder-{i}" for i in range(4))}
+    assert peers[OTHER_PEER]["received"] == 100_000 - 4 and peers[OTHER_PEER]["rejected.malformed"] == 1
+    assert sum(c.get("received", 0) for c in peers.values()) == snap["received"]
+    assert acct.get(DATA, "received", "intruder-99999") == 0 and acct.get(DATA, "received", "intruder-3") == 1
+    acct.received(DATA, 3, "<unauthenticated>")  # the fabric's own aggregate keeps its key
+    assert acct.get(DATA, "received", "<unauthenticated>") == 1
+    # known peers keep counters of their own past the cap, added late too
+    acct.add_known_peers(["rollout-1"])
+    acct.received(DATA, 5, "rollout-1")
+    assert acct.get(DATA, "received", "rollout-1") == 1 and acct.get(DATA, "received", "rollout-0") == 1
+    # the aggregate can never be taken for a rollout (or any role) name
+    try:
+        check_name("role", OTHER_PEER)
+        raise AssertionError(f"{OTHER_PEER!r} must not be a valid role name")
+    except ValueError:
+        pass
+    # with the default cap, a status carrying the peers still encodes
+    flood = Accounting()
+    for i in range(70_000):
+        flood.received(DATA, 1, f"p{i}")
+    assert len(flood.snapshot()[DATA]["peers"]) == 65
+    status = RoleStatus(name="actor-0", kind="actor", node="n", rack="r", pid=1, state="running",
+                        policy_version=0, env_steps=0, steps_per_s=0.0, planes=flood.snapshot())
+    assert encode(status)

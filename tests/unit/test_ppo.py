@@ -272,3 +272,40 @@ def test_learner_uses_fused_adam_and_steps_like_the_default():
             opt.step()
     for p, q in zip(a.parameters(), b.parameters()):
         assert torch.allclose(p, q, atol=1e-5)
+
+
+def _trajectories(T=8, N=8, obs_dim=4, act_dim=2, seed=0):
+    rng = np.random.default_rng(seed)
+    t = lambda *shape: torch.as_tensor(rng.normal(size=shape).astype(np.float32))  # noqa: E731
+    no = torch.zeros(T, N, dtype=torch.bool)
+    return Trajectories(obs={"state": t(T, N, obs_dim)}, actions=t(T, N, act_dim), logprobs=t(T, N) - 2.0,
+                        rewards=t(T, N), terminated=no, truncated=no.clone(),
+                        final_obs={"state": torch.zeros(T, N, obs_dim)}, next_obs={"state": t(N, obs_dim)})
+
+
+@pytest.mark.parametrize("poison", ["rewards", "logprobs", "obs_huge"])
+def test_non_finite_update_is_refused_and_restores_the_parameters(poison):
+    """A batch with a NaN reward or a NaN behaviour log-prob (past ingest validation), or finite
+    observations that overflow the normalisation statistics: the update is refused, parameters
+    and buffers stay exactly as they were, and the refusal is counted."""
+    torch.manual_seed(0)
+    policy = MLPPolicy(4, 2, hidden=(32, 32), obs_norm=True)
+    cfg = PPOConfig(update_epochs=2, minibatches=2, batch_steps=64, lr=1e-3, target_kl=None)
+    learner = PPOLearner(policy, cfg, "cpu", seed=0)
+    good = _trajectories()
+    learner.update(gae_batch(policy, good, cfg))  # a good update first: Adam state, statistics
+    before = {k: v.clone() for k, v in policy.state_dict().items()}
+    bad = _trajectories()
+    if poison == "obs_huge":
+        bad.obs["state"][5, 0, 0] = 3e38  # finite, but its square overflows the running variance
+    else:
+        getattr(bad, poison)[5, 3] = float("nan")
+    stats = learner.update(gae_batch(policy, bad, cfg))
+    assert stats["refused_nonfinite"] == 1.0 and learner.updates_refused_nonfinite == 1
+    for k, v in policy.state_dict().items():
+        assert torch.isfinite(v).all(), k
+        assert torch.equal(v, before[k]), k
+    stats = learner.update(gae_batch(policy, good, cfg))  # and it goes on learning from good data
+    assert stats["refused_nonfinite"] == 0.0 and learner.updates_refused_nonfinite == 1
+    assert any(not torch.equal(v, before[k]) for k, v in policy.state_dict().items())
+

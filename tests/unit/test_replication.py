@@ -503,3 +503,46 @@ def test_decoded_weights_drive_the_policy(layout: ParamLayout) -> None:
     unflatten_into(enc.published, published, layout)
     assert torch.equal(rollout(x), published(x))
     assert torch.allclose(rollout(x), learner(x), atol=1e-3)
+
+
+def _declare_content_size(frame: bytes, size: int) -> bytes:
+    """A zstd frame written without a content size, its header edited to declare ``size`` bytes."""
+    assert frame[4] & 0xE3 == 0  # no content size, not single-segment, no dictionary: window byte next
+    return frame[:4] + bytes([frame[4] | 0xC0]) + frame[5:6] + int(size).to_bytes(8, "little") + frame[6:]
+
+
+@pytest.mark.parametrize("encoding", ["delta-bf16", "delta-topk"])
+def test_zstd_frame_declaring_a_huge_size_is_refused_without_allocating(encoding: str) -> None:
+    import os
+    import time
+    import tracemalloc
+
+    from dvla.replication.encoding import inflate_delta
+
+    small = zstandard.ZstdCompressor(write_content_size=False).compress(os.urandom(1600))
+    bomb = _declare_content_size(small, 2**40)  # ~1.6 KB declaring 1 TiB
+    assert zstandard.frame_content_size(bomb) == 2**40 and len(bomb) < 2048
+    with pytest.raises(MemoryError):  # what an uncapped decompress does with it
+        zstandard.ZstdDecompressor().decompress(bomb, max_output_size=4096)
+    tracemalloc.start()
+    t0 = time.perf_counter()
+    try:
+        with pytest.raises(CorruptPayload, match="inflates to 1099511627776 bytes"):
+            inflate_delta(encoding, memoryview(bomb), 1000)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert time.perf_counter() - t0 < 1.0 and peak < 1 << 20
+    # Frames without a declared size, lying sizes, trailing bytes and junk: all CorruptPayload.
+    numel = 400  # delta-bf16 caps output at 800 bytes, delta-topk at 1600
+    for data in (
+        small,  # 1600 bytes, no declared size: more than delta-bf16's cap, not 8*k for topk
+        _declare_content_size(small, 100),  # declares less than it holds
+        zstandard.ZstdCompressor().compress(bytes(2 * numel)) + b"xx",
+        b"\x28\xb5\x2f\xfd",
+        b"not zstd at all",
+    ):
+        with pytest.raises(CorruptPayload):
+            inflate_delta(encoding, memoryview(data), numel)
+    good = zstandard.ZstdCompressor().compress(bytes(2 * numel))
+    assert inflate_delta(encoding, memoryview(good), numel).nbytes == 2 * numel
