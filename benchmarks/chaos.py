@@ -182,15 +182,14 @@ class Watcher:
     """A ctrl-plane client of the run (its own session): liveliness, evals and status rounds."""
 
     def __init__(self, run: str, state: dict[str, Any], obs: Observations) -> None:
-        from dvla.fabric import load_secret
         from dvla.fabric.messages import EvalResult
-        from dvla.orchestrator.run import tool_fabric
+        from dvla.orchestrator.run import state_fabric
 
         self.obs = obs
         # Through the relays first (the actor's router is the first entry): killing the actor then
         # does not cut this observer off while it counts the other faults.
         entry = tuple(state["ctrl_entry"][1:]) + tuple(state["ctrl_entry"][:1])
-        self.fabric = tool_fabric(run, entry, load_secret(state.get("secret_file")), name="chaos-watch")
+        self.fabric = state_fabric(state, "chaos-watch", entry)
         self.fabric.watch_alive(self._on_alive)
         self.fabric.on_ctrl(self.fabric.keys.eval_all(), EvalResult, self._on_eval)
         self._stop = threading.Event()

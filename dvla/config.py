@@ -230,6 +230,10 @@ class ReplicationConfig:
     relay_fanout: int = 1
     #: bytes per weight chunk
     chunk_bytes: int = 1 << 20
+    #: largest control-plane message (MiB) a process accepts: Zenoh drops anything larger before
+    #: reassembling it. It must hold a full snapshot (4 bytes per replicated parameter): roles
+    #: refuse to start, naming this setting, when the model's does not fit
+    max_message_mib: int = 128
 
 
 @dataclass(frozen=True, kw_only=True)

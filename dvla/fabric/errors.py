@@ -50,11 +50,14 @@ class SignatureError(_ReasonError):
 
     ``reason`` is one of ``unsigned`` (not an envelope at all), ``malformed`` (an envelope
     whose framing is broken), ``bad_signature`` (tag mismatch: wrong secret, or any signed
-    byte changed), ``stale`` (timestamp outside the accepted window) and ``replay`` (nonce
-    already seen).
+    byte changed), ``stale`` (timestamp outside the accepted window), ``replay`` (nonce
+    already seen), ``key_id`` (signed with another secret: another run or a rotated key),
+    ``no_identity`` / ``bad_identity`` (the sender's certified signature is missing or does not
+    verify) and ``unauthorized`` (a verified sender that may not send this on this key).
     """
 
-    REASONS = frozenset({"unsigned", "bad_signature", "stale", "replay", "malformed"})
+    REASONS = frozenset({"unsigned", "bad_signature", "stale", "replay", "malformed", "key_id", "no_identity",
+                         "bad_identity", "unauthorized"})
 
 
 class SecretError(FabricError, ValueError):

@@ -2,9 +2,14 @@
 
 - The **data** session carries trajectory chunks only (high rate, bulky, BLOCK congestion
   control so none vanish in the network).
-- The **ctrl** session carries weights, commands, status, eval results and liveliness, signed
-  with the cluster secret and sent at a higher priority. It is a different session on a
-  different link, so a flooded data plane cannot delay it.
+- The **ctrl** session carries weights, commands, status, eval results and liveliness, sent at
+  a higher priority. It is a different session on a different link, so a flooded data plane
+  cannot delay it.
+
+Every message on both planes is a signed envelope (:mod:`dvla.fabric.signing`): HMAC with the
+run secret, and, when the fabric has an :class:`~dvla.fabric.identity.Identity`, the sender's
+certified signature, checked against what that sender may send (:func:`~dvla.fabric.identity.authorize`).
+Queries are signed too and every reply is bound to its query's nonce.
 
 Zenoh callbacks never block for long: they hand messages to a bounded :class:`Inbox`. The
 trajectory inbox decodes (zero-copy) on Zenoh's receive thread, so its lane gets ready chunks;
@@ -17,6 +22,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+import threading
 import time
 from typing import Any, Callable
 
@@ -24,12 +30,18 @@ import zenoh
 
 from .accounting import Accounting
 from .codec import CodecError, decode, encode, encode_into
+from .identity import Identity, authorize
 from .keys import KeySpace
-from .signing import SignatureError, Signer, Verifier
+from .signing import SignatureError, Signer, Verifier, nonce_of
 
 log = logging.getLogger("dvla.fabric")
 
 DATA, CTRL = "data", "ctrl"
+
+#: peer name under which traffic that fails authentication is counted: never a role name (roles
+#: match ``[A-Za-z0-9][A-Za-z0-9_.-]*``), so the run's accounting reports it as foreign, never as a
+#: real rollout's own rejects, and 100,000 forged key names cost one counter
+UNAUTHENTICATED = "<unauthenticated>"
 
 #: priority of commands, status and eval results: above everything else on the ctrl link
 PRIO_CTRL = zenoh.Priority.INTERACTIVE_HIGH
@@ -129,7 +141,10 @@ class Fabric:
     """Two Zenoh sessions (data, ctrl), signed control traffic, accounting, liveliness.
 
     `name` is this process's name in the run (its key suffix). `data_conf` may be None for a
-    process that has no data-plane traffic (replicators, evaluators, tools).
+    process that has no data-plane traffic (replicators, evaluators, tools). With `identity`
+    every envelope this fabric seals carries its certified signature, and every envelope it
+    opens must carry one certified by the same operator and pass :func:`authorize`; without,
+    the run secret alone authenticates (any holder may claim any name).
     """
 
     def __init__(
@@ -142,12 +157,22 @@ class Fabric:
         secret: bytes,
         open_timeout_s: float = 30.0,
         max_age_s: float = 120.0,
+        identity: Identity | None = None,
     ) -> None:
         self.keys = KeySpace(run)
         self.name = name
         self.accounting = Accounting()
-        self._signer = Signer(secret, name)
-        self._verifier = Verifier(secret, max_age_s=max_age_s)
+        if identity is not None and identity.run != run:
+            raise ValueError(f"{name}: identity of run {identity.run!r} used in run {run!r}")
+        self.identity = identity
+        #: the one actor whose weights this process follows (None: any certified actor)
+        self.weights_source: str | None = None
+        #: the ctrl session's message cap (bytes; None: Zenoh's default), for size checks
+        self.max_ctrl_bytes: int | None = None
+        self._signer = Signer(secret, name, identity=identity)
+        self._verifier = Verifier(secret, max_age_s=max_age_s, run=run,
+                                  operator=identity.operator_public if identity is not None else None)
+        self._servers: list[_QueryWorker] = []
         self._declared: list[Any] = []
         self._publishers: dict[str, Any] = {}
         self._pub_lock = threading.Lock()
@@ -168,36 +193,53 @@ class Fabric:
         soon as this returns."""
         if chunk.rollout != self.name:
             raise ValueError(f"{self.name}: chunk of rollout {chunk.rollout!r} (receivers reject it)")
-        with self._traj_lock:  # one reused buffer: Zenoh copies it during the put
+        key = self.keys.traj(self.name)
+        with self._traj_lock:  # one reused buffer for the encoding; the envelope is a new one
             n = encode_into(chunk, self._traj_buf)
-            self._publisher(DATA, self.keys.traj(self.name)).put(self._traj_buf)
-        self.accounting.sent(DATA, n, self.name)
-        return n
+            envelope = self._signer.seal(key, memoryview(self._traj_buf)[:n])
+        self._publisher(DATA, key).put(envelope)
+        self.accounting.sent(DATA, len(envelope), self.name)
+        return len(envelope)
 
     def subscribe_traj(self, maxsize: int, expect: type, block_s: float = 1.0, rollout: str = "*") -> Inbox:
         """Bounded inbox of decoded TrajectoryChunks from every (or one) rollout, for a lane
         that takes them with ``inbox.get(timeout)``.
 
-        Each chunk is counted as received from its sender (the last part of its key), decoded
-        on Zenoh's receive thread (zero-copy: its arrays are views of the received bytes) and
-        checked to name that sender; one that fails is counted as rejected, logged with its
-        sender, and goes no further.
+        Each envelope is verified on Zenoh's receive thread: one that fails authentication (or
+        comes from anything but the rollout its key names) is counted as received from and
+        rejected for :data:`UNAUTHENTICATED`, never under the rollout's name. The rest is
+        counted as received from its sender, decoded (zero-copy: its arrays are views of the
+        received bytes) and checked to name that sender; one that fails is counted as that
+        sender's reject, logged, and goes no further.
         """
         if self.data is None:
             raise RuntimeError(f"{self.name}: this fabric was opened without a data plane")
         inbox = Inbox(maxsize, None, self.accounting, DATA, block_s)
 
         def _receive(sample: zenoh.Sample) -> None:
-            key, raw, peer = _take(sample, self.accounting, DATA)
+            key = str(sample.key_expr)
+            raw = sample.payload.to_bytes()
+            peer = KeySpace.last(key)
             try:
-                msg = decode(raw, expect=expect)
+                opened = self._verifier.open(key, raw)
+                why = self._refusal(key, opened.sender, opened.kind)
+                if why is not None or opened.sender != peer:
+                    raise SignatureError("unauthorized", why or f"sender {opened.sender!r} on {peer!r}'s key")
+            except SignatureError as err:
+                self.accounting.received(DATA, len(raw), UNAUTHENTICATED)
+                self.accounting.rejected(DATA, err.reason, UNAUTHENTICATED)
+                _warn_limited(f"rejected data message on {_short(key)}: {err}")
+                return
+            self.accounting.received(DATA, len(raw), peer)
+            try:
+                msg = decode(opened.payload, expect=expect)
             except CodecError as err:
                 self.accounting.rejected(DATA, err.reason, peer)
-                log.warning("rejected data message on %s from %s: %s", key, peer, err)
+                _warn_limited(f"rejected data message on {_short(key)} from {peer}: {err}")
                 return
             if getattr(msg, "rollout", peer) != peer:
                 self.accounting.rejected(DATA, "sender_mismatch", peer)
-                log.warning("rejected data message on %s from %s: claims sender %r", key, peer, msg.rollout)
+                _warn_limited(f"rejected data message on {_short(key)} from {peer}: claims sender {msg.rollout!r}")
                 return
             inbox.offer(msg, peer)
 
@@ -209,20 +251,33 @@ class Fabric:
     def seal(self, key: str, msg: Any) -> bytes:
         return self._signer.seal(key, encode(msg))
 
-    def open_signed(self, key: str, raw: bytes, expect: type | tuple[type, ...] | None) -> tuple[str, Any] | None:
-        """Verify and decode a control message; None (and counted) when it fails."""
-        peer = KeySpace.last(key)
-        try:
-            sender, payload = self._verifier.open(key, raw)
-        except SignatureError as err:
-            self.accounting.rejected(CTRL, err.reason, peer)
-            log.warning("rejected control message on %s: %s", key, err.reason)
+    def _refusal(self, key: str, sender: str, kind: str, query: bool = False) -> str | None:
+        """Why `sender` may not send this (None: it may, or this fabric checks no identities)."""
+        if self.identity is None:
             return None
+        return authorize(self.keys, key, sender, kind, query=query, weights_source=self.weights_source)
+
+    def open_signed(self, key: str, raw: bytes, expect: type | tuple[type, ...] | None, *, query: bool = False,
+                    bind: bytes = b"", fresh: bool = True) -> tuple[str, Any] | None:
+        """Verify, authorize and decode a control message; None (and counted) when it fails.
+        `query`: it is a query's request; `bind`: the nonce a reply must be bound to;
+        `fresh=False`: an old envelope kept as proof (no freshness or replay check)."""
+        try:
+            sender, kind, payload, _nonce = self._verifier.open(key, raw, bind=bind, fresh=fresh)
+            why = self._refusal(key, sender, kind, query)
+            if why is not None:
+                raise SignatureError("unauthorized", why)
+        except SignatureError as err:
+            self.accounting.rejected(CTRL, err.reason, UNAUTHENTICATED)
+            _warn_limited(f"rejected control message on {_short(key)}: {err}")
+            return None
+        if query and not payload:
+            return sender, None  # a request without arguments (e.g. a status query)
         try:
             msg = decode(payload, expect=expect)
         except CodecError as err:
             self.accounting.rejected(CTRL, err.reason, sender)
-            log.warning("rejected control message on %s from %s: %s", key, sender, err)
+            _warn_limited(f"rejected control message on {_short(key)} from {sender}: {err}")
             return None
         return sender, msg
 
@@ -290,30 +345,57 @@ class Fabric:
 
         self._declared.append(self.ctrl.declare_subscriber(key, _cb))
 
-    def serve(self, key: str, handler: Callable[[Any | None], Any | None], expect: type | None = None) -> None:
-        """Queryable on `key`: `handler(request_msg_or_None)` returns a message (or its encoded
-        bytes) to reply with, or None for no reply."""
+    def serve(self, key: str, handler: Callable[[Any], Any | None], expect: type | None = None, *,
+              worker: bool = False, backlog: int = 4) -> None:
+        """Queryable on `key`: `handler(request_msg)` returns a message (or its encoded bytes)
+        to reply with, or None for no reply.
 
-        def _cb(query: zenoh.Query) -> None:
+        Only signed, authorized requests reach the handler (an unsigned query gets nothing and
+        is counted); the reply is sealed bound to the request's nonce, so it answers that query
+        and no other. With `worker`, verified requests wait in a queue of `backlog` for one
+        thread of their own (expensive replies, e.g. a full snapshot, never run on Zenoh's
+        receive thread, and at most one runs at a time); a request finding it full is dropped
+        and counted (``dropped.query_backlog``).
+        """
+
+        def _answer(query: zenoh.Query, req: Any, nonce: bytes) -> None:
             try:
-                req = None
-                if query.payload is not None:
-                    # The requester signed the key expression it queried, which may be a
-                    # wildcard matching this queryable (e.g. every status key).
-                    got = self.open_signed(str(query.key_expr), query.payload.to_bytes(), expect)
-                    if got is None:
-                        return
-                    req = got[1]
                 reply = handler(req)
                 if reply is None:
                     return
-                # Every reply is signed afresh (a re-sent envelope would be refused as a replay);
-                # handlers may return an already encoded message to skip re-encoding.
+                # Handlers may return an already encoded message to skip re-encoding.
                 body = reply if isinstance(reply, (bytes, bytearray)) else encode(reply)
-                payload = self._signer.seal(key, body)
+                payload = self._signer.seal(key, body, bind=nonce)
                 query.reply(key, payload)
                 self.accounting.sent(CTRL, len(payload), "reply")
-            except Exception:  # never let a bad request or a handler bug kill Zenoh's thread
+            except Exception:  # never let a bad request or a handler bug kill the thread
+                self.accounting.add(CTRL, "queryable_errors")
+                log.exception("queryable %s failed", key)
+
+        pool = _QueryWorker(f"{self.name}-serve-{KeySpace.last(key)}", _answer, backlog, self.accounting) if worker else None
+        if pool is not None:
+            self._servers.append(pool)
+
+        def _cb(query: zenoh.Query) -> None:
+            try:
+                raw = query.payload.to_bytes() if query.payload is not None else b""
+                self.accounting.received(CTRL, len(raw), "query")
+                if not raw:
+                    self.accounting.rejected(CTRL, "unsigned", UNAUTHENTICATED)
+                    _warn_limited(f"unsigned query on {_short(key)} refused")
+                    return
+                # The requester signed the key expression it queried, which may be a wildcard
+                # matching this queryable (e.g. every status key).
+                qkey = str(query.key_expr)
+                got = self.open_signed(qkey, raw, expect, query=True)
+                if got is None:
+                    return
+                nonce = nonce_of(raw)
+                if pool is None:
+                    _answer(query, got[1], nonce)
+                else:
+                    pool.offer(query, got[1], nonce)
+            except Exception:  # never let a bad request kill Zenoh's thread
                 self.accounting.add(CTRL, "queryable_errors")
                 log.exception("queryable %s failed", key)
 
@@ -323,8 +405,10 @@ class Fabric:
         self, selector: str, request: Any | None = None, *, expect: type | tuple[type, ...] | None = None,
         timeout: float = 2.0,
     ) -> list[tuple[str, Any]]:
-        """Query every matching queryable; returns verified (sender, message) replies."""
-        payload = self.seal(selector, request) if request is not None else None
+        """Query every matching queryable with a signed request (`request`, or an empty payload);
+        returns the verified (sender, message) replies bound to this query."""
+        payload = self._signer.seal(selector, encode(request) if request is not None else b"")
+        nonce = nonce_of(payload)
         replies = self.ctrl.get(selector, payload=payload, timeout=timeout, priority=PRIO_CTRL)
         out = []
         for reply in replies:
@@ -334,7 +418,7 @@ class Fabric:
             k = str(sample.key_expr)
             raw = sample.payload.to_bytes()
             self.accounting.received(CTRL, len(raw), KeySpace.last(k))
-            got = self.open_signed(k, raw, expect)
+            got = self.open_signed(k, raw, expect, bind=nonce)
             if got is not None:
                 out.append(got)
         return out
@@ -386,6 +470,8 @@ class Fabric:
         if self._closed:
             return
         self._closed = True
+        for pool in self._servers:
+            pool.close()
         for entity in [*reversed(self._declared), *self._publishers.values()]:
             try:
                 entity.undeclare()
@@ -403,6 +489,66 @@ class Fabric:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class _QueryWorker:
+    """One named thread answering verified queries from a bounded queue (see Fabric.serve)."""
+
+    def __init__(self, name: str, answer: Callable[[Any, Any, bytes], None], backlog: int,
+                 accounting: Accounting) -> None:
+        self._answer = answer
+        self._acct = accounting
+        self._queue: queue.Queue[Any] = queue.Queue(backlog)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def offer(self, query: Any, req: Any, nonce: bytes) -> None:
+        try:
+            self._queue.put_nowait((query, req, nonce))
+        except queue.Full:
+            self._acct.dropped(CTRL, "query_backlog", "query")
+            _warn_limited("query backlog full: a query was dropped")
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                query, req, nonce = self._queue.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            try:
+                self._answer(query, req, nonce)
+            finally:
+                del query  # finalizes the query: the requester's get() ends
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+        while True:
+            try:
+                self._queue.get_nowait()
+            except queue.Empty:
+                return
+
+
+_warned: dict[str, float] = {}
+_warn_lock = threading.Lock()
+
+
+def _short(key: str, limit: int = 120) -> str:
+    return key if len(key) <= limit else key[:limit] + "..."
+
+
+def _warn_limited(text: str, every_s: float = 5.0) -> None:
+    """Log a refusal, at most once per `every_s` per kind of message (a flood must not flood
+    the log); the counters count every one."""
+    kind = text.split(":", 1)[0].split(" on ", 1)[0]
+    now = time.monotonic()
+    with _warn_lock:
+        if now - _warned.get(kind, -every_s) < every_s:
+            return
+        _warned[kind] = now
+    log.warning("%s", text)
 
 
 def _take(sample: zenoh.Sample, acct: Accounting, plane: str) -> tuple[str, bytes, str]:

@@ -163,6 +163,9 @@ class WeightManifest(Message):
     #: hex digest of the flat float32 parameters *after* applying this version (what every
     #: replica must hold, bit for bit)
     checksum: str
+    #: SHA-256 (hex) of those same bytes: what a snapshot of this version served by any relay
+    #: must hash to (the actor signed it; ``checksum`` is fast, not collision resistant)
+    digest: str = ""
     #: wall-clock creation time, ns since the Unix epoch
     created_ns: int = field(default_factory=_now_ns)
 
@@ -307,6 +310,9 @@ class WeightSnapshot(Message):
     checksum: str
     #: the flat float32 parameters, little-endian
     data: bytes
+    #: the actor's signed envelope of this version's :class:`WeightManifest` (whose ``digest``
+    #: the data must hash to); empty in a header-only reply
+    manifest: bytes = b""
     #: wall-clock creation time, ns since the Unix epoch
     created_ns: int = field(default_factory=_now_ns)
 

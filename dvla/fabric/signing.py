@@ -1,28 +1,36 @@
-"""HMAC-SHA256 signed envelopes for the control plane.
+"""Signed envelopes: HMAC-SHA256 with the run secret, plus the sender's Ed25519 signature.
 
-This module owns authentication of control messages (weights, commands, status, ...): a
+This module owns authentication of messages (weights, commands, status, trajectories, ...): a
 :class:`Signer` wraps an already-encoded payload (see :mod:`dvla.fabric.codec`) in an envelope,
 a :class:`Verifier` checks it and returns the payload. Every process of a run shares one secret
-(:func:`load_secret`); the tag also covers the Zenoh key expression, so a message signed for
-one key cannot be replayed on another.
+(:func:`load_secret`): the HMAC tag proves the sender is a member of the run and covers the
+Zenoh key expression (a message signed for one key cannot be moved to another) and an optional
+*binding* (a query's nonce, so a reply cannot answer any other query). A process with an
+:class:`~dvla.fabric.identity.Identity` also signs the tag with its own key and ships its
+certificate, so a receiver knows *which* member sent it (:func:`dvla.fabric.identity.authorize`
+decides whether that member may).
 
 Envelope layout (all integers little-endian; see docs/wire-format.md)::
 
     offset  size  field
-    0       4     magic b"DVS1"
-    4       1     sender_len (S, 1..255)
-    5       S     sender, UTF-8
-    5+S     8     ts_ns, uint64, sender's wall clock (ns since the Unix epoch)
-    13+S    16    nonce, random
-    29+S    4     payload_len (P), uint32
-    33+S    P     payload
-    33+S+P  32    tag = HMAC-SHA256(secret, u16 key_len | key_expr UTF-8 | bytes [0, 33+S+P))
+    0       4     magic b"DVS2"
+    4       4     key_id: SHA-256("dvla-key-id" | secret)[:4] (which secret signed it)
+    8       1     flags: bit 0 = identity block present
+    9       1     sender_len (S, 1..255)
+    10      S     sender, UTF-8
+    10+S    8     ts_ns, uint64, sender's wall clock (ns since the Unix epoch)
+    18+S    16    nonce, random
+    34+S    4     payload_len (P), uint32
+    38+S    I     identity block (flag set): kind_len (1) | kind | public key (32) | certificate (64)
+    38+S+I  P     payload
+    ..      32    tag = HMAC-SHA256(secret, u16 key_len | key_expr | u8 bind_len | bind | bytes [0, tag))
+    ..      64    signature = Ed25519(sender key, b"dvla-sig1" | tag)   (flag set only)
 
 Freshness: an envelope is accepted if ``|now - ts_ns| <= max_age`` and its nonce has not been
 seen. Nonces are remembered for ``max_age`` (at most ``replay_window`` of them); when the store
 is full the oldest entry is dropped and its timestamp becomes that sender's *horizon*: anything
 from that sender stamped at or before it is refused as stale, so a dropped nonce can never be
-replayed. Memory is therefore bounded whatever the message rate.
+replayed. Memory is therefore bounded whatever the message rate (the horizon map is capped too).
 """
 
 from __future__ import annotations
@@ -37,20 +45,26 @@ import time
 from collections import OrderedDict
 from typing import Callable, NamedTuple
 
+from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+
 from dvla.fabric.errors import SecretError, SignatureError
+from dvla.fabric.identity import PUBLIC_BYTES, SIGNATURE_BYTES, Identity, verify_certificate
 
 __all__ = [
     "MAGIC",
     "MIN_SECRET_BYTES",
+    "Opened",
     "SecretError",
     "SignatureError",
     "Signer",
     "Verifier",
+    "key_id",
     "load_secret",
     "new_secret",
 ]
 
-MAGIC = b"DVS1"
+MAGIC = b"DVS2"
 """First bytes of every signed envelope."""
 
 MIN_SECRET_BYTES = 16
@@ -58,9 +72,15 @@ MIN_SECRET_BYTES = 16
 
 NONCE_BYTES = 16
 TAG_BYTES = 32
+_HEAD = struct.Struct("<4s4sBB")  # magic, key_id, flags, sender_len
 _TS_NONCE_LEN = struct.Struct("<Q16sI")  # ts_ns, nonce, payload_len
 _KEY_LEN = struct.Struct("<H")
-_MIN_ENVELOPE = len(MAGIC) + 1 + 1 + _TS_NONCE_LEN.size + TAG_BYTES  # one-byte sender, empty payload
+_FLAG_IDENTITY = 1
+_SIG_DOMAIN = b"dvla-sig1"
+_MIN_ENVELOPE = _HEAD.size + 1 + _TS_NONCE_LEN.size + TAG_BYTES  # one-byte sender, empty payload
+#: verified (run-independent) certificates remembered, and senders with a replay horizon
+_CERT_CACHE = 4096
+_HORIZONS = 65536
 
 
 def _check_secret(secret: bytes) -> bytes:
@@ -71,93 +91,167 @@ def _check_secret(secret: bytes) -> bytes:
     return bytes(secret)
 
 
-def _key_prefix(key_expr: str) -> bytes:
-    """Length-prefixed key expression, so (key, header) boundaries are unambiguous."""
+def key_id(secret: bytes) -> bytes:
+    """The 4-byte identifier of a secret carried by every envelope it signs (rotation: a
+    receiver tells "signed with another key" from "forged")."""
+    return hashlib.sha256(b"dvla-key-id" + secret).digest()[:4]
+
+
+def _mac_prefix(key_expr: str, bind: bytes) -> bytes:
+    """Length-prefixed key expression and binding, so boundaries are unambiguous."""
     key = key_expr.encode("utf-8")
-    if len(key) > 0xFFFF:
-        raise ValueError(f"key expression of {len(key)} bytes is too long")
-    return _KEY_LEN.pack(len(key)) + key
+    if len(key) > 0xFFFF or len(bind) > 0xFF:
+        raise ValueError(f"key expression of {len(key)} bytes or binding of {len(bind)} bytes is too long")
+    return _KEY_LEN.pack(len(key)) + key + bytes((len(bind),)) + bind
+
+
+def nonce_of(envelope: bytes | bytearray | memoryview) -> bytes:
+    """The nonce of an envelope this process sealed (what a query's reply must be bound to)."""
+    env = memoryview(envelope)
+    start = _HEAD.size + env[_HEAD.size - 1] + 8
+    return bytes(env[start: start + NONCE_BYTES])
 
 
 class Signer:
-    """Seals payloads as ``sender``; thread-safe (no mutable state)."""
+    """Seals payloads as ``sender`` (with ``identity``'s signature when given); thread-safe."""
 
-    def __init__(self, secret: bytes, sender: str, *, clock: Callable[[], int] = time.time_ns) -> None:
+    def __init__(self, secret: bytes, sender: str, *, identity: Identity | None = None,
+                 clock: Callable[[], int] = time.time_ns) -> None:
         self._secret = _check_secret(secret)
+        self._kid = key_id(self._secret)
+        if identity is not None:
+            sender = identity.name
         name = sender.encode("utf-8")
         if not 1 <= len(name) <= 255:
             raise ValueError(f"sender name must be 1..255 UTF-8 bytes, got {len(name)}")
         self.sender = sender
+        self.identity = identity
         self._sender_field = bytes((len(name),)) + name
+        self._ident_block = b""
+        if identity is not None:
+            kind = identity.kind.encode("utf-8")
+            self._ident_block = bytes((len(kind),)) + kind + identity.public + identity.certificate
+        self._flags = _FLAG_IDENTITY if identity is not None else 0
         self._clock = clock
 
-    def seal(self, key_expr: str, payload: bytes | bytearray | memoryview) -> bytes:
-        """Return the envelope carrying ``payload`` for publication on ``key_expr``."""
+    def seal(self, key_expr: str, payload: bytes | bytearray | memoryview, *, bind: bytes = b"") -> bytes:
+        """Return the envelope carrying ``payload`` for publication on ``key_expr`` (bound to
+        ``bind``: a query's nonce when this is its reply)."""
         size = memoryview(payload).nbytes
         if size > 0xFFFFFFFF:
             raise ValueError(f"payload of {size} bytes exceeds the uint32 length field")
-        header = b"".join((MAGIC, self._sender_field,
-                           _TS_NONCE_LEN.pack(self._clock(), os.urandom(NONCE_BYTES), size)))
-        mac = hmac.new(self._secret, _key_prefix(key_expr), hashlib.sha256)
+        header = b"".join((_HEAD.pack(MAGIC, self._kid, self._flags, self._sender_field[0]), self._sender_field[1:],
+                           _TS_NONCE_LEN.pack(self._clock(), os.urandom(NONCE_BYTES), size), self._ident_block))
+        mac = hmac.new(self._secret, _mac_prefix(key_expr, bind), hashlib.sha256)
         mac.update(header)
         mac.update(payload)
-        return b"".join((header, payload, mac.digest()))
+        tag = mac.digest()
+        sig = self.identity.sign(_SIG_DOMAIN + tag) if self.identity is not None else b""
+        return b"".join((header, payload, tag, sig))
+
+
+class Opened(NamedTuple):
+    """A verified envelope: who sent it (``kind`` "" without an identity block) and its payload
+    (a view of the envelope's bytes)."""
+
+    sender: str
+    kind: str
+    payload: memoryview
+    nonce: bytes
 
 
 class _Parsed(NamedTuple):
+    key_id: bytes
     sender: str
     ts_ns: int
     nonce: bytes
+    kind: str
+    public: bytes
+    cert: bytes
     payload_start: int
     body_end: int
+    sig: bytes
 
 
 def _parse(env: memoryview) -> _Parsed:
     """Split an envelope into its fields; raises SignatureError(unsigned|malformed)."""
     if len(env) < len(MAGIC) or env[: len(MAGIC)] != MAGIC:
-        raise SignatureError("unsigned", "no DVS1 envelope magic")
+        raise SignatureError("unsigned", "no DVS2 envelope magic")
     if len(env) < _MIN_ENVELOPE:
         raise SignatureError("malformed", f"envelope of {len(env)} bytes is too short")
-    sender_len = env[len(MAGIC)]
-    fixed_end = len(MAGIC) + 1 + sender_len + _TS_NONCE_LEN.size
-    if sender_len == 0 or fixed_end + TAG_BYTES > len(env):
-        raise SignatureError("malformed", f"bad sender length {sender_len}")
-    ts_ns, nonce, payload_len = _TS_NONCE_LEN.unpack_from(env, fixed_end - _TS_NONCE_LEN.size)
-    if fixed_end + payload_len + TAG_BYTES != len(env):
-        raise SignatureError("malformed", f"payload length {payload_len} disagrees with envelope size {len(env)}")
+    _, kid, flags, sender_len = _HEAD.unpack_from(env, 0)
+    pos = _HEAD.size + sender_len
+    if sender_len == 0 or pos + _TS_NONCE_LEN.size + TAG_BYTES > len(env) or flags & ~_FLAG_IDENTITY:
+        raise SignatureError("malformed", f"bad sender length {sender_len} or flags {flags}")
+    ts_ns, nonce, payload_len = _TS_NONCE_LEN.unpack_from(env, pos)
+    pos += _TS_NONCE_LEN.size
+    kind, public, cert, sig_len = "", b"", b"", 0
     try:
-        sender = str(env[len(MAGIC) + 1: len(MAGIC) + 1 + sender_len], "utf-8")
+        sender = str(env[_HEAD.size: _HEAD.size + sender_len], "utf-8")
+        if flags & _FLAG_IDENTITY:
+            kind_len = env[pos] if pos < len(env) else 0
+            kind = str(env[pos + 1: pos + 1 + kind_len], "utf-8")
+            pos += 1 + kind_len
+            public = bytes(env[pos: pos + PUBLIC_BYTES])
+            cert = bytes(env[pos + PUBLIC_BYTES: pos + PUBLIC_BYTES + SIGNATURE_BYTES])
+            pos += PUBLIC_BYTES + SIGNATURE_BYTES
+            sig_len = SIGNATURE_BYTES
     except UnicodeDecodeError as exc:
-        raise SignatureError("malformed", "sender is not UTF-8") from exc
-    return _Parsed(sender, ts_ns, nonce, fixed_end, fixed_end + payload_len)
+        raise SignatureError("malformed", "sender or kind is not UTF-8") from exc
+    if pos + payload_len + TAG_BYTES + sig_len != len(env):
+        raise SignatureError("malformed", f"payload length {payload_len} disagrees with envelope size {len(env)}")
+    body_end = pos + payload_len
+    sig = bytes(env[body_end + TAG_BYTES:])
+    return _Parsed(bytes(kid), sender, ts_ns, nonce, kind, public, cert, pos, body_end, sig)
 
 
 class Verifier:
     """Checks envelopes sealed with the same secret; thread-safe.
 
-    ``clock`` (ns) is injectable for tests; it must be the wall clock in production because
-    timestamps come from other hosts.
+    With ``operator`` (the run's operator public key) and ``run``, every envelope must also
+    carry an identity certified by that operator and signed by it (reason ``no_identity`` or
+    ``bad_identity`` otherwise). ``clock`` (ns) is injectable for tests; it must be the wall
+    clock in production because timestamps come from other hosts.
     """
 
     def __init__(self, secret: bytes, max_age_s: float = 30.0, replay_window: int = 4096, *,
-                 clock: Callable[[], int] = time.time_ns) -> None:
+                 operator: bytes | None = None, run: str = "", clock: Callable[[], int] = time.time_ns) -> None:
         self._secret = _check_secret(secret)
+        self._kid = key_id(self._secret)
         if max_age_s <= 0 or replay_window < 1:
             raise ValueError("max_age_s must be > 0 and replay_window >= 1")
         self.max_age_ns = int(max_age_s * 1e9)
         self.replay_window = replay_window
+        self._operator = Ed25519PublicKey.from_public_bytes(operator) if operator is not None else None
+        self._run = run
         self._clock = clock
         self._lock = threading.Lock()
         self._seen: OrderedDict[bytes, tuple[str, int]] = OrderedDict()  # nonce -> (sender, ts), arrival order
         self._horizon: dict[str, int] = {}  # sender -> newest ts among forgotten nonces
+        self._floor = -1  # horizon of every sender once the horizon map overflowed
+        self._certs: OrderedDict[tuple[str, str, bytes, bytes], None] = OrderedDict()  # verified certificates
 
-    def open(self, key_expr: str, envelope: bytes | bytearray | memoryview) -> tuple[str, bytes]:
-        """Return ``(sender, payload)`` or raise :class:`SignatureError`."""
+    @property
+    def requires_identity(self) -> bool:
+        return self._operator is not None
+
+    def open(self, key_expr: str, envelope: bytes | bytearray | memoryview, *, bind: bytes = b"",
+             fresh: bool = True) -> Opened:
+        """Verify and return an :class:`Opened`, or raise :class:`SignatureError`.
+
+        ``fresh=False`` skips the timestamp and replay checks (an old envelope kept as proof,
+        e.g. the actor's manifest inside a snapshot reply)."""
         env = self._view(envelope)
         parsed = _parse(env)
-        self._check_tag(key_expr, env, parsed)
-        self._check_fresh(parsed)
-        return parsed.sender, bytes(env[parsed.payload_start: parsed.body_end])
+        if parsed.key_id != self._kid:
+            raise SignatureError("key_id", f"signed with key id {parsed.key_id.hex()}, ours is {self._kid.hex()} "
+                                 f"(claimed sender {parsed.sender!r}; another run, or a rotated secret)")
+        tag = self._check_tag(key_expr, bind, env, parsed)
+        if self._operator is not None:
+            self._check_identity(parsed, tag)
+        if fresh:
+            self._check_fresh(parsed)
+        return Opened(parsed.sender, parsed.kind, env[parsed.payload_start: parsed.body_end], parsed.nonce)
 
     @staticmethod
     def _view(envelope: object) -> memoryview:
@@ -167,14 +261,35 @@ class Verifier:
         except (TypeError, ValueError) as exc:
             raise SignatureError("unsigned", f"not a bytes-like object: {type(envelope).__name__}") from exc
 
-    def _check_tag(self, key_expr: str, env: memoryview, parsed: _Parsed) -> None:
+    def _check_tag(self, key_expr: str, bind: bytes, env: memoryview, parsed: _Parsed) -> bytes:
         try:
-            mac = hmac.new(self._secret, _key_prefix(key_expr), hashlib.sha256)
+            mac = hmac.new(self._secret, _mac_prefix(key_expr, bind), hashlib.sha256)
         except (UnicodeEncodeError, ValueError) as exc:
             raise SignatureError("bad_signature", "key expression cannot have been signed") from exc
         mac.update(env[: parsed.body_end])
-        if not hmac.compare_digest(mac.digest(), env[parsed.body_end:]):
+        tag = mac.digest()
+        if not hmac.compare_digest(tag, env[parsed.body_end: parsed.body_end + TAG_BYTES]):
             raise SignatureError("bad_signature", f"tag mismatch (claimed sender {parsed.sender!r})")
+        return tag
+
+    def _check_identity(self, parsed: _Parsed, tag: bytes) -> None:
+        assert self._operator is not None
+        if not parsed.sig:
+            raise SignatureError("no_identity", f"no identity block (claimed sender {parsed.sender!r})")
+        entry = (parsed.sender, parsed.kind, parsed.public, parsed.cert)
+        with self._lock:
+            known = entry in self._certs
+        if not known:
+            if not verify_certificate(self._operator, self._run, parsed.kind, parsed.sender, parsed.public, parsed.cert):
+                raise SignatureError("bad_identity", f"certificate of {parsed.sender!r} ({parsed.kind}) not issued by this run's operator")
+            with self._lock:
+                self._certs[entry] = None
+                while len(self._certs) > _CERT_CACHE:
+                    self._certs.popitem(last=False)
+        try:
+            Ed25519PublicKey.from_public_bytes(parsed.public).verify(parsed.sig, _SIG_DOMAIN + tag)
+        except (InvalidSignature, ValueError) as exc:
+            raise SignatureError("bad_identity", f"signature of {parsed.sender!r} does not verify") from exc
 
     def _check_fresh(self, parsed: _Parsed) -> None:
         now = self._clock()
@@ -185,7 +300,7 @@ class Verifier:
             self._forget_older_than(now - self.max_age_ns)
             if parsed.nonce in self._seen:
                 raise SignatureError("replay", f"nonce already seen from {parsed.sender!r}")
-            if parsed.ts_ns <= self._horizon.get(parsed.sender, -1):
+            if parsed.ts_ns <= max(self._horizon.get(parsed.sender, -1), self._floor):
                 raise SignatureError("stale", f"timestamp at or before {parsed.sender!r}'s replay horizon")
             self._seen[parsed.nonce] = (parsed.sender, parsed.ts_ns)
             while len(self._seen) > self.replay_window:
@@ -194,6 +309,11 @@ class Verifier:
     def _drop_oldest(self) -> None:
         _, (sender, ts) = self._seen.popitem(last=False)
         if ts > self._horizon.get(sender, -1):
+            if sender not in self._horizon and len(self._horizon) >= _HORIZONS:
+                # Only a holder of the secret reaches here; still bounded: forget every horizon
+                # but raise a common floor, so nothing forgotten becomes replayable.
+                self._floor = max(self._floor, *self._horizon.values())
+                self._horizon.clear()
             self._horizon[sender] = ts
 
     def _forget_older_than(self, cutoff_ns: int) -> None:

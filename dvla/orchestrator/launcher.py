@@ -17,6 +17,7 @@ import sys
 import time
 from pathlib import Path
 
+from ..fabric.identity import IDENTITY_ENV, Identity
 from .process import CommandWrapper, Process, Supervised, endpoint_address
 
 log = logging.getLogger("dvla.launcher")
@@ -39,9 +40,14 @@ class Launcher:
     #: seconds before the first restart of a role that died young; doubled on each restart
     BACKOFF_S = 1.0
 
-    def __init__(self, run_dir: Path, env: dict[str, str], *, max_restarts: int = 3) -> None:
+    def __init__(self, run_dir: Path, env: dict[str, str], *, max_restarts: int = 3,
+                 operator: Identity | None = None) -> None:
         self.run_dir = run_dir
         self.env = env
+        #: issues each child's identity (kept across its restarts); None: children run without one
+        self.operator = operator
+        #: role name -> its credential text (environment of a local child, stdin of a remote one)
+        self.identities: dict[str, str] = {}
         self.max_restarts = max_restarts
         #: how a role's argv becomes the command that starts it (in a namespace, over ssh)
         self.wrap = CommandWrapper()
@@ -54,6 +60,8 @@ class Launcher:
         config_path.write_text(cfg.to_json())
         log_path = self.run_dir / "logs" / f"{cfg.name}.log"
         log_path.parent.mkdir(parents=True, exist_ok=True)
+        if self.operator is not None:
+            self.identities[cfg.name] = self.operator.issue(cfg.kind, cfg.name).to_text()
         sup = Supervised(proc=proc, config_path=config_path, log_path=log_path)
         self.children[cfg.name] = sup
         return sup
@@ -64,7 +72,8 @@ class Launcher:
 
     def start(self, sup: Supervised) -> None:
         argv = self.command(sup)
-        payload = self.wrap.stdin_payload(sup.proc, _role_argv(sup))
+        identity = self.identities.get(sup.name)
+        payload = self.wrap.stdin_payload(sup.proc, _role_argv(sup), identity)
         out_path = self.wrap.output_path(sup)
         logf = open(sup.log_path, "ab", buffering=0)
         outf = None
@@ -80,7 +89,7 @@ class Launcher:
                 stdin=subprocess.PIPE if payload is not None else subprocess.DEVNULL,
                 stdout=outf if outf is not None else logf,
                 stderr=logf if outf is not None else subprocess.STDOUT,
-                env=self.env,
+                env=self.env if identity is None else {**self.env, IDENTITY_ENV: identity},
                 start_new_session=True,
                 preexec_fn=die_with_parent,
             )

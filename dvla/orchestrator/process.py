@@ -90,9 +90,10 @@ class CommandWrapper:
     def __call__(self, proc: Process, argv: list[str]) -> list[str]:
         return argv
 
-    def stdin_payload(self, proc: Process, argv: list[str]) -> bytes | None:
+    def stdin_payload(self, proc: Process, argv: list[str], identity: str | None = None) -> bytes | None:
         """Bytes written to the process's stdin at start (None: stdin is /dev/null). `argv` is the
-        unwrapped role command. The pipe then stays open; closing it asks the process to stop."""
+        unwrapped role command, `identity` its credential text. The pipe then stays open;
+        closing it asks the process to stop."""
         return None
 
     def output_path(self, sup: Supervised) -> Path | None:

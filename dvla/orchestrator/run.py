@@ -21,7 +21,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ..config import TlsConfig, Topology
-from ..fabric import Fabric, load_secret, new_secret, plane_config
+from ..fabric import Fabric, TlsFiles, load_secret, new_secret, plane_config
+from ..fabric.identity import Identity, IdentityError
 from ..fabric.messages import Command
 from .accounting import run_accounting
 from .launcher import Launcher, log_tail
@@ -144,19 +145,52 @@ def resolve_secret(topo: Topology, run_dir: Path) -> tuple[str, str]:
     return secret, str(path)
 
 
+def resolve_operator(run: str, run_dir: Path) -> tuple[Identity, str]:
+    """(the run's operator identity, its file): kept in the run directory (0600), so a
+    continued run and the tools (`dvla status`, `dvla stop`) speak as the same operator."""
+    path = run_dir / "operator.id"
+    if path.exists():
+        operator = Identity.from_text(path.read_text(), str(path))
+        if operator.run == run:
+            return operator, str(path)
+    operator = Identity.operator(run)
+    write_private(path, operator.to_text())
+    return operator, str(path)
+
+
 def ctrl_tls(topo: Topology) -> TlsConfig | None:
     """The TLS files a tool needs to reach the ctrl plane (None when it is plain TCP)."""
     return topo.tls if topo.tls is not None and "ctrl" in topo.tls.planes else None
 
 
 def tool_fabric(run: str, entry: tuple[str, ...], secret: bytes, name: str = "orchestrator", tls: Any = None,
-                open_timeout_s: float = 60.0) -> Fabric:
+                open_timeout_s: float = 60.0, identity: Identity | None = None) -> Fabric:
     """A client-only fabric for tools (orchestrator, `dvla status`) on the ctrl plane (`tls`: the
     topology's TLS files when the ctrl plane uses TLS). Opening retries until `open_timeout_s`:
     the router's listener accepts connections by then (the launcher waited for it), but opening
     a session on a machine loaded by every role's start-up can take many seconds."""
     conf = plane_config(mode="client", connect=entry, tls=tls)
-    return Fabric(run=run, name=name, ctrl_conf=conf, data_conf=None, secret=secret, open_timeout_s=open_timeout_s)
+    return Fabric(run=run, name=name, ctrl_conf=conf, data_conf=None, secret=secret, open_timeout_s=open_timeout_s,
+                  identity=identity)
+
+
+def state_fabric(state: dict[str, Any], name: str, entry: tuple[str, ...] | None = None) -> Fabric:
+    """A tool's fabric for the live run whose state.json is `state`: its secret, its operator
+    identity (commands and status queries need it), its TLS files. Raises ValueError (secret or
+    identity unreadable) or ConnectionError."""
+    secret = load_secret(state.get("secret_file"))
+    identity = None
+    if state.get("operator_identity"):
+        path = state["operator_identity"]
+        try:
+            identity = Identity.from_text(Path(path).read_text(), path)
+        except OSError as err:
+            raise ValueError(f"cannot read the operator identity {path}: {err.strerror or err}") from err
+        except IdentityError as err:
+            raise ValueError(str(err)) from err
+    tls = state.get("ctrl_tls")
+    return tool_fabric(state["run"], entry or tuple(state["ctrl_entry"]), secret, name=name,
+                       tls=TlsFiles(**tls) if tls else None, identity=identity)
 
 
 class Up:
@@ -172,6 +206,7 @@ class Up:
         self.run_dir, self.continued = prepare_run_dir(opts.runs_root, self.topo.run, opts.resume, opts.fresh)
         self.plan: Plan = make_plan(self.topo, str(self.run_dir), opts.base_port)
         self.secret, self.secret_source = resolve_secret(self.topo, self.run_dir)
+        self.operator, self.operator_path = resolve_operator(self.topo.run, self.run_dir)
         self.events: list[str] = [f"continuing {self.run_dir}: {self.continued}"] if self.continued else []
         self.reason: str | None = None
         self.monitor: Monitor | None = None
@@ -181,7 +216,7 @@ class Up:
         env["DVLA_SECRET"] = self.secret
         env.setdefault("PYTHONUNBUFFERED", "1")
         env.setdefault("OMP_NUM_THREADS", "1")
-        self.launcher = Launcher(self.run_dir, env, max_restarts=opts.max_restarts)
+        self.launcher = Launcher(self.run_dir, env, max_restarts=opts.max_restarts, operator=self.operator)
 
     def interrupt(self) -> None:
         self._interrupted.set()
@@ -195,6 +230,7 @@ class Up:
             # what `dvla status` needs to reach the ctrl plane (fabric.TlsFiles' fields)
             "ctrl_tls": None if tls is None else {"root_ca": tls.root_ca, "cert": tls.cert, "key": tls.key, "mtls": tls.mtls},
             "secret_file": self.secret_source if self.secret_source != "DVLA_SECRET" else None,
+            "operator_identity": self.operator_path,
             "children": self.launcher.pids(),
             "restarts": {n: c.restarts for n, c in self.launcher.children.items()},
             "netns": self.netns.names() if self.netns else [],
@@ -223,7 +259,7 @@ class Up:
             self.launcher.start_all()
             self._write_state()
             fabric = tool_fabric(self.topo.run, self.plan.ctrl_entry, bytes.fromhex(self.secret),
-                                 tls=ctrl_tls(self.topo))
+                                 tls=ctrl_tls(self.topo), identity=self.operator)
             try:
                 self.monitor = Monitor(fabric, self.run_dir, self.topo.task.budget)
                 code = self._watch(fabric)

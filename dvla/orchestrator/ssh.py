@@ -14,8 +14,12 @@ Two halves live here, because they speak one small protocol:
   a local launch (``python -m dvla.roles.<kind> --config FILE``, secret in its environment),
   streams its output to stderr (which ssh carries to the role's log in the local run directory),
   and stops it (SIGTERM, then SIGKILL) as soon as stdin reaches end-of-file. When the role has
-  exited it writes the files the role produced in the remote run directory (summaries,
-  checkpoints) as a tar stream on stdout; the local side unpacks it into the run directory.
+  exited it writes the role's result files (its summary and chunk counters; see RESULT_DIRS) as
+  a tar stream on stdout; the local side checks every member, then unpacks it into the run
+  directory. Checkpoints, configs and caches stay on the node.
+
+A remote run directory is only ever deleted when it carries dvla's token file (an earlier run's):
+a directory of someone else's at that path stops the launch (:func:`run_dir_action`).
 
 ssh always runs with BatchMode (keys only, never a prompt); :func:`check_host` turns a failing
 connection into one line naming the host.
@@ -29,6 +33,7 @@ import json
 import logging
 import os
 import platform
+import re
 import shlex
 import shutil
 import signal
@@ -45,6 +50,7 @@ from typing import Any
 import dvla
 
 from ..config import SshConfig, Topology
+from ..fabric.identity import IDENTITY_ENV
 from .launcher import die_with_parent, killpg, last_line
 from .process import CommandWrapper, Process, Supervised, is_local_host
 
@@ -56,13 +62,30 @@ SSH_FAILED = 255
 REMOTE_STOP_GRACE_S = 10.0
 #: environment variables a remote role gets from the orchestrator's environment, when set there
 FORWARDED_ENV = ("DVLA_LOG_LEVEL", "OMP_NUM_THREADS", "PYTHONUNBUFFERED")
-#: files of the remote run directory never shipped back (configs are ours, *.tmp are half-written)
-NOT_SHIPPED_DIRS = ("roles",)
+#: what a remote role may send back into the local run directory: its own files directly inside
+#: these directories (its summary ``summaries/<role>.json``, its chunk counters
+#: ``counters/<role>.<incarnation>.<pid>``) and, from an actor, these top-level files (the root
+#: actor's version ledger). Nothing else (checkpoints, role configs, caches, topology.yaml,
+#: state.json, the secret) is sent, and a result tar holding anything else is refused whole.
+#: (directory -> what follows "<role>." in a file name there)
+RESULT_DIRS = {"summaries": re.compile(r"json"), "counters": re.compile(r"[0-9]{1,10}\.[0-9]{1,10}")}
+RESULT_FILES = ("versions.csv",)
+#: marks a remote run directory as dvla's own: only a directory holding it is ever deleted
 TOKEN_FILE = ".dvla-run-token"
+#: exit status of `probe` when the remote run directory exists but is not dvla's
+NOT_OURS = 3
 
 
 class SshError(RuntimeError):
     """A remote node cannot be reached or cannot run dvla; the message is one line naming the host."""
+
+
+class RunDirError(RuntimeError):
+    """The remote run directory exists but is not dvla's own: it is left alone (one line, naming it)."""
+
+
+class ResultsRefused(SshError):
+    """A remote node's result tar holds something other than result files: nothing of it is unpacked."""
 
 
 # ----------------------------------------------------------------------------------------------
@@ -78,11 +101,13 @@ class SshTarget:
 
     @property
     def destination(self) -> str:
-        return f"{self.ssh.user}@{self.host}" if self.ssh.user else self.host
+        host = self.host[1:-1] if self.host.startswith("[") else self.host  # ssh wants IPv6 bare
+        return f"{self.ssh.user}@{host}" if self.ssh.user else host
 
     def label(self) -> str:
-        """``user@host:port`` for messages."""
-        return f"{self.destination}:{self.ssh.port}"
+        """``user@host:port`` for messages (an IPv6 host in brackets)."""
+        host = f"[{self.host}]" if ":" in self.host and not self.host.startswith("[") else self.host
+        return f"{self.ssh.user}@{host}:{self.ssh.port}" if self.ssh.user else f"{host}:{self.ssh.port}"
 
     def argv(self, remote_command: str) -> list[str]:
         """The ssh client command line running `remote_command` (a shell string) on the host."""
@@ -106,26 +131,34 @@ class SshTarget:
             argv += ["-i", s.identity_file]
         for key, value in opts.items():
             argv += ["-o", f"{key}={value}"]
-        return argv + [self.destination, "--", remote_command]
+        # "--" first: the destination is never read as an option (a host "-oProxyCommand=..."
+        # would run a command here), whatever the topology's validation let through
+        return argv + ["--", self.destination, remote_command]
 
     def python_command(self, *args: str) -> str:
         """Shell string running the remote Python with `args` (each quoted)."""
         return " ".join(shlex.quote(a) for a in (self.ssh.python, *args))
 
 
-def check_host(target: SshTarget) -> dict[str, Any]:
+def check_host(target: SshTarget, prepare: tuple[str, str] | None = None) -> dict[str, Any]:
     """Log in once and ask the remote Python about itself; raise :class:`SshError` (one line) if
-    the host, the login or the remote dvla fails. Returns what the remote side reported."""
+    the host, the login or the remote dvla fails. Returns what the remote side reported.
+
+    With `prepare` (remote run directory, run token) the remote side also makes that directory
+    the run's (:func:`prepare_run_dir`); one that is not dvla's own is an SshError naming it."""
     timeout = target.ssh.connect_timeout_s + 20
     argv = target.argv(target.python_command("-m", "dvla.orchestrator.ssh", "probe"))
+    header = json.dumps({"run_dir": prepare[0], "token": prepare[1]}) + "\n" if prepare else ""
     try:
-        proc = subprocess.run(argv, stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=timeout)
+        proc = subprocess.run(argv, input=header, capture_output=True, text=True, timeout=timeout)
     except FileNotFoundError:
         raise SshError(f"ssh {target.label()}: the ssh client is not installed (apt-get install openssh-client)") from None
     except subprocess.TimeoutExpired:
         raise SshError(f"ssh {target.label()}: no answer in {timeout:.0f} s") from None
     if proc.returncode == SSH_FAILED:
         raise SshError(f"ssh {target.label()} failed: {last_line(proc.stderr)}")
+    if proc.returncode == NOT_OURS:
+        raise SshError(f"ssh {target.label()}: {last_line(proc.stderr)}")
     if proc.returncode != 0:
         raise SshError(f"ssh {target.label()}: remote python {target.ssh.python!r} cannot run dvla "
                        f"(exit {proc.returncode}): {last_line(proc.stderr)}")
@@ -160,13 +193,14 @@ class SshWrapper(CommandWrapper):
         return str(PurePosixPath(target.ssh.workdir) / self.topo.run)
 
     def check_all(self) -> None:
-        """Probe every remote host once, in parallel; raise one :class:`SshError` for the first failure."""
+        """Probe every remote host once, in parallel, and prepare its run directory; raise one
+        :class:`SshError` for the first failure."""
         targets = {t.label(): t for t in self.targets.values()}
         errors: dict[str, str] = {}
 
         def probe(label: str, t: SshTarget) -> None:
             try:
-                info = check_host(t)
+                info = check_host(t, prepare=(self.remote_run_dir(t), self.token))
                 log.info("ssh %s ok: python %s, dvla at %s", label, info.get("python"), info.get("dvla"))
             except SshError as err:
                 errors[label] = str(err)
@@ -187,10 +221,10 @@ class SshWrapper(CommandWrapper):
             return self.local(proc, argv)
         return target.argv(target.python_command("-m", "dvla.orchestrator.ssh", "serve"))
 
-    def stdin_payload(self, proc: Process, argv: list[str]) -> bytes | None:
+    def stdin_payload(self, proc: Process, argv: list[str], identity: str | None = None) -> bytes | None:
         target = self.target(proc)
         if target is None:
-            return self.local.stdin_payload(proc, argv)
+            return self.local.stdin_payload(proc, argv, identity)
         module = argv[argv.index("-m") + 1]  # the same entry point as a local launch
         header = {
             "module": module,
@@ -199,6 +233,7 @@ class SshWrapper(CommandWrapper):
             "token": self.token,
             "secret_env": proc.config.secret_env,
             "secret": self.secret_hex,
+            "identity": identity,
             "env": self.env,
         }
         return (json.dumps(header) + "\n").encode()
@@ -214,24 +249,50 @@ class SshWrapper(CommandWrapper):
             return self.local.finished(sup, code)
         path = self.output_path(sup)
         assert path is not None
-        note = None
+        notes = []
         if code == SSH_FAILED:
             try:
                 why = last_line(sup.log_path.read_text(errors="replace")[-4000:])
             except OSError:
                 why = "(no log)"
-            note = f"{sup.name}: ssh {target.label()} failed: {why}"
+            notes.append(f"{sup.name}: ssh {target.label()} failed: {why}")
         try:
-            unpacked = unpack_results(path, sup.log_path.parent.parent)
+            unpacked = unpack_results(path, sup.log_path.parent.parent, sup.name, target.label())
             if unpacked:
                 log.info("%s: %d file(s) back from %s", sup.name, len(unpacked), target.host)
+        except ResultsRefused as err:
+            log.error("%s: %s", sup.name, err)
+            notes.append(f"{sup.name}: {err}")
         except (OSError, tarfile.TarError) as err:
             log.warning("%s: results from %s unreadable: %s", sup.name, target.host, err)
-        return note
+        return "; ".join(notes) or None
 
 
-def unpack_results(path: Path, run_dir: Path) -> list[str]:
-    """Unpack a remote role's result tar into `run_dir` (regular files under it only); delete it."""
+def result_path_problem(member: tarfile.TarInfo, role: str) -> str | None:
+    """Why a member of role `role`'s result tar may not be unpacked into the local run directory
+    (see RESULT_DIRS), or None."""
+    if not member.isfile():
+        return "not a regular file (links, devices and directories are refused)"
+    rel = PurePosixPath(member.name)
+    if rel.is_absolute() or ".." in rel.parts:
+        return "an absolute path or '..'"
+    parts = rel.parts
+    if len(parts) == 1 and parts[0] in RESULT_FILES and role.startswith("actor-"):
+        return None
+    if len(parts) == 2 and parts[0] in RESULT_DIRS and parts[1].startswith(f"{role}."):
+        if RESULT_DIRS[parts[0]].fullmatch(parts[1][len(role) + 1:]):  # the part after "<role>."
+            return None
+    expected = ", ".join(f"{d}/{role}.*" for d in RESULT_DIRS)
+    return f"not a result file of {role} (expected {expected}, or an actor's {', '.join(RESULT_FILES)})"
+
+
+def unpack_results(path: Path, run_dir: Path, role: str, host: str = "remote node") -> list[str]:
+    """Unpack remote role `role`'s result tar into `run_dir`; delete the tar.
+
+    Every member is checked first (:func:`result_path_problem`): one that is not a result file
+    of this role (a checkpoint, a role config, a link, ``../x``, another role's summary...)
+    refuses the whole tar with :class:`ResultsRefused` naming `host` and the member, and nothing
+    of it is unpacked."""
     if not path.exists():
         return []
     names: list[str] = []
@@ -239,11 +300,13 @@ def unpack_results(path: Path, run_dir: Path) -> list[str]:
         if path.stat().st_size == 0:
             return names
         with tarfile.open(path, "r:") as tar:
-            for member in tar:
+            members = tar.getmembers()
+            for member in members:
+                problem = result_path_problem(member, role)
+                if problem:
+                    raise ResultsRefused(f"results from {host} refused, nothing unpacked: {member.name[:200]!r} is {problem}")
+            for member in members:
                 rel = PurePosixPath(member.name)
-                if not member.isfile() or rel.is_absolute() or ".." in rel.parts:
-                    log.warning("ignoring %r in remote results %s", member.name, path.name)
-                    continue
                 dest = run_dir.joinpath(*rel.parts)
                 dest.parent.mkdir(parents=True, exist_ok=True)
                 src = tar.extractfile(member)
@@ -263,19 +326,44 @@ def unpack_results(path: Path, run_dir: Path) -> list[str]:
 # remote half: `python -m dvla.orchestrator.ssh serve|probe`
 
 
-def _prepare_run_dir(run_dir: Path, token: str) -> None:
-    """Create the remote run directory; empty it first if an earlier run (another token) left it."""
+def run_dir_action(run_dir: Path, token: str) -> tuple[str, str]:
+    """What to do with the remote run directory for the run holding `token`, and why:
+    ``create`` (nothing there), ``keep`` (this run's: a restart), ``wipe`` (dvla's, left by an
+    earlier run: its checkpoint would be resumed) or ``refuse`` (anything else: never touched).
+
+    Only a directory carrying dvla's token file, owned by this user, is ever deleted."""
+    if not os.path.lexists(run_dir):
+        return "create", "no such directory"
+    if run_dir.is_symlink() or not run_dir.is_dir():
+        return "refuse", "exists and is not a directory (a symbolic link or a file)"
+    if run_dir.stat().st_uid != os.getuid():
+        return "refuse", "exists and belongs to another user"
+    token_path = run_dir / TOKEN_FILE
+    if token_path.is_symlink() or not token_path.is_file():
+        return "refuse", f"exists and is not a dvla run directory (no {TOKEN_FILE})"
+    if token_path.read_text(errors="replace").strip() == token:
+        return "keep", "this run's"
+    return "wipe", "left by an earlier run"
+
+
+def prepare_run_dir(run_dir: Path, token: str) -> None:
+    """Make `run_dir` the remote run directory of the run holding `token` (see
+    :func:`run_dir_action`); raise :class:`RunDirError` (one line naming host and path) when
+    something that is not dvla's is in the way: it is left as it is."""
     run_dir.parent.mkdir(parents=True, exist_ok=True)
     lock_path = run_dir.parent / f".{run_dir.name}.lock"
     with open(lock_path, "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # roles of one node start at once: one of them wipes
-        token_path = run_dir / TOKEN_FILE
-        current = token_path.read_text().strip() if token_path.exists() else None
-        if current != token:
-            if run_dir.exists():
-                shutil.rmtree(run_dir)
-            run_dir.mkdir(parents=True)
-            token_path.write_text(token + "\n")
+        action, why = run_dir_action(run_dir, token)
+        if action == "refuse":
+            raise RunDirError(f"{os.uname().nodename}: {run_dir} {why}; left as it is: move it away or"
+                              " set ssh.workdir to another directory")
+        if action == "keep":
+            return
+        if action == "wipe":
+            shutil.rmtree(run_dir)
+        run_dir.mkdir()
+        write_private(run_dir / TOKEN_FILE, token + "\n")
 
 
 def write_private(path: Path, text: str) -> None:
@@ -285,17 +373,21 @@ def write_private(path: Path, text: str) -> None:
         f.write(text)
 
 
-def _results_tar(run_dir: Path, since: float) -> bytes:
-    """Files the role wrote in the run directory (modified since it started), as a tar."""
+def _results_tar(run_dir: Path, role: str, since: float) -> bytes:
+    """Result files of `role` in the run directory (modified since it started), as a tar: only
+    what the local side accepts (:func:`result_path_problem`)."""
     buf = io.BytesIO()
+    candidates = [run_dir / f for f in RESULT_FILES] + [p for d in RESULT_DIRS for p in sorted((run_dir / d).glob("*"))]
     with tarfile.open(fileobj=buf, mode="w") as tar:
-        for path in sorted(run_dir.rglob("*")):
-            rel = path.relative_to(run_dir)
-            if not path.is_file() or rel.parts[0] in NOT_SHIPPED_DIRS or path.name == TOKEN_FILE:
+        for path in candidates:
+            if path.is_symlink() or not path.is_file() or path.suffix in (".tmp", ".part"):
                 continue
-            if path.suffix in (".tmp", ".part") or path.stat().st_mtime < since:
+            if path.stat().st_mtime < since:
                 continue
-            tar.add(path, arcname=rel.as_posix(), recursive=False)
+            info = tar.gettarinfo(path, arcname=path.relative_to(run_dir).as_posix())
+            if result_path_problem(info, role) is None:
+                with open(path, "rb") as f:
+                    tar.addfile(info, f)
     return buf.getvalue()
 
 
@@ -309,7 +401,11 @@ def serve() -> int:
     header = json.loads(line)
     config = header["config"]
     run_dir = Path(os.path.expanduser(header["run_dir"])).absolute()
-    _prepare_run_dir(run_dir, header["token"])
+    try:
+        prepare_run_dir(run_dir, header["token"])
+    except RunDirError as err:
+        print(f"dvla ssh serve: {err}", file=sys.stderr, flush=True)
+        return NOT_OURS
     config["run_dir"] = str(run_dir)
     roles_dir = run_dir / "roles"
     roles_dir.mkdir(exist_ok=True)
@@ -319,6 +415,8 @@ def serve() -> int:
     env.update(header.get("env", {}))
     env.setdefault("PYTHONUNBUFFERED", "1")
     env[header["secret_env"]] = header["secret"]  # the role's environment: never a command line
+    if header.get("identity"):
+        env[IDENTITY_ENV] = header["identity"]
 
     hangup = threading.Event()
 
@@ -356,7 +454,7 @@ def serve() -> int:
         time.sleep(0.1)
     code = child.returncode
     try:
-        stdout.write(_results_tar(run_dir, started))
+        stdout.write(_results_tar(run_dir, config["name"], started))
         stdout.flush()
     except (BrokenPipeError, OSError):
         pass  # the orchestrator is gone: nobody to send results to
@@ -364,7 +462,16 @@ def serve() -> int:
 
 
 def probe() -> int:
-    """Print what `dvla up` needs to know about this host, as one JSON line."""
+    """Print what `dvla up` needs to know about this host, as one JSON line. A JSON line on stdin
+    (``run_dir``, ``token``) asks for the run directory to be prepared first (:func:`prepare_run_dir`)."""
+    line = sys.stdin.readline()
+    if line.strip():
+        header = json.loads(line)
+        try:
+            prepare_run_dir(Path(os.path.expanduser(header["run_dir"])).absolute(), header["token"])
+        except RunDirError as err:
+            print(err, file=sys.stderr)
+            return NOT_OURS
     print(json.dumps({"host": os.uname().nodename, "python": platform.python_version(), "dvla": dvla.__file__}))
     return 0
 

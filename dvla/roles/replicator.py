@@ -58,6 +58,8 @@ class Replicator:
         self._flat: np.ndarray | None = None
         #: checksum of the newest verified weights (status: replicas compared with the actor's)
         self.held_checksum = ""
+        #: the actor's signed manifest of the held version (proof served with snapshots)
+        self._proof = b""
         #: version -> forwarding times of its chunks (see _timing)
         self.timing: dict[int, dict[str, Any]] = {}
 
@@ -68,7 +70,8 @@ class Replicator:
             f, self.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version, on_message=self._cut_through
         )
         serve_snapshots(  # children's catch-up: the verified active version
-            f, self.cfg.name, self.layout.hash, self._snap_lock, lambda: self.policy_version, self._held_snapshot
+            f, self.cfg.name, self.layout.hash, self._snap_lock, lambda: self.policy_version, self._held_snapshot,
+            lambda: self._proof,
         )
         self._stop = sl.stop_event
         sl.lane("recv", self._recv)
@@ -84,6 +87,7 @@ class Replicator:
         with self._snap_lock:
             self._flat = flat
             self.held_checksum = self.weights.decoder.checksum
+            self._proof = self.weights.proof
             self.policy_version = version
 
     def _held_snapshot(self) -> Snapshot:

@@ -22,6 +22,8 @@ from typing import Any, Protocol
 
 from ..config import RoleConfig
 from ..fabric import Fabric, load_secret, plane_config
+from ..fabric.zconfig import plane_max_message_size, traj_chunk_bytes
+from ..fabric.identity import IDENTITY_ENV, Identity, IdentityError
 from ..fabric.messages import Command, RoleStatus
 from .swimlane import Swimlane, pin_cpus, set_torch_threads
 
@@ -49,13 +51,34 @@ class Role(Protocol):
 
 def open_fabric(cfg: RoleConfig) -> Fabric:
     """The role's two sessions, as the plan wired them."""
+    ctrl_cap = cfg.replication.max_message_mib << 20
     ctrl = plane_config(mode=cfg.ctrl.mode, listen=cfg.ctrl.listen, connect=cfg.ctrl.connect, shared_memory=cfg.shared_memory,
-                        tls=cfg.ctrl.tls)
+                        tls=cfg.ctrl.tls, max_message_size=ctrl_cap)
     data = None
     if cfg.data.listen or cfg.data.connect:
         data = plane_config(mode=cfg.data.mode, listen=cfg.data.listen, connect=cfg.data.connect,
-                            shared_memory=cfg.shared_memory, tls=cfg.data.tls)
-    return Fabric(run=cfg.run, name=cfg.name, ctrl_conf=ctrl, data_conf=data, secret=load_secret(None, cfg.secret_env))
+                            shared_memory=cfg.shared_memory, tls=cfg.data.tls, max_message_size=data_plane_cap(cfg.task))
+    identity = Identity.from_env()
+    if identity is not None and (identity.name, identity.kind, identity.run) != (cfg.name, cfg.kind, cfg.run):
+        raise IdentityError(f"{IDENTITY_ENV} names {identity.kind} {identity.name!r} of run {identity.run!r}, "
+                            f"not {cfg.kind} {cfg.name!r} of run {cfg.run!r}")
+    fabric = Fabric(run=cfg.run, name=cfg.name, ctrl_conf=ctrl, data_conf=data,
+                    secret=load_secret(None, cfg.secret_env), identity=identity)
+    # Weights come from the actor at the top of this process's chain, and from nobody else.
+    fabric.weights_source = cfg.ancestors[-1] if cfg.ancestors else None
+    fabric.max_ctrl_bytes = ctrl_cap
+    return fabric
+
+
+def data_plane_cap(task: Any) -> int:
+    """The data plane's Zenoh message cap, from the sizes the task declares: the largest chunk
+    its env group can send (state observations bounded at 1,024 float32 per env; images at
+    two cameras of ``image_size`` squared RGB bytes plus the instruction's tokens), doubled."""
+    obs = 4096
+    if task.obs_mode != "state":
+        obs += 2 * 3 * task.image_size ** 2 + 8 * task.instruction_tokens
+    chunk = traj_chunk_bytes(chunk_steps=task.chunk_steps, n_envs=task.envs_per_rollout, obs_bytes=obs, act_dim=64)
+    return plane_max_message_size(chunk, headroom=2.0)
 
 
 def setup_logging(name: str) -> None:

@@ -13,6 +13,7 @@ replicators), with the one snapshot queryable both ends serve (`serve_snapshots`
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import threading
 import time
@@ -77,9 +78,13 @@ class WeightSync:
         self.decoder = WeightDecoder(layout)
         self.assembler: ChunkAssembler | None = None
         self.manifest: WeightManifest | None = None
+        check_snapshot_fits(fabric, layout)
         # No encoding produces more than a full version: the assembler buffer is that big, once.
         self.max_bytes = layout.nbytes
         self.version = -1
+        #: the actor's signed manifest envelope of `version` (served with snapshots of it)
+        self.proof = b""
+        self._proofs: dict[int, bytes] = {}  # manifest envelopes of versions being assembled
         self.counters = {"versions": 0, "snapshots": 0, "rejected": 0, "repairs": 0, "reattach": 0}
         self._alive: set[str] = set(parents)
         self._lock = threading.Lock()
@@ -161,6 +166,8 @@ class WeightSync:
         with ctx.busy():
             if self.on_message is not None:
                 self.on_message(msg, envelope)
+            if isinstance(msg, WeightManifest):
+                self._proofs = {msg.version: envelope}
             self._handle(msg)
             ctx.count()
 
@@ -207,6 +214,7 @@ class WeightSync:
             self._want_snapshot = True
             return
         self.version = m.version
+        self.proof = self._proofs.get(m.version, b"")
         self.counters["versions"] += 1
         self.on_version(m.version, flat)
 
@@ -248,6 +256,7 @@ class WeightSync:
         try:
             if snap.layout_hash != self.layout.hash:
                 raise ReplicationError(f"layout {snap.layout_hash} != ours {self.layout.hash}")
+            self._check_proof(p, snap)
             self.decoder.reset()
             flat = self.decoder.load_snapshot(Snapshot(snap.version, snap.data, snap.checksum))
         except ReplicationError as err:
@@ -256,10 +265,26 @@ class WeightSync:
             self._next_fetch = time.monotonic() + 0.5
             return
         self.version = snap.version
+        self.proof = snap.manifest
         self.counters["snapshots"] += 1
         self._want_snapshot = False
         log.info("weights: caught up to v%d by snapshot from %s", snap.version, p)
         self.on_version(snap.version, flat)
+
+    def _check_proof(self, parent: str, snap: WeightSnapshot) -> None:
+        """A snapshot is applied only if the actor signed its content: its manifest envelope
+        verifies as the actor's, names the same version and layout, and its SHA-256 digest is
+        that of the data (a relay cannot make up weights)."""
+        if not snap.manifest:
+            raise ReplicationError(f"snapshot v{snap.version} from {parent} carries no signed manifest")
+        got = self.fabric.open_signed(self.fabric.keys.weights_signed(), snap.manifest, WeightManifest, fresh=False)
+        if got is None:
+            raise ReplicationError(f"snapshot v{snap.version} from {parent}: its manifest does not verify as the actor's")
+        m = got[1]
+        if m.version != snap.version or m.layout_hash != snap.layout_hash:
+            raise ReplicationError(f"snapshot v{snap.version} from {parent} carries the manifest of v{m.version}")
+        if not m.digest or hashlib.sha256(snap.data).hexdigest() != m.digest:
+            raise ReplicationError(f"snapshot v{snap.version} from {parent}: data does not hash to the actor's digest")
 
     def status(self) -> dict[str, Any]:
         return {"parent": self.parent, "version": self.version, **self.counters}
@@ -267,15 +292,17 @@ class WeightSync:
 
 def serve_snapshots(
     fabric: Fabric, sender: str, layout_hash: str, lock: threading.Lock, held: Callable[[], int],
-    snapshot: Callable[[], Snapshot],
+    snapshot: Callable[[], Snapshot], proof: Callable[[], bytes],
 ) -> None:
     """Declare ``sender``'s ``snapshot`` queryable (children's catch-up and repair).
 
     ``held()`` is the version the caller holds (-1: none yet) and ``snapshot()`` builds it in
     full; both are called under ``lock``, which the caller also holds while it changes what they
-    read, so a reply never mixes two versions. A requester that is up to date (or asks before
-    anything is held) gets a header-only reply and never costs a full copy of the weights; the
-    full reply is encoded once per version, however many children ask.
+    read, so a reply never mixes two versions; ``proof()`` is the actor's signed manifest
+    envelope of that version. A requester that is up to date (or asks before anything is held)
+    gets a header-only reply and never costs a full copy of the weights; the full reply is
+    encoded once per version, however many children ask. Requests are answered by one thread
+    of their own from a short queue (never on Zenoh's receive thread; see Fabric.serve).
     """
     encoded: dict[int, bytes] = {}
 
@@ -290,11 +317,11 @@ def serve_snapshots(
                 encoded.clear()
                 encoded[version] = encode(WeightSnapshot(
                     sender=sender, version=snap.version, layout_hash=layout_hash, checksum=snap.checksum,
-                    data=bytes(snap.payload), created_ns=time.time_ns(),
+                    data=bytes(snap.payload), manifest=proof(), created_ns=time.time_ns(),
                 ))
             return encoded[version]
 
-    fabric.serve(fabric.keys.snapshot(sender), reply)
+    fabric.serve(fabric.keys.snapshot(sender), reply, SnapshotRequest, worker=True)
 
 
 class WeightPublisher:
@@ -308,13 +335,17 @@ class WeightPublisher:
         self.sender = sender
         self.layout = layout
         self.replication = replication
+        check_snapshot_fits(fabric, layout)
         self.encoder = WeightEncoder.from_config(layout, replication, start_version=start_version)
         self._lock = threading.Lock()  # a snapshot being served never sees a half-encoded version
+        #: the signed manifest envelope of the newest encoded version (sent first, and served
+        #: with snapshots as the proof of their content)
+        self._manifest = b""
 
     def serve(self) -> None:
         """Declare the ``snapshot`` queryable: children's catch-up with the newest version."""
         serve_snapshots(self.fabric, self.sender, self.layout.hash, self._lock,
-                        lambda: self.encoder.latest, lambda: self.encoder.snapshot())
+                        lambda: self.encoder.latest, lambda: self.encoder.snapshot(), lambda: self._manifest)
 
     def renumber(self, start_version: int) -> None:
         """Continue numbering after `start_version` (the next version is a full one)."""
@@ -322,16 +353,24 @@ class WeightPublisher:
             self.encoder = WeightEncoder.from_config(self.layout, self.replication, start_version=start_version)
 
     def encode(self, flat: np.ndarray) -> EncodedVersion:
-        """Encode the next version from the flat weights; snapshots served from now on are of it."""
+        """Encode the next version from the flat weights and sign its manifest (with the SHA-256
+        digest of the weights every replica will hold); snapshots served from now on are of it."""
         with self._lock:
-            return self.encoder.encode(flat)
+            enc = self.encoder.encode(flat)
+            digest = hashlib.sha256(memoryview(self.encoder.published).cast("B")).hexdigest()
+            manifest = WeightManifest(sender=self.sender, digest=digest, **enc.to_dict())
+            # not signed for the key it travels on: relays forward it unchanged
+            self._manifest = self.fabric.seal(self.fabric.keys.weights_signed(), manifest)
+            return enc
 
     def send(self, enc: EncodedVersion) -> int:
         """Sign and publish one encoded version: its manifest, then each chunk in order.
         Returns the bytes put on the wire."""
         f, key = self.fabric, self.fabric.keys.weights(self.sender)
         signed = f.keys.weights_signed()  # not `key`: relays forward these envelopes unchanged
-        sent = f.publish_ctrl(key, WeightManifest(sender=self.sender, **enc.to_dict()), weights=True, sign_key=signed)
+        with self._lock:
+            manifest = self._manifest
+        sent = f.publish_sealed(key, manifest, weights=True)
         for i, data in enumerate(enc.chunks):
             msg = WeightChunk(sender=self.sender, version=enc.version, index=i, n_chunks=enc.n_chunks, data=bytes(data))
             sent += f.publish_ctrl(key, msg, weights=True, sign_key=signed)
@@ -342,6 +381,16 @@ class WeightPublisher:
         """Checksum of the newest encoded version ("" before the first)."""
         with self._lock:
             return self.encoder.checksum
+
+
+def check_snapshot_fits(fabric: Fabric, layout: ParamLayout) -> None:
+    """Refuse to start when a full snapshot of this model exceeds the ctrl plane's message cap
+    (it could never be served or received)."""
+    cap = fabric.max_ctrl_bytes
+    need = layout.nbytes + (64 << 10)
+    if cap is not None and need > cap:
+        raise ValueError(f"replication.max_message_mib: {cap >> 20} MiB cannot carry a snapshot of this model "
+                         f"({need / 2**20:.1f} MiB); set it to at least {-(-need >> 20)}")
 
 
 def manifest_dict(m: WeightManifest) -> dict[str, Any]:

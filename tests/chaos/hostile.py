@@ -1,11 +1,14 @@
 """A hostile client of a running dvla cluster: it reaches both planes but holds no cluster secret.
 
-It signs with a key of its own (under the names of real roles), so everything it sends on the
-control plane must be refused as badly signed; it sends garbage and oversized payloads on the data
-plane, which is not signed and must be refused by the decoder; and it captures genuinely signed
-traffic from the wire (weights, eval results, commands) to replay it later, which the receivers'
-replay protection must refuse. Counting what was sent lets a test compare it with what each role
-reports having rejected, per reason, in its status (``planes``).
+It signs with a key of its own (under the names of real roles), so everything it sends on either
+plane must be refused (``key_id``: not the run's secret); it sends well-formed trajectory chunks
+under a real rollout's name (with NaN values and a far-future version), garbage, oversized
+payloads, 200 MB envelopes and puts on 100,000 made-up keys; it queries status and snapshots
+without signing; and it captures genuinely signed traffic from the wire (weights, eval results,
+commands) to replay it later, on its own keys and on other weight senders' keys and as replies
+to the run's own queries, which replay protection and reply binding must refuse. Counting what
+was sent lets a test compare it with what each role reports having rejected, per reason, in its
+status (``planes``).
 
     from .hostile import Attacker  # in a test module of tests/chaos
     with Attacker.for_run(run_dir) as atk:
@@ -39,6 +42,7 @@ from dvla.fabric.messages import (
     WeightManifest,
     WeightSnapshot,
 )
+from dvla.fabric.messages import TrajectoryChunk
 from dvla.fabric.signing import Signer
 
 #: a version number far above anything a run reaches: applied anywhere, it would show
@@ -60,6 +64,20 @@ def oversized_chunk() -> bytes:
     msgpack: the encoder refuses to write it)."""
     body = b"\x81" + _msgpack_str(b"rollout") + _msgpack_str(b"x" * OVERSIZE_STR)
     return b"\x83" + _msgpack_str(b"v") + b"\x01" + _msgpack_str(b"t") + _msgpack_str(b"traj") + _msgpack_str(b"b") + body
+
+
+def poisoned_chunk(rollout: str, obs_dim: int, act_dim: int, version: int, t: int = 4, n: int = 2) -> TrajectoryChunk:
+    """A well-formed chunk whose rewards are NaN and log-probs -inf (and `version` as given)."""
+    import numpy as np
+
+    obs = {"state": np.zeros((t, n, obs_dim), np.float32)}
+    return TrajectoryChunk(
+        rollout=rollout, seq=0, policy_version=version, env_steps=t * n, obs=obs,
+        actions=np.zeros((t, n, act_dim), np.float32), logprobs=np.full((t, n), -np.inf, np.float32),
+        rewards=np.full((t, n), np.nan, np.float32), terminated=np.zeros((t, n), bool),
+        truncated=np.zeros((t, n), bool), success=np.zeros((t, n), bool),
+        next_obs={"state": np.zeros((n, obs_dim), np.float32)}, final_obs={"state": np.zeros((t, n, obs_dim), np.float32)},
+    )
 
 
 def garbage(n: int) -> bytes:
@@ -181,6 +199,52 @@ class Attacker:
             self.sent.add("forged_queries")
             self.sent.add("replies_to_forged_queries", sum(1 for r in replies if r.ok is not None))
 
+    def forged_chunks(self) -> None:
+        """Well-formed chunks under every real rollout's name: NaN rewards at version 0 and a far
+        future version, signed with the attacker's key and sent bare (the codec's bytes only)."""
+        for name in self.names("rollout"):
+            key = self.keys.traj(name)
+            for version in (0, FORGED_VERSION):
+                body = encode(poisoned_chunk(name, 8, 8, version))
+                self.data.put(key, Signer(self.key, name).seal(key, body), congestion_control=zenoh.CongestionControl.BLOCK)
+                self.data.put(key, body, congestion_control=zenoh.CongestionControl.BLOCK)
+                self.sent.add("data_forged_chunks", 2)
+
+    def many_keys(self, n: int = 100_000) -> None:
+        """1-byte puts on `n` distinct made-up trajectory keys."""
+        for i in range(n):
+            self.data.put(self.keys.traj(f"r{i}"), b"x", congestion_control=zenoh.CongestionControl.DROP)
+        self.sent.add("data_many_keys", n)
+
+    def huge_envelopes(self, mb: int = 200) -> None:
+        """One `mb` MB envelope on a trajectory key and on the commands key."""
+        big = b"DVS2" + bytes(mb << 20)
+        self.data.put(self.keys.traj(self.names("rollout")[0]), big, congestion_control=zenoh.CongestionControl.BLOCK)
+        self.ctrl.put(self.keys.cmd("all"), big, congestion_control=zenoh.CongestionControl.BLOCK)
+        self.sent.add("huge_envelopes", 2)
+
+    def unsigned_queries(self) -> int:
+        """Status and snapshot queries without any payload; returns the replies they got."""
+        got = 0
+        for key in (self.keys.status_all(), f"{self.keys.root}/ctrl/snapshot/*"):
+            got += sum(1 for r in self.ctrl.get(key, timeout=1.0) if r.ok is not None)
+            self.sent.add("unsigned_queries")
+        return got
+
+    def moved_weights(self) -> int:
+        """Captured weight envelopes put again on every *other* weight sender's key."""
+        with self._lock:
+            msgs = [(k, raw) for k, raw in self.captured if "/ctrl/weights/" in k]
+        n = 0
+        for key, raw in msgs:
+            for sender in self.names("actor", "replicator"):
+                other = self.keys.weights(sender)
+                if other != key:
+                    self.ctrl.put(other, raw, congestion_control=zenoh.CongestionControl.DROP)
+                    n += 1
+        self.sent.add("moved_weights", n)
+        return n
+
     def rogue_queryables(self) -> None:
         """Answer every status and snapshot query too, with forged replies (a forged snapshot
         claims FORGED_VERSION)."""
@@ -195,6 +259,14 @@ class Attacker:
             key = self.keys.status(name)
             q.reply(key, self._forge(key, st, name))
             self.sent.add("forged_status_replies")
+            with self._lock:  # and genuinely signed envelopes captured earlier, replayed as replies
+                old = [raw for _k, raw in self.captured[:3]]
+            for raw in old:
+                try:
+                    q.reply(key, raw)
+                    self.sent.add("replayed_replies")
+                except Exception:
+                    pass
 
         def on_snapshot(q: zenoh.Query) -> None:
             for sender in self.names("actor", "replicator"):
@@ -218,7 +290,7 @@ class Attacker:
             keys += [self.keys.eval(name)] if evals else []
         for key in keys:
             self._put_ctrl(key, garbage(200), "ctrl_unsigned")
-            self._put_ctrl(key, b"DVS1" + garbage(20), "ctrl_malformed")
+            self._put_ctrl(key, b"DVS2" + bytes(4) + garbage(20), "ctrl_malformed")
 
     def data_garbage(self) -> None:
         """Garbage and an oversized message on every rollout's trajectory key and on a made-up one."""
@@ -243,6 +315,7 @@ class Attacker:
             self.forged_status_and_evals(evals)
             self.ctrl_garbage(evals)
             self.data_garbage()
+            self.forged_chunks()
             self.forged_queries()
             time.sleep(max(0.0, 1.0 / rounds_per_s - (time.monotonic() - t0)))
         return dict(self.sent.counts)

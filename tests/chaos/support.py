@@ -42,12 +42,10 @@ def wait_for(pred: Callable[[], Any], timeout: float, what: str, up: subprocess.
 
 
 def harness_fabric(run_dir: Path) -> Any:
-    """A ctrl-plane client signed with the run's secret (the harness, not an attacker)."""
-    from dvla.fabric import load_secret
-    from dvla.orchestrator.run import tool_fabric
+    """A ctrl-plane client with the run's secret and operator identity (the harness, not an attacker)."""
+    from dvla.orchestrator.run import state_fabric
 
-    st = state(run_dir)
-    return tool_fabric(st["run"], tuple(st["ctrl_entry"]), load_secret(st.get("secret_file")), name="test-harness")
+    return state_fabric(state(run_dir), "test-harness")
 
 
 def statuses(fabric: Any, timeout: float = 2.0) -> dict[str, Any]:

@@ -43,6 +43,8 @@ from dvla.fabric import (
     plane_config,
 )
 
+from dvla.fabric.fabric import UNAUTHENTICATED
+
 ROOT = Path(__file__).resolve().parents[2]
 RUN = "fabtest"
 SECRET = bytes.fromhex("5eed" * 16)
@@ -347,16 +349,21 @@ def test_garbage_and_oversized_data_payloads_are_rejected_and_counted(pair: Pair
         "wrong-type": encode(Command(target="all", verb="stop")),
         "other-sender": encode(make_chunk("rollout-9", 1)),  # claims another rollout's name
     }
-    for payload in bad.values():
-        rollout.data.put(key, payload)
+    for payload in bad.values():  # signed by a member of the run: they reach the decoder
+        rollout.data.put(key, rollout._signer.seal(key, payload))
+    rollout.data.put(key, good)  # a well-formed chunk, unsigned
+    rollout.data.put(key, Signer(b"k" * 32, rollout.name).seal(key, good))  # signed with another secret
     rollout.publish_traj(make_chunk(rollout.name, 7))  # the subscriber keeps working
 
     got = inbox.get(timeout=5.0)
     assert got is not None and got.seq == 7 and got.rollout == rollout.name
     assert inbox.get(timeout=0.3) is None
     acct = actor.accounting
-    assert acct.get(DATA, "received") == len(bad) + 1
-    assert acct.get(DATA, "rejected") == len(bad)
+    assert acct.get(DATA, "received") == len(bad) + 3
+    assert acct.get(DATA, "rejected") == len(bad) + 2
+    assert acct.get(DATA, "rejected.unsigned", UNAUTHENTICATED) == 1
+    assert acct.get(DATA, "rejected.key_id", UNAUTHENTICATED) == 1
+    assert acct.get(DATA, "rejected", rollout.name) == len(bad)  # a member's own bad data is its own
     assert acct.get(DATA, "rejected.oversize") == 2
     assert acct.get(DATA, "rejected.type") == 1
     assert acct.get(DATA, "rejected.sender_mismatch") == 1
@@ -449,12 +456,12 @@ def test_forged_unsigned_replayed_and_garbage_ctrl_messages_are_rejected(pair: P
     stale = Signer(SECRET, rollout.name, clock=lambda: time.time_ns() - 120 * 10**9).seal(key, body)
     signed_garbage = Signer(SECRET, rollout.name).seal(key, b"\xc1not msgpack")
     cases = [
-        (forged, "bad_signature"),
+        (forged, "key_id"),  # signed with another secret
         (bytes(tampered), "bad_signature"),
         (other_key, "bad_signature"),
         (body, "unsigned"),  # raw encoded bytes, no envelope
-        (os.urandom(200).replace(b"DVS1", b"XXXX"), "unsigned"),  # garbage
-        (b"DVS1" + os.urandom(60), "malformed"),  # garbage behind the magic
+        (os.urandom(200).replace(b"DVS2", b"XXXX"), "unsigned"),  # garbage
+        (b"DVS2" + os.urandom(60), "malformed"),  # garbage behind the magic
         (stale, "stale"),
         (signed_garbage, "malformed"),  # the envelope verifies, the payload does not decode
         (valid, None),
@@ -489,7 +496,7 @@ def test_forged_unsigned_replayed_and_garbage_ctrl_messages_are_rejected(pair: P
     assert wait_for(lambda: len(handled) >= 1, 5)
     time.sleep(0.3)
     assert [(s, c.verb) for s, c in handled] == [(rollout.name, "checkpoint")]
-    assert acct.get(CTRL, "rejected.bad_signature") == expected["bad_signature"] + 1
+    assert acct.get(CTRL, "rejected.key_id") == expected["key_id"] + 1
     assert acct.get(CTRL, "rejected.unsigned") == expected["unsigned"] + 1
 
 
@@ -507,23 +514,24 @@ def test_status_request_reply_and_wrong_secret(pair: Pair) -> None:
     assert len(replies) == 1
     sender, st = replies[0]
     assert sender == actor.name and st.env_steps == 1234 and st.extra == {"k": "v"}
-    # A wildcard selector reaches it too, with and without a (signed) request.
+    # A wildcard selector reaches it too, with and without a request (always signed).
     assert [s for s, _ in rollout.query(actor.keys.status_all(), timeout=5.0)] == [actor.name]
     req = Command(target=actor.name, verb="checkpoint")
     assert [s for s, _ in rollout.query(actor.keys.status_all(), req, timeout=5.0)] == [actor.name]
     assert [s for s, _ in rollout.query(actor.keys.status(actor.name), req, timeout=5.0)] == [actor.name]
     assert requests[0] is None and [r.verb for r in requests[2:]] == ["checkpoint", "checkpoint"]
 
-    # Wrong secret, no request: the actor replies, the intruder cannot verify the reply.
+    # Wrong secret, with or without a request: the actor refuses the query and does not answer.
     intruder = pair.client("intruder", secret=WRONG_SECRET)
-    assert intruder.query(actor.keys.status(actor.name), timeout=3.0) == []
-    assert intruder.accounting.get(CTRL, "rejected.bad_signature") == 1
-    # Wrong secret with a request: the actor refuses the request and does not answer at all.
     before = len(requests)
+    assert intruder.query(actor.keys.status(actor.name), timeout=3.0) == []
     assert intruder.query(actor.keys.status(actor.name), req, timeout=3.0) == []
     assert len(requests) == before
-    assert actor.accounting.get(CTRL, "rejected.bad_signature") == 1
-    assert intruder.accounting.get(CTRL, "received") == 1  # only the first (rejected) reply came back
+    assert actor.accounting.get(CTRL, "rejected.key_id") == 2
+    assert intruder.accounting.get(CTRL, "received") == 0  # no reply came back
+    # An unsigned query (a bare Zenoh get) gets nothing either, and is counted.
+    assert [r for r in intruder.ctrl.get(actor.keys.status(actor.name), timeout=2.0) if r.ok is not None] == []
+    assert actor.accounting.get(CTRL, "rejected.unsigned") == 1
 
 
 # --------------------------------------------------------------------------------------------

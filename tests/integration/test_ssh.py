@@ -230,6 +230,27 @@ def test_failed_login_is_one_line_naming_the_host(remote: RemoteHost, tmp_path: 
     assert _processes_mentioning(str(tmp_path)) == []
 
 
+@pytest.mark.timeout(60)
+def test_foreign_remote_run_directory_is_left_alone(remote: RemoteHost, tmp_path: Path) -> None:
+    """A directory at <workdir>/<run> without dvla's token file is someone else's: `dvla up` stops
+    before anything starts, with one line naming host and path, and the directory survives."""
+    run = f"sshforeign{TAG}"
+    foreign = remote.workdir / run
+    foreign.mkdir(parents=True)
+    (foreign / "notes.txt").write_text("not dvla's")
+    topo = _topology(tmp_path, remote, run, remote.key)
+    proc = subprocess.run(
+        [sys.executable, "-m", "dvla", "up", str(topo), "--runs", str(tmp_path / "runs"), "--quiet"],
+        cwd=ROOT, capture_output=True, text=True, timeout=50,
+    )
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("dvla:")]
+    assert len(errors) == 1, proc.stderr
+    assert f"ssh {REMOTE_IP}:{SSH_PORT}: " in errors[0] and f"{foreign} exists and is not a dvla run directory" in errors[0]
+    assert sorted(p.name for p in foreign.iterdir()) == ["notes.txt"]
+    assert not (tmp_path / "runs" / run / "logs" / "rollout-far-0.log").exists()  # nothing started
+
+
 @pytest.mark.timeout(120)
 def test_killed_orchestrator_leaves_nothing_on_the_remote_side(remote: RemoteHost, tmp_path: Path) -> None:
     run = f"sshkill{TAG}"

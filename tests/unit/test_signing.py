@@ -38,6 +38,11 @@ class Clock:
         return self.now
 
 
+def opened(verifier: Verifier, key: str, envelope) -> tuple[str, bytes]:
+    o = verifier.open(key, envelope)
+    return o.sender, bytes(o.payload)
+
+
 def reason_of(verifier: Verifier, key: str, envelope) -> str | None:
     try:
         verifier.open(key, envelope)
@@ -50,27 +55,28 @@ def reason_of(verifier: Verifier, key: str, envelope) -> str | None:
 def test_round_trip():
     signer, verifier = Signer(SECRET, "actor"), Verifier(SECRET)
     for payload in (b"", b"hello", bytes(range(256)) * 100):
-        sender, out = verifier.open(KEY, signer.seal(KEY, payload))
-        assert sender == "actor" and out == payload and isinstance(out, bytes)
+        o = verifier.open(KEY, signer.seal(KEY, payload))
+        assert o.sender == "actor" and o.kind == "" and o.payload == payload and isinstance(o.payload, memoryview)
 
 
 def test_accepts_buffer_types():
     signer, verifier = Signer(SECRET, "rollout-ü"), Verifier(SECRET)
     env = signer.seal(KEY, memoryview(bytearray(b"payload")))
-    assert verifier.open(KEY, memoryview(bytearray(env))) == ("rollout-ü", b"payload")
+    assert opened(verifier, KEY, memoryview(bytearray(env))) == ("rollout-ü", b"payload")
 
 
 def test_envelope_layout_matches_documentation():
     clock = Clock()
     env = Signer(SECRET, "actor", clock=clock).seal(KEY, b"xyz")
-    assert env[:4] == MAGIC and env[4] == 5 and env[5:10] == b"actor"
-    ts, _nonce, plen = struct.unpack_from("<Q16sI", env, 10)
-    assert ts == T0 and plen == 3 and env[38:41] == b"xyz" and len(env) == 41 + 32
     import hashlib
     import hmac
+    assert env[:4] == MAGIC and env[4:8] == hashlib.sha256(b"dvla-key-id" + SECRET).digest()[:4]
+    assert env[8] == 0 and env[9] == 5 and env[10:15] == b"actor"
+    ts, _nonce, plen = struct.unpack_from("<Q16sI", env, 15)
+    assert ts == T0 and plen == 3 and env[43:46] == b"xyz" and len(env) == 46 + 32
     key = KEY.encode()
-    tag = hmac.new(SECRET, struct.pack("<H", len(key)) + key + env[:41], hashlib.sha256).digest()
-    assert env[41:] == tag
+    tag = hmac.new(SECRET, struct.pack("<H", len(key)) + key + b"\x00" + env[:46], hashlib.sha256).digest()
+    assert env[46:] == tag
 
 
 def flip(env: bytes, index: int) -> bytes:
@@ -84,18 +90,19 @@ def test_tampering_is_detected():
     env = signer.seal(KEY, b"payload-bytes")
     verifier = Verifier(SECRET)
     assert reason_of(verifier, KEY, flip(env, len(env) - 32 - 3)) == "bad_signature"  # payload
-    assert reason_of(verifier, KEY, flip(env, 6)) == "bad_signature"  # sender "actor" -> "aator"
-    assert reason_of(verifier, KEY, flip(env, 12)) == "bad_signature"  # timestamp
-    assert reason_of(verifier, KEY, flip(env, 20)) == "bad_signature"  # nonce
+    assert reason_of(verifier, KEY, flip(env, 11)) == "bad_signature"  # sender "actor" -> "aator"
+    assert reason_of(verifier, KEY, flip(env, 17)) == "bad_signature"  # timestamp
+    assert reason_of(verifier, KEY, flip(env, 25)) == "bad_signature"  # nonce
+    assert reason_of(verifier, KEY, flip(env, 5)) == "key_id"  # key id
     assert reason_of(verifier, KEY, flip(env, len(env) - 1)) == "bad_signature"  # tag
     assert reason_of(verifier, "dvla/run1/ctrl/cmd/actor", env) == "bad_signature"  # other key
-    assert reason_of(Verifier(b"x" * 32), KEY, env) == "bad_signature"  # other secret
+    assert reason_of(Verifier(b"x" * 32), KEY, env) == "key_id"  # other secret: named as such
     assert reason_of(verifier, KEY, env) is None  # the original still verifies
 
 
 def test_sender_is_authenticated():
     env = Signer(SECRET, "rollout-1").seal(KEY, b"p")
-    forged = env[:4] + bytes([9]) + b"rollout-2" + env[14:]
+    forged = env[:9] + bytes([9]) + b"rollout-2" + env[19:]
     assert reason_of(Verifier(SECRET), KEY, forged) == "bad_signature"
 
 
@@ -110,9 +117,10 @@ def test_unsigned_and_malformed():
     assert reason_of(verifier, KEY, MAGIC + b"\x01a") == "malformed"  # too short
     assert reason_of(verifier, KEY, env[:-1]) == "malformed"  # payload length disagrees
     assert reason_of(verifier, KEY, env + b"\x00") == "malformed"
-    assert reason_of(verifier, KEY, MAGIC + b"\x00" + env[5:]) == "malformed"  # empty sender
+    assert reason_of(verifier, KEY, env[:9] + b"\x00" + env[10:]) == "malformed"  # empty sender
+    assert reason_of(verifier, KEY, env[:8] + b"\x02" + env[9:]) == "malformed"  # unknown flag
     bad_utf8 = bytearray(env)
-    bad_utf8[5] = 0xFF
+    bad_utf8[10] = 0xFF
     assert reason_of(verifier, KEY, bytes(bad_utf8)) == "malformed"
 
 
@@ -207,8 +215,8 @@ def test_constructor_checks():
 @settings(max_examples=150, deadline=None, database=None)
 @given(st.binary(max_size=200))
 def test_fuzz_random_bytes(data):
-    assert reason_of(Verifier(SECRET), KEY, data) in {"unsigned", "malformed", "bad_signature"}
-    assert reason_of(Verifier(SECRET), KEY, MAGIC + data) in {"malformed", "bad_signature"}
+    assert reason_of(Verifier(SECRET), KEY, data) in {"unsigned", "malformed", "bad_signature", "key_id"}
+    assert reason_of(Verifier(SECRET), KEY, MAGIC + data) in {"malformed", "bad_signature", "key_id"}
 
 
 ENVELOPE = Signer(SECRET, "actor").seal(KEY, b"some control payload")
@@ -219,7 +227,7 @@ ENVELOPE = Signer(SECRET, "actor").seal(KEY, b"some control payload")
 def test_fuzz_any_byte_change_is_rejected(index, xor):
     out = bytearray(ENVELOPE)
     out[index] ^= xor
-    assert reason_of(Verifier(SECRET), KEY, bytes(out)) in {"unsigned", "malformed", "bad_signature"}
+    assert reason_of(Verifier(SECRET), KEY, bytes(out)) in {"unsigned", "malformed", "bad_signature", "key_id"}
 
 
 @settings(max_examples=100, deadline=None, database=None)
@@ -288,7 +296,7 @@ def test_signer_and_verifier_share_a_loaded_secret(tmp_path):
     path.write_text(new_secret())
     secret = load_secret(str(path))
     env = Signer(secret, "a").seal(KEY, b"x")
-    assert Verifier(load_secret(str(path))).open(KEY, env) == ("a", b"x")
+    assert opened(Verifier(load_secret(str(path))), KEY, env) == ("a", b"x")
 
 
 def test_documented_envelope_vector(monkeypatch):
@@ -301,7 +309,7 @@ def test_documented_envelope_vector(monkeypatch):
     secret = bytes.fromhex("00112233445566778899aabbccddeeff")
     payload = encode(Command(target="all", verb="stop", args={}, issued_ns=1_700_000_000_000_000_000))
     env = Signer(secret, "orch", clock=lambda: 1_700_000_000_000_000_000).seal(KEY, payload)
-    assert len(env) == 128
-    assert env[-32:].hex() == "7801861f500661e773a8fa1564006e06813cd6db70d2e04ea4002caaafcf9322"
+    assert len(env) == 133
+    assert env[-32:].hex() == "1a3dd4c899504ec2b6d915766033d94db7437a315a249424c515493de7fa9d4f"
     verifier = Verifier(secret, clock=lambda: 1_700_000_000_000_000_000)
-    assert verifier.open(KEY, env) == ("orch", payload)
+    assert opened(verifier, KEY, env) == ("orch", payload)

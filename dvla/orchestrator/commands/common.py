@@ -55,8 +55,3 @@ def find_run(run: str | None, runs_root: Path) -> tuple[str, dict]:
     return live[0].parent.name, json.loads(live[0].read_text())
 
 
-def secret_for(state: dict) -> bytes:
-    try:
-        return load_secret(state.get("secret_file"))
-    except (OSError, ValueError) as err:
-        raise fail(str(err))

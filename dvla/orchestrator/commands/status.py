@@ -11,11 +11,10 @@ from typing import Annotated, Optional
 
 import typer
 
-from ...fabric import TlsFiles
 from ...fabric.messages import RoleStatus
-from ..run import tool_fabric
+from ..run import state_fabric
 from ..view import render_json, render_table
-from .common import Format, RUNS_ROOT, fail, find_run, secret_for
+from .common import Format, RUNS_ROOT, fail, find_run
 
 
 def status(
@@ -26,11 +25,8 @@ def status(
 ) -> None:
     """Show the live roles of a run."""
     run_id, state = find_run(run, runs)
-    secret = secret_for(state)
     try:
-        tls = state.get("ctrl_tls")
-        fabric = tool_fabric(run_id, tuple(state["ctrl_entry"]), secret, name="status-cli",
-                             tls=TlsFiles(**tls) if tls else None)
+        fabric = state_fabric(state, "status-cli")
     except (ConnectionError, ValueError) as err:
         raise fail(f"run {run_id}: control plane unreachable: {err}")
     try:

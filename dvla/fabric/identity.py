@@ -1,0 +1,156 @@
+"""Who sent a message: per-process Ed25519 identities certified by the run's operator key.
+
+The run secret (HMAC, :mod:`dvla.fabric.signing`) proves a message comes from *a* member of the
+run. It cannot say *which* member: every process holds it. An :class:`Identity` can. The
+operator (``dvla up``, and the tools that share its run directory) holds one Ed25519 key; for
+every process it launches it makes a fresh key pair and a certificate, the operator's signature
+over ``(run, kind, name, public key)``. A process signs each envelope's HMAC tag with its own
+key and ships its name, kind, public key and certificate in the envelope; a receiver that knows
+only the operator's public key checks the certificate, then the signature, then whether that
+kind of sender may send that message on that key (:func:`authorize`). So a compromised rollout
+can sign as itself only: weights need the actor's key, commands and status queries the
+operator's, status and eval replies the key of the role they name.
+
+Credentials travel to a process in one environment variable (:data:`IDENTITY_ENV`, never a
+command line): ``dvla-id1:<run>:<kind>:<name>:<seed hex>:<certificate hex>:<operator public hex>``.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
+from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
+
+from .keys import KeySpace, check_name
+
+__all__ = ["IDENTITY_ENV", "OPERATOR", "Identity", "IdentityError", "authorize", "certificate_message"]
+
+#: environment variable carrying a process's credential
+IDENTITY_ENV = "DVLA_IDENTITY"
+#: kind (and name) of the operator's own identity: dvla up, dvla status / stop, the monitor
+OPERATOR = "operator"
+_PREFIX = "dvla-id1"
+PUBLIC_BYTES = 32
+SIGNATURE_BYTES = 64
+
+
+class IdentityError(ValueError):
+    """A credential that cannot be parsed or does not hold together."""
+
+
+def _public_bytes(key: Ed25519PrivateKey) -> bytes:
+    return key.public_key().public_bytes(Encoding.Raw, PublicFormat.Raw)
+
+
+def certificate_message(run: str, kind: str, name: str, public: bytes) -> bytes:
+    """What the operator signs to certify `public` as `name` of `kind` in `run`."""
+    return b"\0".join((b"dvla-cert1", run.encode(), kind.encode(), name.encode(), public))
+
+
+def verify_certificate(operator: Ed25519PublicKey, run: str, kind: str, name: str, public: bytes, cert: bytes) -> bool:
+    try:
+        operator.verify(cert, certificate_message(run, kind, name, public))
+        return True
+    except InvalidSignature:
+        return False
+
+
+@dataclass(frozen=True)
+class Identity:
+    """One process's signing key, with the certificate that names it and the operator's public
+    key (what it checks everybody else's certificates against)."""
+
+    run: str
+    kind: str
+    name: str
+    key: Ed25519PrivateKey
+    certificate: bytes
+    operator_public: bytes
+
+    @property
+    def public(self) -> bytes:
+        return _public_bytes(self.key)
+
+    def sign(self, data: bytes) -> bytes:
+        return self.key.sign(data)
+
+    # -- issuing (the operator) ----------------------------------------------------------------
+    @staticmethod
+    def operator(run: str, seed: bytes | None = None) -> "Identity":
+        """The operator's identity (self-certified): a fresh key, or the one from `seed`."""
+        key = Ed25519PrivateKey.from_private_bytes(seed) if seed is not None else Ed25519PrivateKey.generate()
+        public = _public_bytes(key)
+        cert = key.sign(certificate_message(run, OPERATOR, OPERATOR, public))
+        return Identity(run, OPERATOR, OPERATOR, key, cert, public)
+
+    def issue(self, kind: str, name: str) -> "Identity":
+        """A fresh identity for process `name` of `kind`, certified by this (operator) identity."""
+        if self.kind != OPERATOR:
+            raise IdentityError(f"{self.name} is a {self.kind}: only the operator issues identities")
+        check_name("role", name)
+        key = Ed25519PrivateKey.generate()
+        cert = self.key.sign(certificate_message(self.run, kind, name, _public_bytes(key)))
+        return Identity(self.run, kind, name, key, cert, self.operator_public)
+
+    # -- the credential text -------------------------------------------------------------------
+    def seed(self) -> bytes:
+        from cryptography.hazmat.primitives.serialization import NoEncryption, PrivateFormat
+
+        return self.key.private_bytes(Encoding.Raw, PrivateFormat.Raw, NoEncryption())
+
+    def to_text(self) -> str:
+        return ":".join((_PREFIX, self.run, self.kind, self.name, self.seed().hex(), self.certificate.hex(),
+                         self.operator_public.hex()))
+
+    @staticmethod
+    def from_text(text: str, origin: str = "credential") -> "Identity":
+        """Parse and check a credential (its certificate must verify against its operator key)."""
+        parts = text.strip().split(":")
+        if len(parts) != 7 or parts[0] != _PREFIX:
+            raise IdentityError(f"{origin}: not a dvla identity credential ({_PREFIX}:run:kind:name:seed:cert:operator)")
+        _, run, kind, name, seed_hex, cert_hex, op_hex = parts
+        try:
+            key = Ed25519PrivateKey.from_private_bytes(bytes.fromhex(seed_hex))
+            cert, op = bytes.fromhex(cert_hex), bytes.fromhex(op_hex)
+            operator = Ed25519PublicKey.from_public_bytes(op)
+        except ValueError as exc:
+            raise IdentityError(f"{origin}: bad key material: {exc}") from exc
+        if not verify_certificate(operator, run, kind, name, _public_bytes(key), cert):
+            raise IdentityError(f"{origin}: the certificate of {name!r} ({kind}) does not verify against its operator key")
+        return Identity(run, kind, name, key, cert, op)
+
+    @staticmethod
+    def from_env(env_var: str = IDENTITY_ENV) -> "Identity | None":
+        """The credential in `env_var` (None when unset: the process runs without an identity)."""
+        value = os.environ.get(env_var)
+        return Identity.from_text(value, f"environment variable {env_var}") if value else None
+
+
+def authorize(keys: KeySpace, key: str, sender: str, kind: str, *, query: bool = False,
+              weights_source: str | None = None) -> str | None:
+    """None when `sender` (certified as `kind`) may send this message on `key`, else why not.
+
+    `query`: the message is a query's request (not a publication or a reply).
+    `weights_source`: the one actor whose weights this receiver follows (None: any actor).
+    """
+    root = keys.root + "/"
+    rest = key[len(root):] if key.startswith(root) else ""
+    plane_kind, _, target = rest.rpartition("/")
+    if rest == "ctrl/weights":  # every weight manifest and chunk is signed for this one key
+        if kind != "actor" or (weights_source is not None and sender != weights_source):
+            return f"weights signed by {kind} {sender!r} (only actor {weights_source or '*'} publishes weights)"
+        return None
+    if plane_kind == "ctrl/cmd":
+        return None if kind == OPERATOR else f"command from {kind} {sender!r} (only the operator commands)"
+    if plane_kind == "ctrl/status" and query:
+        return None if kind == OPERATOR else f"status query from {kind} {sender!r} (only the operator asks)"
+    if plane_kind in ("ctrl/status", "ctrl/snapshot") and not query:
+        return None if sender == target else f"reply on {target!r}'s key signed by {sender!r}"
+    if plane_kind == "ctrl/eval":
+        return None if sender == target and kind == "evaluator" else f"eval result on {target!r}'s key from {kind} {sender!r}"
+    if plane_kind == "data/traj":
+        return None if sender == target and kind == "rollout" else f"trajectory on {target!r}'s key from {kind} {sender!r}"
+    return None  # snapshot queries and keys dvla does not define: any certified member
