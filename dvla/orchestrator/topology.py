@@ -17,8 +17,12 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import functools
+import importlib
+import ipaddress
+import math
 import os
 import re
+import sys
 import types
 import typing
 from dataclasses import dataclass
@@ -47,6 +51,7 @@ from dvla.config import (
     grpo_layout_problems,
 )
 
+from ..fabric.keys import check_name
 from .process import is_local_host
 
 __all__ = [
@@ -68,10 +73,27 @@ MAX_CHUNK_BYTES = 64 << 20
 #: Topology fields the loader fills in; a file may not set them
 LOADER_OWNED = frozenset({"source"})
 
+# A topology file is input like any other: these bound what reading one can cost.
+#: largest file read (a topology of 1,000 nodes is ~100 KiB)
+MAX_FILE_BYTES = 1 << 20
+#: deepest nesting of lists and mappings (a topology needs ~10; PyYAML's composer recurses)
+MAX_DEPTH = 64
+#: most values in the document once aliases are expanded (a "billion laughs" file has 10^9)
+MAX_VALUES = 100_000
+#: longest value quoted back in a message
+MAX_SHOWN = 80
+#: most problems listed (the rest are counted in one last line)
+MAX_PROBLEMS = 100
+
 _TAG = "tag:yaml.org,2002:"
 _NONE_TYPE = type(None)
 #: plain scalars like ``3e-4`` are strings to YAML 1.1 but numbers to everyone writing them
 _EXPONENT_FLOAT_RE = re.compile(r"[-+]?(?:\d[\d_]*\.?[\d_]*|\.\d[\d_]*)[eE][-+]?\d+")
+#: host names: a DNS name or IPv4 address (labels of letters, digits, '_' and '-', none starting
+#: with '-', at most 253 characters); IPv6 addresses are checked by :mod:`ipaddress`
+_DNS_HOST_RE = re.compile(r"(?=.{1,253}$)[A-Za-z0-9_][A-Za-z0-9_-]{0,62}(?:\.[A-Za-z0-9_][A-Za-z0-9_-]{0,62})*\.?")
+#: ssh login names: POSIX portable user names (plus a trailing '$' for machine accounts)
+_SSH_USER_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}\$?")
 
 
 # --------------------------------------------------------------------------------------------
@@ -101,6 +123,10 @@ class TopologyError(ValueError):
 
     def __init__(self, problems: list[Problem]) -> None:
         self.problems = list(problems)
+        if len(self.problems) > MAX_PROBLEMS:  # a hostile file may hold a million mistakes
+            rest = self.problems[MAX_PROBLEMS:]
+            more = Problem(rest[0].source, rest[0].line, rest[0].path, f"{len(rest)} more problem(s) from here on not shown")
+            self.problems = [*self.problems[:MAX_PROBLEMS], more]
         super().__init__("\n".join(str(p) for p in self.problems))
 
 
@@ -116,6 +142,24 @@ class _Invalid:
 INVALID: Any = _Invalid()
 
 
+def _cut(text: str) -> str:
+    """`text` cut to MAX_SHOWN characters for a message (a file may hold a huge value)."""
+    return text if len(text) <= MAX_SHOWN else f"{text[:MAX_SHOWN - 3]}... ({len(text)} characters)"
+
+
+def _show(value: Any) -> str:
+    """``repr`` of a value from the file, for a message."""
+    return _cut(repr(value))
+
+
+def _one_line(text: str, limit: int) -> str:
+    """`text` as one printable line of at most about `limit` characters (the middle cut out)."""
+    text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit * 3 // 4]} ... {text[-limit // 4:]}"
+
+
 class _Context:
     """Problems found so far and the line of every key path seen."""
 
@@ -129,7 +173,8 @@ class _Context:
     def report(self, path: str, message: str, line: int | None = None) -> None:
         if line is None:
             line = self.line_of(path)
-        self.problems.append(Problem(self.source, line, path, message))
+        # paths hold the file's keys and messages its values: whatever they are, one short line
+        self.problems.append(Problem(self.source, line, _one_line(path, 200), _one_line(message, 400)))
 
     def line_of(self, path: str) -> int:
         """Line of ``path``, or of its nearest ancestor present in the file (absent keys)."""
@@ -142,10 +187,26 @@ class _Context:
         """Python value of a node, by YAML's own rules (tags, ints, floats, bools)."""
         # a fresh constructor per value: a failed construction leaves a constructor's state dirty
         try:
-            return yaml.constructor.SafeConstructor().construct_object(node, deep=True)
+            value = yaml.constructor.SafeConstructor().construct_object(node, deep=True)
         except yaml.YAMLError as err:
             self.report(path, f"cannot read value: {_yaml_reason(err)}", _line(node))
             return INVALID
+        except (ValueError, OverflowError) as err:  # e.g. 2024-13-45, or an integer of 5,000 digits
+            self.report(path, f"cannot read value: {err}", _line(node))
+            return INVALID
+        bad = _non_finite(value)
+        if bad is not None:
+            self.report(path, f"{bad} is not a finite number (.nan and .inf are refused everywhere)", _line(node))
+            return INVALID
+        return value
+
+
+def _non_finite(value: Any) -> float | None:
+    """The first NaN or infinity in a value read from the file (nested in lists and mappings too)."""
+    if isinstance(value, float):
+        return None if math.isfinite(value) else value
+    items = value.values() if isinstance(value, dict) else value if isinstance(value, list) else ()
+    return next((bad for bad in map(_non_finite, items) if bad is not None), None)
 
 
 def _line(node: Node) -> int:
@@ -177,7 +238,7 @@ def _unknown_value(what: str, value: str, options: typing.Sequence[str]) -> str:
     """``unknown role 'x' (expected a, b)``, with a suggestion when one is close."""
     close = difflib.get_close_matches(value, list(options), n=1)
     hint = f"did you mean {close[0]!r}? " if close else ""
-    return f"unknown {what} {value!r} ({hint}expected {', '.join(options)})"
+    return f"unknown {what} {_show(value)} ({hint}expected {', '.join(options)})"
 
 
 # --------------------------------------------------------------------------------------------
@@ -239,8 +300,8 @@ def _describe_node(node: Node) -> str:
     if kind == "null":
         return "null"
     if kind == "string":
-        return f"string {node.value!r}"
-    return f"{kind} {node.value}"
+        return f"string {_show(node.value)}"
+    return f"{kind} {_cut(node.value)}"
 
 
 # --------------------------------------------------------------------------------------------
@@ -315,7 +376,11 @@ def _convert_scalar(node: Node, hint: Any, kind: type, path: str, ctx: _Context)
         return float(value)
     written_as_exponent = node.style is None and isinstance(value, str) and _EXPONENT_FLOAT_RE.fullmatch(value)
     if kind is float and written_as_exponent:
-        return float(value.replace("_", ""))
+        number = float(value.replace("_", ""))
+        if math.isfinite(number):
+            return number
+        ctx.report(path, f"{_cut(value)} is not a finite number (.nan and .inf are refused everywhere)", _line(node))
+        return INVALID
     advice = ""
     if kind is int and written_as_exponent and float(value.replace("_", "")).is_integer():
         advice = f" (write integers out in full: {int(float(value.replace('_', '')))})"
@@ -371,7 +436,7 @@ def _entries(node: MappingNode, path: str, ctx: _Context) -> Iterator[tuple[str,
             continue
         key = key_node.value
         if key in first_seen:
-            ctx.report(_join(path, key), f"duplicate key {key!r} (first at line {first_seen[key]})", key_line)
+            ctx.report(_join(path, key), f"duplicate key {_show(key)} (first at line {first_seen[key]})", key_line)
             continue
         first_seen[key] = key_line
         yield key, key_line, value_node
@@ -412,8 +477,8 @@ def _unknown_key(key: str, accepted: typing.Iterable[str]) -> str:
     # two suggestions: typos often sit between two fields ('hostname': 'host' or 'name'?)
     close = difflib.get_close_matches(key, options, n=2)
     if close:
-        return f"unknown key {key!r} (did you mean {' or '.join(repr(c) for c in close)}?)"
-    return f"unknown key {key!r} (expected one of: {', '.join(options)})"
+        return f"unknown key {_show(key)} (did you mean {' or '.join(repr(c) for c in close)}?)"
+    return f"unknown key {_show(key)} (expected one of: {', '.join(options)})"
 
 
 def _convert_dataclass(node: Node, hint: Any, cls: type, path: str, ctx: _Context) -> Any:
@@ -565,7 +630,7 @@ def _check_ranges(p: _Partial, ctx: _Context) -> None:
         v = p.get(name)
         if type(v) not in (int, float):
             continue
-        # NaN fails every comparison, so it is reported as out of range as well
+        # (NaN and infinities never get here: reading the file refuses them)
         above = v > allowed.low if allowed.low_open else v >= allowed.low
         if not (above and (allowed.high is None or v <= allowed.high)):
             ctx.report(p.where(name), f"{v!r} is out of range (expected {_describe_range(name, allowed)})")
@@ -576,7 +641,7 @@ def _check_run_id(p: _Partial, ctx: _Context) -> None:
     if isinstance(run, str) and not RUN_ID_RE.fullmatch(run):
         ctx.report(
             p.where("run"),
-            f"invalid run id {run!r} (expected 1 to 40 of a-z, 0-9, '_', '-', starting with a letter or digit)",
+            f"invalid run id {_show(run)} (expected 1 to 40 of a-z, 0-9, '_', '-', starting with a letter or digit)",
         )
 
 
@@ -607,7 +672,7 @@ def _check_unique_names(items: typing.Iterable[Any], what: str, ctx: _Context) -
         if not isinstance(name, str):
             continue
         if name in first_line:
-            ctx.report(item.where("name"), f"duplicate {what} name {name!r} (first at line {first_line[name]})")
+            ctx.report(item.where("name"), f"duplicate {what} name {_show(name)} (first at line {first_line[name]})")
         else:
             first_line[name] = ctx.line_of(item.where("name"))
 
@@ -618,6 +683,32 @@ def _check_names(p: _Partial, ctx: _Context) -> None:
         _check_unique_names(racks, "rack", ctx)
     # node names are unique across racks: process names and keys are derived from them
     _check_unique_names(_placed_nodes(p)[0], "node", ctx)
+
+
+def _key_chunk_problem(what: str, value: str) -> str | None:
+    """Why `value` cannot be one Zenoh key chunk (see dvla.fabric.keys.check_name), or None."""
+    try:
+        check_name(what, value)
+    except ValueError:
+        return (f"invalid {what} {_show(value)} (expected 1 to 64 of letters, digits, '_', '.', '-', starting with"
+                " a letter or digit: it becomes part of key expressions and process names)")
+    return None
+
+
+def _check_key_name(p: _Partial, ctx: _Context) -> None:
+    """Rack and node names: one key chunk each, and so are the process names made from them."""
+    name = p.get("name")
+    if not isinstance(name, str):
+        return
+    what = "rack name" if p.cls is RackConfig else "node name"
+    problem = _key_chunk_problem(what, name)
+    if problem is None and p.cls is NodeConfig:  # processes are named <role>-<node>-<index>
+        counts = _role_counts(p) or {}
+        longest = max((f"{kind}-{name}-{n - 1}" for kind, n in counts.items()), key=len, default="")
+        if longest and _key_chunk_problem("process name", longest):
+            problem = f"node name {_show(name)} makes process name {_show(longest)} longer than 64 characters"
+    if problem:
+        ctx.report(p.where("name"), problem)
 
 
 def _check_has_racks(p: _Partial, ctx: _Context) -> None:
@@ -656,7 +747,7 @@ def _check_netns_hosts(p: _Partial, ctx: _Context) -> None:
         if isinstance(host, str) and host not in LOCAL_HOSTS:
             ctx.report(
                 node.where("host"),
-                f"remote host {host!r} with emulate: netns (netns emulation runs every node on this machine;"
+                f"remote host {_show(host)} with emulate: netns (netns emulation runs every node on this machine;"
                 f" expected {' or '.join(LOCAL_HOSTS)})",
             )
 
@@ -674,9 +765,39 @@ def _check_obs_and_policy(p: _Partial, ctx: _Context) -> None:
     if isinstance(policy, str) and ":" not in policy and policy not in _POLICY_OBS:
         ctx.report(p.where("policy"), _unknown_value("policy", policy, (*_POLICY_OBS, "module:Class")))
         return
+    if isinstance(policy, str) and ":" in policy:
+        problem = _user_class_problem(policy)
+        if problem:
+            ctx.report(p.where("policy"), problem)
+        return
     wanted = _POLICY_OBS.get(policy) if isinstance(policy, str) else None
     if wanted and isinstance(obs_mode, str) and obs_mode in OBS_MODES and obs_mode != wanted:
         ctx.report(p.where("policy"), f"policy {policy!r} reads {wanted!r} observations, but obs_mode is {obs_mode!r}")
+
+
+def _user_class_problem(spec: str) -> str | None:
+    """Why the user policy ``module:Class`` cannot be imported here, or None.
+
+    The module is imported as the roles will import it, with the working directory on the path
+    (``python -m`` puts it there): a typo or a missing dependency stops `dvla plan`/`dvla up`
+    before anything starts instead of crashing every rollout."""
+    module, _, attr = spec.partition(":")
+    if not module or not attr.isidentifier():
+        return f"invalid policy {_show(spec)} (expected 'module:Class', e.g. my_policy:SharedTrunkPolicy)"
+    cwd = os.getcwd()
+    added = cwd not in sys.path and "" not in sys.path
+    if added:
+        sys.path.insert(0, cwd)
+    try:
+        found = getattr(importlib.import_module(module), attr, None)
+    except (Exception, SystemExit) as err:  # whatever the module raises while it is imported
+        return f"cannot import policy {_show(spec)}: {type(err).__name__}: {_cut(str(err))}"
+    finally:
+        if added:
+            sys.path.remove(cwd)
+    if not callable(found):
+        return f"policy {_show(spec)}: module {_show(module)} has no class {_show(attr)}"
+    return None
 
 
 def _check_grpo(p: _Partial, ctx: _Context) -> None:
@@ -759,8 +880,9 @@ def _check_lane_cpus(p: _Partial, ctx: _Context) -> None:
 
 
 def _is_remote(host: Any) -> bool:
-    """A host that is not this machine (its roles start over SSH)."""
-    return isinstance(host, str) and bool(host.strip()) and not is_local_host(host)
+    """A valid host that is not this machine (its roles start over SSH); an invalid one is
+    reported on its own."""
+    return isinstance(host, str) and bool(host.strip()) and not is_local_host(host) and host_problem(host) is None
 
 
 def _check_remote_addresses(p: _Partial, ctx: _Context) -> None:
@@ -776,15 +898,46 @@ def _check_remote_addresses(p: _Partial, ctx: _Context) -> None:
         if address is None or (isinstance(address, str) and address.startswith("127.")):
             ctx.report(
                 node.where("address"),
-                f"{address!r} on a local node while {remote.where('host')} is remote {remote.get('host')!r}"
+                f"{_show(address)} on a local node while {remote.where('host')} is remote {_show(remote.get('host'))}"
                 " (expected the address remote nodes reach this machine at; loopback is not reachable from them)",
             )
 
 
+def host_problem(host: str) -> str | None:
+    """Why `host` cannot name a node (it ends up on ssh's command line), or None when it can: a
+    DNS name, an IPv4 address or an IPv6 address (bare or in brackets); never a leading '-'."""
+    bare = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    if ":" in bare:
+        try:
+            ipaddress.IPv6Address(bare)
+            return None
+        except ValueError:
+            return f"invalid host {_show(host)} (not an IPv6 address)"
+    if bare == host and _DNS_HOST_RE.fullmatch(host):
+        return None
+    at = "; the login user goes in ssh.user" if "@" in host else ""
+    return (f"invalid host {_show(host)} (expected a DNS name or an IP address: letters, digits, '.', '_', '-',"
+            f" no label starting with '-'{at})")
+
+
+def _check_host(p: _Partial, ctx: _Context) -> None:
+    for name in ("host", "address"):  # the address ends up in Zenoh locators: no room for extras
+        value = p.get(name)
+        if isinstance(value, str) and value.strip():  # empty: reported with the other empty strings
+            problem = host_problem(value)
+            if problem:
+                ctx.report(p.where(name), problem.replace("invalid host", f"invalid {name}", 1))
+
+
 def _check_ssh(p: _Partial, ctx: _Context) -> None:
     user = p.get("user")
-    if isinstance(user, str) and (not user.strip() or any(c in user for c in "@: \t")):
-        ctx.report(p.where("user"), f"invalid user {user!r} (expected a login name without '@', ':' or spaces)")
+    if isinstance(user, str) and not _SSH_USER_RE.fullmatch(user):
+        ctx.report(p.where("user"), f"invalid user {_show(user)} (expected a login name: letters, digits, '_', '.',"
+                                    " '-', not starting with '-'; no '@', ':' or spaces)")
+    for name in ("python", "workdir", "identity_file", "known_hosts_file"):
+        value = p.get(name)
+        if isinstance(value, str) and not value.isprintable():
+            ctx.report(p.where(name), f"{_show(value)} holds control characters (expected a plain path)")
 
 
 def _check_tls(p: _Partial, ctx: _Context) -> None:
@@ -825,7 +978,7 @@ def _check_learners(p: _Partial, ctx: _Context) -> None:
         return
     m = re.fullmatch(r"\s*([1-9][0-9]*)\s*:\s*([1-9][0-9]*)\s*", ratio)
     if m is None:
-        ctx.report(group.where("ratio"), f"{ratio!r} is not a rollout:learner ratio (expected e.g. '3:1' or '1:1')")
+        ctx.report(group.where("ratio"), f"{_show(ratio)} is not a rollout:learner ratio (expected e.g. '3:1' or '1:1')")
         return
     want = (int(m[1]), int(m[2]))
     nodes, complete = _placed_nodes(p)
@@ -851,8 +1004,8 @@ _CHECKS: dict[type, list[Callable[[_Partial, _Context], None]]] = {
     TlsConfig: [_check_tls],
     TaskConfig: [_check_obs_and_policy, _check_grpo],
     BudgetConfig: [_check_stop_condition],
-    RackConfig: [_check_rack_nodes],
-    NodeConfig: [_check_node_roles, _check_cpus],
+    RackConfig: [_check_rack_nodes, _check_key_name],
+    NodeConfig: [_check_node_roles, _check_cpus, _check_key_name, _check_host],
     RolePlacement: [_check_cpus, _check_lane_cpus],
 }
 
@@ -910,15 +1063,80 @@ def _check_tree(value: Any, ctx: _Context) -> None:
 # entry points
 
 
+class _BoundedLoader(yaml.SafeLoader):
+    """SafeLoader refusing nesting deeper than MAX_DEPTH while composing (PyYAML's composer
+    recurses once per level: 10,000 nested lists would end in a RecursionError)."""
+
+    depth = 0
+
+    def compose_node(self, parent: Node | None, index: Any) -> Node:
+        if self.depth >= MAX_DEPTH:
+            raise yaml.composer.ComposerError(
+                None, None, f"nested deeper than {MAX_DEPTH} levels of lists and mappings", self.peek_event().start_mark)
+        self.depth += 1
+        try:
+            return super().compose_node(parent, index)
+        finally:
+            self.depth -= 1
+
+
+class _Refused(Exception):
+    """A document refused as a whole: the line and why."""
+
+    def __init__(self, line: int, reason: str) -> None:
+        super().__init__(reason)
+        self.line = line
+
+
+def _expanded(node: Node, level: int, memo: dict[int, tuple[int, int]], open_: set[int]) -> tuple[int, int]:
+    """(values, depth) of `node` once aliases are expanded, `node` being at nesting `level`
+    (memoised per node: linear in the file). Aliases are shared nodes, so a small file can stand
+    for 10^9 values ("billion laughs") or nest far deeper than it is written: raises
+    :class:`_Refused` above MAX_VALUES, deeper than MAX_DEPTH, or on an alias of a node inside itself."""
+    key = id(node)
+    size, depth = memo.get(key, (1, 1))
+    if level + depth - 1 > MAX_DEPTH:
+        raise _Refused(_line(node), f"nested deeper than {MAX_DEPTH} levels once aliases are expanded")
+    if key in memo:
+        return memo[key]
+    if key in open_:
+        raise _Refused(_line(node), "an alias refers to a list or mapping from inside itself (a cycle)")
+    open_.add(key)
+    children: list[Node] = []
+    if isinstance(node, SequenceNode):
+        children = node.value
+    elif isinstance(node, MappingNode):
+        children = [n for pair in node.value for n in pair]
+    for child in children:
+        child_size, child_depth = _expanded(child, level + 1, memo, open_)
+        size, depth = size + child_size, max(depth, child_depth + 1)
+        if size > MAX_VALUES:
+            raise _Refused(_line(node), f"more than {MAX_VALUES} values once aliases are expanded")
+    open_.discard(key)
+    memo[key] = (size, depth)
+    return size, depth
+
+
 def _compose(text: str, ctx: _Context) -> Node | None:
+    if len(text) > MAX_FILE_BYTES:
+        ctx.report("", f"{len(text)} characters, more than a topology needs (at most {MAX_FILE_BYTES})", 0)
+        return None
     try:
-        return yaml.compose(text, Loader=yaml.SafeLoader)
+        root = yaml.compose(text, Loader=_BoundedLoader)
     except yaml.MarkedYAMLError as err:
         mark = err.problem_mark or err.context_mark
         ctx.report("<yaml>", f"invalid YAML: {_yaml_reason(err)}", mark.line + 1 if mark else 1)
+        return None
     except yaml.YAMLError as err:
         ctx.report("<yaml>", f"invalid YAML: {_yaml_reason(err)}", 1)
-    return None
+        return None
+    if root is not None:
+        try:
+            _expanded(root, 1, {}, set())
+        except _Refused as err:
+            ctx.report("<yaml>", f"refused: {err}", err.line)
+            return None
+    return root
 
 
 def parse_topology(text: str, source: str = "<memory>") -> Topology:
@@ -950,10 +1168,14 @@ def load_topology(path: str | os.PathLike[str]) -> Topology:
     """Read and validate the topology file at ``path``; see :func:`parse_topology`."""
     source = os.fspath(path)
     try:
-        with open(source, encoding="utf-8") as f:
-            text = f.read()
+        with open(source, "rb") as f:
+            data = f.read(MAX_FILE_BYTES + 1)
+        if len(data) > MAX_FILE_BYTES:
+            raise TopologyError([Problem(source, 0, "", f"file larger than {MAX_FILE_BYTES} bytes (a topology is"
+                                                        " a few KiB; refused unread)")])
+        text = data.decode("utf-8")
     except (OSError, UnicodeDecodeError) as err:
-        raise TopologyError([Problem(source, 0, "", f"cannot read topology file: {err}")]) from err
+        raise TopologyError([Problem(source, 0, "", f"cannot read topology file: {_one_line(str(err), 200)}")]) from err
     return parse_topology(text, source)
 
 

@@ -16,6 +16,7 @@ import typing
 from typing import Any
 
 from .. import config
+from .topology import MAX_DEPTH, MAX_FILE_BYTES, MAX_SHOWN, MAX_VALUES
 
 HEADER = """# Topology files
 
@@ -37,6 +38,17 @@ racks:
 
 FOOTER = """Roles: `actor` (exactly one publishes weights: the first), `rollout`, `replicator` (at most one per node; the first of a rack relays for the rack), `evaluator`.
 """
+
+#: what the loader refuses whatever the schema says (a topology file is input like any other)
+LIMITS = (f"\nA topology file is input like any other, checked before anything starts: at most {MAX_FILE_BYTES} bytes, "
+          f"nested at most {MAX_DEPTH} levels, at most {MAX_VALUES} values once YAML aliases are expanded (an alias "
+          "of a list or mapping inside itself is refused); `.nan` and `.inf` are refused in every number; rack and node "
+          "names are one Zenoh key chunk (1 to 64 of letters, digits, `_`, `.`, `-`, starting with a letter or digit, "
+          "and so are the process names `<role>-<node>-<index>` made from them); `host` and `address` are a DNS name "
+          "or an IP address (IPv6 bare or in brackets; nothing starting with `-`; the login user goes in `ssh.user`); "
+          "a `module:Class` policy must import on the machine running `dvla plan`/`dvla up` (with the working "
+          f"directory on the path, as the roles import it). Values quoted in messages are cut to {MAX_SHOWN} "
+          "characters.\n")
 
 #: fields of the schema that are not keys of the file (filled in by the loader)
 INTERNAL = {(config.Topology, "source")}
@@ -110,7 +122,7 @@ def render() -> str:
                "(what `dvla bench swimlane --placement split` runs):\n\n"
                "```yaml\n      - name: node0\n        cpus: [1]\n        roles:\n          - role: actor\n"
                "          - role: replicator\n          - {role: rollout, count: 2, lane_cpus: {sim: [0]}}\n```\n")
-    return HEADER + "\n" + "\n".join(_sections(config.Topology, "")) + "\n" + FOOTER + pinning
+    return HEADER + "\n" + "\n".join(_sections(config.Topology, "")) + "\n" + FOOTER + pinning + LIMITS
 
 
 if __name__ == "__main__":

@@ -9,8 +9,11 @@ Layout of ``RUN_DIR/checkpoints/``::
 
 Every file is written to a temporary name, fsynced and renamed, and the directory fsynced, so
 a crash at any point leaves the previous checkpoint whole; MANIFEST.json is replaced last and
-names one consistent set. Nothing is unpickled on load; the weights' checksum and each file's
-sha256 are verified before anything is applied.
+names one consistent set. Nothing is unpickled on load: the run directory is input like any
+other, so a checkpoint is exactly the two safetensors files the manifest names, in a ``v########``
+directory; anything else (a ``torch.save`` pickle under either name, an ``optimizer.pt``, a
+``dir`` pointing elsewhere) is refused with a CheckpointError naming the file, never opened by
+pickle. The weights' checksum and each file's sha256 are verified before anything is applied.
 """
 
 from __future__ import annotations
@@ -18,13 +21,15 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import save_file
 
 from ..learn.optstate import optimizer_from_tensors, optimizer_to_tensors
 
@@ -32,6 +37,12 @@ MANIFEST = "MANIFEST.json"
 HIGH_WATER = "high_water.json"
 #: version numbers reserved per write of the high-water mark (one fsync per this many versions)
 RESERVE = 16
+#: the files of one checkpoint, all safetensors (tensors plus JSON metadata: no pickle)
+FILES = ("policy.safetensors", "optimizer.safetensors")
+#: name of a checkpoint's directory
+_DIR_RE = re.compile(r"v[0-9]{8}")
+#: how files that are not safetensors begin: pickle protocol 2+ and torch.save's zip archive
+_PICKLE_MAGIC = (b"\x80", b"PK\x03\x04")
 
 
 class CheckpointError(RuntimeError):
@@ -93,30 +104,56 @@ def load_checkpoint(directory: Path, policy: torch.nn.Module, optimizer: torch.o
     ``flat_checksum(policy)`` gives the checksum of the policy's flat weights, checked against
     the manifest's after loading. Raises CheckpointError before applying anything that fails."""
     manifest = _read_json(directory / MANIFEST)
-    high = (_read_json(directory / HIGH_WATER) or {}).get("version", 0)
+    high_doc = _read_json(directory / HIGH_WATER) or {}
     if manifest is None:
         return None
-    where = directory / str(manifest.get("dir"))
-    for f, digest in manifest.get("files", {}).items():
+    try:
+        name, files = str(manifest["dir"]), manifest["files"]
+        version, env_steps, checksum = int(manifest["version"]), int(manifest["env_steps"]), str(manifest["checksum"])
+        high = int(high_doc.get("version", 0))
+    except (KeyError, TypeError, ValueError) as err:
+        raise CheckpointError(f"{directory / MANIFEST}: malformed ({type(err).__name__}: {err})") from err
+    if not _DIR_RE.fullmatch(name) or not isinstance(files, dict) or sorted(files) != sorted(FILES):
+        raise CheckpointError(f"{directory / MANIFEST}: does not name a checkpoint (expected 'dir' v######## and"
+                              f" 'files' exactly {', '.join(FILES)})")
+    where = directory / name
+    for f, digest in files.items():
         if not (where / f).is_file() or _sha256(where / f) != digest:
             raise CheckpointError(f"{where / f}: missing or its sha256 differs from {directory / MANIFEST}")
-    weights = load_file(str(where / "policy.safetensors"))
-    tensors = load_file(str(where / "optimizer.safetensors"))
-    with open(where / "optimizer.safetensors", "rb") as fh:  # safetensors' header: 8-byte length, JSON
-        header = json.loads(fh.read(int.from_bytes(fh.read(8), "little")))
+    weights, _ = _read_safetensors(where / "policy.safetensors")
+    tensors, meta = _read_safetensors(where / "optimizer.safetensors")
     try:
-        opt_state = optimizer_from_tensors(tensors, header["__metadata__"]["dvla.optimizer"], optimizer.state_dict())
-    except (KeyError, ValueError) as err:
-        raise CheckpointError(f"{where / 'optimizer.safetensors'}: {err}") from err
+        opt_state = optimizer_from_tensors(tensors, meta["dvla.optimizer"], optimizer.state_dict())
+    except (KeyError, ValueError, TypeError, AttributeError) as err:
+        why = f"{type(err).__name__}: {err}"
+        raise CheckpointError(f"{where / 'optimizer.safetensors'}: unusable optimizer state ({why})") from err
     backup = {k: v.clone() for k, v in policy.state_dict().items()}
-    policy.load_state_dict(weights)
-    got = flat_checksum(policy)
-    if got != manifest["checksum"]:
+    try:
+        policy.load_state_dict(weights)
+    except RuntimeError as err:  # names or shapes of another policy
         policy.load_state_dict(backup)
-        raise CheckpointError(f"{where / 'policy.safetensors'}: weights checksum {got} != {manifest['checksum']} in the manifest")
+        raise CheckpointError(f"{where / 'policy.safetensors'}: {str(err).splitlines()[0]}") from err
+    got = flat_checksum(policy)
+    if got != checksum:
+        policy.load_state_dict(backup)
+        raise CheckpointError(f"{where / 'policy.safetensors'}: weights checksum {got} != {checksum} in the manifest")
     optimizer.load_state_dict(opt_state)
-    version = int(manifest["version"])
-    return Checkpoint(version, int(manifest["env_steps"]), manifest["checksum"], max(version, int(high)))
+    return Checkpoint(version, env_steps, checksum, max(version, high))
+
+
+def _read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """Tensors and metadata of a safetensors file. Anything else is refused unread: never
+    ``torch.load`` or pickle, whose loading runs code the file chooses."""
+    with open(path, "rb") as f:
+        head = f.read(4)
+    if head.startswith(_PICKLE_MAGIC):
+        raise CheckpointError(f"{path}: a pickle (torch.save) file, refused unread: checkpoints are safetensors only")
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            return {k: f.get_tensor(k) for k in f.keys()}, dict(f.metadata() or {})
+    except (SafetensorError, OSError, ValueError) as err:
+        reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise CheckpointError(f"{path}: not a safetensors file, refused ({reason})") from err
 
 
 def optimizer_tensors(optimizer: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], str]:
@@ -153,9 +190,12 @@ def _write_json(path: Path, doc: dict[str, Any]) -> None:
 
 def _read_json(path: Path) -> dict[str, Any] | None:
     try:
-        return json.loads(path.read_text())
+        doc = json.loads(path.read_text())
     except FileNotFoundError:
         return None
     except ValueError as err:
         raise CheckpointError(f"{path}: not JSON ({err})") from err
+    if not isinstance(doc, dict):
+        raise CheckpointError(f"{path}: not a JSON object")
+    return doc
 
