@@ -148,10 +148,35 @@ def _probe_until_routed(session: Any, routed: Any, timeout_s: float) -> None:
         routed.wait(0.02)
 
 
-def _open_fabric(name: str, secret: bytes, *, ctrl: Any, data: Any = None, shared: bool = False) -> Any:
-    from dvla.fabric import Fabric
+#: how the throughput pair authenticates trajectory chunks (the auth phase compares them)
+AUTH_MODES = ("none", "hmac", "identity")
 
-    fabric = Fabric(run=RUN, name=name, ctrl_conf=ctrl, data_conf=None if shared else data, secret=secret)
+
+class _PassThrough:
+    """Baseline of the auth phase only: an envelope that is the bare payload, accepted as is."""
+
+    def seal(self, key: str, payload: Any, *, bind: bytes = b"") -> bytes:
+        return bytes(payload)
+
+    def open(self, key: str, envelope: Any, **_kw: Any) -> Any:
+        from dvla.fabric.keys import KeySpace
+        from dvla.fabric.signing import Opened
+
+        return Opened(KeySpace.last(key), "", memoryview(envelope), b"")
+
+
+def _open_fabric(name: str, secret: bytes, *, ctrl: Any, data: Any = None, shared: bool = False,
+                 auth: str = "identity", identity: str | None = None) -> Any:
+    """A bench fabric; `auth` "identity" (as under `dvla up`: HMAC and the sender's certified
+    Ed25519 signature, `identity` its credential text), "hmac" (the run secret only) or "none"."""
+    from dvla.fabric import Fabric
+    from dvla.fabric.identity import Identity
+
+    ident = Identity.from_text(identity) if auth == "identity" and identity else None
+    fabric = Fabric(run=RUN, name=name, ctrl_conf=ctrl, data_conf=None if shared else data, secret=secret,
+                    identity=ident)
+    if auth == "none":
+        fabric._signer = fabric._verifier = _PassThrough()
     if shared:
         # Baseline only: both planes on one session, hence one link per peer.
         fabric.data = fabric.ctrl
@@ -168,12 +193,13 @@ def _between_rounds_s(phase_timeout_s: float) -> float:
 
 
 def _throughput_sub(port: int, n: int, rounds: int, secret: bytes, ready: Any, routed: Any, out: Any,
-                    timeout_s: float) -> None:
+                    timeout_s: float, auth: str = "identity", identity: str | None = None) -> None:
     """Takes `rounds` x `n` chunks from a trajectory inbox; reports when each round's last one
     was taken, and this process's CPU time by then."""
     from dvla.fabric import TrajectoryChunk, plane_config
 
-    fabric = _open_fabric(SINK, secret, ctrl=plane_config(), data=plane_config(mode="peer", listen=[endpoint(port)]))
+    fabric = _open_fabric(SINK, secret, ctrl=plane_config(), data=plane_config(mode="peer", listen=[endpoint(port)]),
+                          auth=auth, identity=identity)
     ends: queue.Queue[float] = queue.Queue()
     stop = threading.Event()
 
@@ -206,13 +232,14 @@ def _throughput_sub(port: int, n: int, rounds: int, secret: bytes, ready: Any, r
 
 
 def _throughput_pub(port: int, n: int, rounds: int, target: int, secret: bytes, routed: Any, go: Any, out: Any,
-                    timeout_s: float) -> None:
+                    timeout_s: float, auth: str = "identity", identity: str | None = None) -> None:
     """Sends `n` chunks per round, each round when told; reports when each round started."""
     import dataclasses
 
     from dvla.fabric import plane_config
 
-    fabric = _open_fabric(SOURCE, secret, ctrl=plane_config(), data=plane_config(mode="peer", connect=[endpoint(port)]))
+    fabric = _open_fabric(SOURCE, secret, ctrl=plane_config(), data=plane_config(mode="peer", connect=[endpoint(port)]),
+                          auth=auth, identity=identity)
     chunk = make_chunk(SOURCE, target)
     try:
         _probe_until_routed(fabric.data, routed, timeout_s)
@@ -240,13 +267,21 @@ DOES = ("publisher: as a rollout ships a chunk: Fabric.publish_traj of a Traject
 class _Pair:
     """A subscriber and a publisher process, driven round by round."""
 
-    def __init__(self, ctx: Any, n: int, target: int, cfg: BenchConfig, secret: bytes) -> None:
+    def __init__(self, ctx: Any, n: int, target: int, cfg: BenchConfig, secret: bytes, auth: str = "identity",
+                 rounds: int | None = None) -> None:
+        from dvla.fabric.identity import Identity
+
         self.n, self.size, self.cfg = n, payload_size(target), cfg
+        self.rounds = rounds or cfg.rounds
         port = free_port()
         self.ready, self.routed, self.out, self.go = ctx.Event(), ctx.Event(), ctx.Queue(), ctx.Queue()
         t = cfg.phase_timeout_s
-        self.sub = ctx.Process(target=_throughput_sub, args=(port, n, cfg.rounds, secret, self.ready, self.routed, self.out, t))
-        self.pub = ctx.Process(target=_throughput_pub, args=(port, n, cfg.rounds, target, secret, self.routed, self.go, self.out, t))
+        op = Identity.operator(RUN)  # as `dvla up` issues them: the sink acts as the actor
+        ids = (op.issue("actor", SINK).to_text(), op.issue("rollout", SOURCE).to_text())
+        self.sub = ctx.Process(target=_throughput_sub, args=(port, n, self.rounds, secret, self.ready, self.routed,
+                                                             self.out, t, auth, ids[0]))
+        self.pub = ctx.Process(target=_throughput_pub, args=(port, n, self.rounds, target, secret, self.routed, self.go,
+                                                             self.out, t, auth, ids[1]))
 
     def start(self, pids: list[int]) -> None:
         self.sub.start()
@@ -271,6 +306,66 @@ class _Pair:
     def stop(self) -> None:
         self.go.put(None)
         _stop([self.sub, self.pub])
+
+
+def _measure_auth(ctx: Any, cfg: BenchConfig, secret: bytes, pids: list[int]) -> dict[str, Any]:
+    """The cost of authentication. Data plane: three throughput pairs (no envelope, HMAC only,
+    HMAC + identity signature) on 256 KiB chunks, their rounds interleaved; medians, CPU per chunk
+    and the ratios to the unauthenticated pair. Weights: sealing and opening one 64 MiB version
+    in 1 MiB chunks, in this process, HMAC only and with identities."""
+    target, n, rounds = 256 * KIB, max(cfg.n_64k // 4, 50), cfg.rounds
+    pairs = {mode: _Pair(ctx, n, target, cfg, secret, auth=mode, rounds=rounds) for mode in AUTH_MODES}
+    got: dict[str, list[tuple[float, float, float]]] = {m: [] for m in AUTH_MODES}
+    try:
+        for pair in pairs.values():
+            pair.start(pids)
+        for r in range(rounds):
+            for mode, pair in pairs.items():
+                got[mode].append(pair.round(r))
+    finally:
+        for pair in pairs.values():
+            pair.stop()
+    data = {}
+    for mode, rs in got.items():
+        bps = statistics.median(x[0] for x in rs)
+        data[mode] = {"chunks_per_s": bps / pairs[mode].size, "pub_cpu_us_per_chunk": statistics.median(x[1] for x in rs),
+                      "sub_cpu_us_per_chunk": statistics.median(x[2] for x in rs),
+                      "rounds_chunks_per_s": [x[0] / pairs[mode].size for x in rs]}
+    base = data["none"]
+    for mode in ("hmac", "identity"):
+        d = data[mode]
+        d["throughput_ratio"] = d["chunks_per_s"] / base["chunks_per_s"]
+        d["extra_cpu_us_per_chunk"] = (d["pub_cpu_us_per_chunk"] + d["sub_cpu_us_per_chunk"]
+                                       - base["pub_cpu_us_per_chunk"] - base["sub_cpu_us_per_chunk"])
+    return {"chunk_bytes": pairs["none"].size, "chunks_per_round": n, "rounds": rounds, "data": data,
+            "weights": _weights_auth_cost(secret)}
+
+
+def _weights_auth_cost(secret: bytes, version_bytes: int = 64 * MIB, chunk: int = MIB, repeats: int = 3) -> dict[str, Any]:
+    """CPU seconds to seal and to open (verify) every chunk envelope of one weight version."""
+    from dvla.fabric.identity import Identity
+    from dvla.fabric.keys import KeySpace
+    from dvla.fabric.signing import Signer, Verifier
+
+    keys = KeySpace(RUN)
+    key = keys.weights_signed()
+    payload = os.urandom(chunk)
+    op = Identity.operator(RUN)
+    out: dict[str, Any] = {"version_bytes": version_bytes, "chunk_bytes": chunk}
+    for mode, ident in (("hmac", None), ("identity", op.issue("actor", SINK))):
+        signer = Signer(secret, SINK, identity=ident)
+        seal_s, open_s = [], []
+        for _ in range(repeats):
+            verifier = Verifier(secret, run=RUN, operator=op.public if ident else None)
+            c0 = time.process_time()
+            envs = [signer.seal(key, payload) for _ in range(version_bytes // chunk)]
+            c1 = time.process_time()
+            for env in envs:
+                verifier.open(key, env)
+            seal_s.append(c1 - c0)
+            open_s.append(time.process_time() - c1)
+        out[mode] = {"seal_cpu_s": statistics.median(seal_s), "open_cpu_s": statistics.median(open_s)}
+    return out
 
 
 def _measure_throughput(ctx: Any, n: int, target: int, cfg: BenchConfig, secret: bytes, pids: list[int]) -> dict[str, Any]:
@@ -640,6 +735,10 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
         throughput[label] = entry
         doc[f"chunks_per_s_{label}"] = entry["chunks_per_s"]
         doc[f"mb_per_s_{label}"] = entry["bytes_per_s"] / 1e6
+    progress("authentication: data plane without envelopes / HMAC / HMAC + identity, interleaved; one weight version")
+    doc["auth"] = _measure_auth(ctx, cfg, secret, pids)
+    doc["auth_throughput_ratio"] = doc["auth"]["data"]["identity"]["throughput_ratio"]
+    doc["auth_extra_cpu_us_per_chunk"] = doc["auth"]["data"]["identity"]["extra_cpu_us_per_chunk"]
     layouts = [LOOPBACK]
     why_not = links_available() if links else "not asked for (--no-links)"
     doc["links_layout"] = "used" if why_not is None else f"skipped: {why_not}"
@@ -676,6 +775,7 @@ HEADLINE_KEYS = (
     "chunks_per_s_64k", "chunks_per_s_1m", "mb_per_s_64k", "mb_per_s_1m",
     "ctrl_rtt_p99_idle_ms", "ctrl_rtt_p99_loaded_ms",
     "ctrl_rtt_p99_loaded_shared_ms", "loaded_over_idle", "shared_over_separate",
+    "auth_throughput_ratio", "auth_extra_cpu_us_per_chunk",
 )
 
 
@@ -686,6 +786,18 @@ def format_table(doc: dict[str, Any]) -> str:
         lines.append(f"{label:<11}{e['payload_bytes']:>9}{e['chunks_per_s']:>10.0f}{e['bytes_per_s'] / 1e6:>8.0f}"
                      f"{e['pub_cpu_us_per_msg']:>18.0f}{e['sub_cpu_us_per_msg']:>6.0f}")
     lines.append("publish_traj of a TrajectoryChunk to subscribe_traj's inbox and a consumer thread")
+    auth = doc["auth"]
+    lines.append("")
+    lines.append(f"{'authentication, ' + str(auth['chunk_bytes']) + ' B chunks':<36}{'chunks/s':>10}{'ratio':>7}"
+                 f"{'CPU us/chunk pub':>18}{'sub':>6}")
+    for mode, e in auth["data"].items():
+        ratio = f"{e['throughput_ratio']:.2f}" if "throughput_ratio" in e else "1"
+        lines.append(f"{mode:<36}{e['chunks_per_s']:>10.0f}{ratio:>7}{e['pub_cpu_us_per_chunk']:>18.0f}"
+                     f"{e['sub_cpu_us_per_chunk']:>6.0f}")
+    w = auth["weights"]
+    lines.append(f"one {w['version_bytes'] >> 20} MiB weight version in {w['chunk_bytes'] >> 20} MiB chunks: "
+                 + ", ".join(f"{m} seal {w[m]['seal_cpu_s']:.3f} s / open {w[m]['open_cpu_s']:.3f} s CPU"
+                             for m in ("hmac", "identity")))
     names = {"idle": "idle", "loaded": "flooded, own ctrl session", "loaded_shared": "flooded, shared session"}
     for layout, entry in doc["ctrl_rtt_layouts"].items():
         lines.append("")

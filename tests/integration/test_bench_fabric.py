@@ -61,8 +61,16 @@ def test_bench_fabric_quick_writes_every_figure(tmp_path: Path) -> None:
         assert positive(e["pub_cpu_us_per_msg"]) and positive(e["sub_cpu_us_per_msg"])
     assert "ctrl RTT" in proc.stdout and "chunks/s" in proc.stdout
     alive = [pid for pid in doc["worker_pids"] if Path(f"/proc/{pid}").exists() and not _zombie(pid)]
-    # 2 sizes x (publisher, subscriber) + per layout 2 x (sink, source, tool)
-    assert len(doc["worker_pids"]) == 4 + 6 * len(layouts) and alive == [], alive
+    # 2 sizes x (publisher, subscriber) + 3 auth modes x (publisher, subscriber) + per layout 2 x (sink, source, tool)
+    assert len(doc["worker_pids"]) == 4 + 6 + 6 * len(layouts) and alive == [], alive
+    auth = doc["auth"]
+    assert set(auth["data"]) == {"none", "hmac", "identity"}
+    for mode in ("hmac", "identity"):
+        assert positive(auth["data"][mode]["throughput_ratio"]) and positive(auth["data"][mode]["chunks_per_s"])
+        w = auth["weights"][mode]
+        assert positive(w["seal_cpu_s"]) and positive(w["open_cpu_s"])
+    assert doc["auth_throughput_ratio"] == auth["data"]["identity"]["throughput_ratio"]
+    assert "authentication" in proc.stdout
     if doc["netns"]:  # the namespaces of the links layout are gone again
         assert all(not Path(f"/var/run/netns/{ns}").exists() for ns in doc["netns"]), doc["netns"]
 

@@ -110,3 +110,33 @@ def test_authorize_rules():
     assert ok(KEYS.snapshot("replicator-a"), "rollout-a", "rollout", query=True)  # any member asks
     assert ok(KEYS.snapshot("replicator-a"), "replicator-a", "replicator")
     assert not ok(KEYS.snapshot("replicator-a"), "replicator-b", "replicator")
+
+
+_OP = Identity.operator(RUN)
+_IDENT_ENV = Signer(SECRET, "x", identity=_OP.issue("actor", "actor-0")).seal(KEYS.weights_signed(), b"weights")
+
+
+def _only_signature_errors(env: bytes) -> None:
+    verifier = Verifier(SECRET, operator=_OP.public, run=RUN)
+    try:
+        verifier.open(KEYS.weights_signed(), env)
+    except SignatureError:
+        pass
+
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(max_examples=200, deadline=None, database=None)
+@given(st.integers(0, len(_IDENT_ENV) - 1), st.integers(1, 255))
+def test_fuzz_identity_envelopes_raise_only_signature_errors(index, xor):
+    out = bytearray(_IDENT_ENV)
+    out[index] ^= xor
+    _only_signature_errors(bytes(out))
+
+
+@settings(max_examples=200, deadline=None, database=None)
+@given(st.integers(0, len(_IDENT_ENV)), st.binary(max_size=80))
+def test_fuzz_truncated_or_extended_identity_envelopes(cut, tail):
+    _only_signature_errors(_IDENT_ENV[:cut] + tail)
