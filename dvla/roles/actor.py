@@ -89,6 +89,8 @@ class Actor:
         self.policy_version = start
         #: newest version through the publish lane (published by rank 0; recorded by the others)
         self.published_version = start
+        #: (version, checksum) of the newest version through the publish lane, for status
+        self._published: tuple[int, str] | None = None
         #: newest version whose weights may have left the group: set before rank 0 sends it (a
         #: rollout may act on it at once). Other ranks set it as they record it, which is before
         #: rank 0 can send it: the ranks learn each version in lockstep, and rank 0 still has to
@@ -282,6 +284,8 @@ class Actor:
                 self.released_version = item.version  # before sending: see __init__
                 if self.publisher is not None:
                     self._send(item)
+                # one assignment: status never pairs a version with another version's checksum
+                self._published = (item.version, self.publisher.checksum if self.publisher is not None else "")
                 self.published_version = item.version
             ctx.count()
 
@@ -316,8 +320,10 @@ class Actor:
     def status_extra(self) -> dict[str, Any]:
         lags = self.lags[-1024:]
         acct = self.fabric.accounting
+        published = self._published or (self.published_version,
+                                         self.publisher.checksum if self.publisher is not None else "")
         return {
-            "published_version": self.published_version,
+            "published_version": published[0],
             "inbox_depth": self.inbox.depth(),
             "slots_free": self.slots.free_count(),
             "slots_total": self.slots.n_slots,
@@ -333,7 +339,7 @@ class Actor:
             "checksums": {str(v): c for v, c in sorted(dict(self.checksums).items())[-16:]},
             "resumed_from": None if self.resumed is None else {"version": self.resumed.version, "checksum": self.resumed.checksum},
             "publish_bytes": dict(self.publish_bytes),
-            "published_checksum": self.publisher.checksum if self.publisher is not None else "",
+            "published_checksum": published[1],
             "learn": self.learn_stats,
         }
 
