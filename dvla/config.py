@@ -228,12 +228,9 @@ class ReplicationConfig:
     #: carries one copy per version, at the price of one chunk of pipeline latency per hop
     #: (docs/scale.md, "The tree at scale")
     relay_fanout: int = 1
-    #: bytes per weight chunk
+    #: bytes per weight chunk, and of parameters per snapshot reply; the control plane's message
+    #: cap follows from it (docs/security.md)
     chunk_bytes: int = 1 << 20
-    #: largest control-plane message (MiB) a process accepts: Zenoh drops anything larger before
-    #: reassembling it. It must hold a full snapshot (4 bytes per replicated parameter): roles
-    #: refuse to start, naming this setting, when the model's does not fit
-    max_message_mib: int = 128
 
 
 @dataclass(frozen=True, kw_only=True)

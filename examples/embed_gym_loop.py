@@ -53,7 +53,8 @@ from dvla.fabric import (  # noqa: E402
     load_secret,
     plane_config,
 )
-from dvla.fabric.messages import SnapshotRequest, WeightSnapshot  # noqa: E402
+from dvla.fabric.errors import CodecError  # noqa: E402
+from dvla.fabric.messages import SnapshotRequest, WeightSnapshot, join_snapshot  # noqa: E402
 from dvla.learn.policies import MLPPolicy  # noqa: E402
 from dvla.orchestrator.plan import make_plan  # noqa: E402
 from dvla.replication import (  # noqa: E402
@@ -142,7 +143,12 @@ class WeightFollower:
         """Load the actor's latest full weights from its snapshot queryable; True on success."""
         request = SnapshotRequest(requester=self.fabric.name, have_version=self.version)
         replies = self.fabric.query(self.fabric.keys.snapshot(self.actor), request, expect=WeightSnapshot, timeout=timeout)
-        for _sender, snap in replies:
+        try:  # a full snapshot comes as several replies (chunks of the parameters)
+            whole = [join_snapshot([snap for _s, snap in replies])] if replies else []
+        except CodecError:
+            self.rejected += 1
+            return False
+        for snap in whole:
             if snap.layout_hash != self.layout.hash or snap.version <= self.version:
                 continue
             try:

@@ -167,8 +167,6 @@ class Fabric:
         self.identity = identity
         #: the one actor whose weights this process follows (None: any certified actor)
         self.weights_source: str | None = None
-        #: the ctrl session's message cap (bytes; None: Zenoh's default), for size checks
-        self.max_ctrl_bytes: int | None = None
         self._signer = Signer(secret, name, identity=identity)
         self._verifier = Verifier(secret, max_age_s=max_age_s, run=run,
                                   operator=identity.operator_public if identity is not None else None)
@@ -348,7 +346,7 @@ class Fabric:
     def serve(self, key: str, handler: Callable[[Any], Any | None], expect: type | None = None, *,
               worker: bool = False, backlog: int = 4) -> None:
         """Queryable on `key`: `handler(request_msg)` returns a message (or its encoded bytes)
-        to reply with, or None for no reply.
+        to reply with, a list of them (one reply each), or None for no reply.
 
         Only signed, authorized requests reach the handler (an unsigned query gets nothing and
         is counted); the reply is sealed bound to the request's nonce, so it answers that query
@@ -363,11 +361,12 @@ class Fabric:
                 reply = handler(req)
                 if reply is None:
                     return
-                # Handlers may return an already encoded message to skip re-encoding.
-                body = reply if isinstance(reply, (bytes, bytearray)) else encode(reply)
-                payload = self._signer.seal(key, body, bind=nonce)
-                query.reply(key, payload)
-                self.accounting.sent(CTRL, len(payload), "reply")
+                for one in reply if isinstance(reply, list) else [reply]:
+                    # Handlers may return an already encoded message to skip re-encoding.
+                    body = one if isinstance(one, (bytes, bytearray)) else encode(one)
+                    payload = self._signer.seal(key, body, bind=nonce)
+                    query.reply(key, payload)
+                    self.accounting.sent(CTRL, len(payload), "reply")
             except Exception:  # never let a bad request or a handler bug kill the thread
                 self.accounting.add(CTRL, "queryable_errors")
                 log.exception("queryable %s failed", key)
@@ -409,7 +408,10 @@ class Fabric:
         returns the verified (sender, message) replies bound to this query."""
         payload = self._signer.seal(selector, encode(request) if request is not None else b"")
         nonce = nonce_of(payload)
-        replies = self.ctrl.get(selector, payload=payload, timeout=timeout, priority=PRIO_CTRL)
+        # Every reply is kept (no consolidation): a queryable may answer with several (a snapshot
+        # in chunks), and each one is verified on its own.
+        replies = self.ctrl.get(selector, payload=payload, timeout=timeout, priority=PRIO_CTRL,
+                                consolidation=zenoh.ConsolidationMode.NONE)
         out = []
         for reply in replies:
             if reply.ok is None:

@@ -313,6 +313,10 @@ class WeightSnapshot(Message):
     #: the actor's signed envelope of this version's :class:`WeightManifest` (whose ``digest``
     #: the data must hash to); empty in a header-only reply
     manifest: bytes = b""
+    #: a full snapshot comes as ``n_chunks`` replies to one query, ``data`` being the
+    #: ``index``-th slice of the parameters (each reply stays within the ctrl plane's message cap)
+    index: int = 0
+    n_chunks: int = 1
     #: wall-clock creation time, ns since the Unix epoch
     created_ns: int = field(default_factory=_now_ns)
 
@@ -320,6 +324,28 @@ class WeightSnapshot(Message):
         _require(self.version >= -1, "schema", f"version {self.version} < -1")
         _require(self.version >= 0 or not self.data, "schema", "version -1 (nothing held) with parameters")
         _require(len(self.data) % 4 == 0, "shape", f"snapshot of {len(self.data)} bytes is not float32")
+        _require(0 <= self.index < self.n_chunks, "schema", f"index {self.index} outside [0, {self.n_chunks})")
+
+
+def join_snapshot(pieces: list[WeightSnapshot]) -> WeightSnapshot:
+    """The one snapshot that the replies to one snapshot query make up (one sender, one version,
+    every index exactly once), with the slices' data joined in order; CodecError otherwise."""
+    if not pieces:
+        raise CodecError("schema", "no snapshot reply")
+    first = pieces[0]
+    n = first.n_chunks
+    _require(len(pieces) == n, "schema", f"{len(pieces)} snapshot replies for {n} chunks")
+    for p in pieces:
+        _require((p.sender, p.version, p.layout_hash, p.checksum, p.manifest, p.n_chunks)
+                 == (first.sender, first.version, first.layout_hash, first.checksum, first.manifest, n),
+                 "schema", f"snapshot chunk {p.index} of {p.sender} v{p.version} disagrees with chunk {first.index}")
+    ordered = sorted(pieces, key=lambda p: p.index)
+    _require([p.index for p in ordered] == list(range(n)), "schema", "snapshot chunk indices repeat or miss")
+    if n == 1:
+        return first
+    return WeightSnapshot(sender=first.sender, version=first.version, layout_hash=first.layout_hash,
+                          checksum=first.checksum, data=b"".join(p.data for p in ordered), manifest=first.manifest,
+                          created_ns=first.created_ns)
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {

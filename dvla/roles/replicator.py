@@ -71,7 +71,7 @@ class Replicator:
         )
         serve_snapshots(  # children's catch-up: the verified active version
             f, self.cfg.name, self.layout.hash, self._snap_lock, lambda: self.policy_version, self._held_snapshot,
-            lambda: self._proof,
+            lambda: self._proof, self.cfg.replication.chunk_bytes,
         )
         self._stop = sl.stop_event
         sl.lane("recv", self._recv)

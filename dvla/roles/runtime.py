@@ -51,7 +51,9 @@ class Role(Protocol):
 
 def open_fabric(cfg: RoleConfig) -> Fabric:
     """The role's two sessions, as the plan wired them."""
-    ctrl_cap = cfg.replication.max_message_mib << 20
+    # The largest ctrl message: a weight chunk or one snapshot reply (chunk_bytes of parameters),
+    # status and commands are far smaller.
+    ctrl_cap = plane_max_message_size(cfg.replication.chunk_bytes, headroom=2.0, floor=4 << 20)
     ctrl = plane_config(mode=cfg.ctrl.mode, listen=cfg.ctrl.listen, connect=cfg.ctrl.connect, shared_memory=cfg.shared_memory,
                         tls=cfg.ctrl.tls, max_message_size=ctrl_cap)
     data = None
@@ -66,7 +68,6 @@ def open_fabric(cfg: RoleConfig) -> Fabric:
                     secret=load_secret(None, cfg.secret_env), identity=identity)
     # Weights come from the actor at the top of this process's chain, and from nobody else.
     fabric.weights_source = cfg.ancestors[-1] if cfg.ancestors else None
-    fabric.max_ctrl_bytes = ctrl_cap
     return fabric
 
 

@@ -24,7 +24,8 @@ import numpy as np
 from ..config import ReplicationConfig
 from ..fabric import Fabric
 from ..fabric.codec import encode
-from ..fabric.messages import SnapshotRequest, WeightChunk, WeightManifest, WeightSnapshot
+from ..fabric.errors import CodecError
+from ..fabric.messages import SnapshotRequest, WeightChunk, WeightManifest, WeightSnapshot, join_snapshot
 from ..replication import (
     MANIFEST_FIELDS,
     ChecksumMismatch,
@@ -78,7 +79,6 @@ class WeightSync:
         self.decoder = WeightDecoder(layout)
         self.assembler: ChunkAssembler | None = None
         self.manifest: WeightManifest | None = None
-        check_snapshot_fits(fabric, layout)
         # No encoding produces more than a full version: the assembler buffer is that big, once.
         self.max_bytes = layout.nbytes
         self.version = -1
@@ -231,7 +231,10 @@ class WeightSync:
                     self.fabric.keys.snapshot(p), request, expect=WeightSnapshot, timeout=self.fetch_timeout_s
                 )
                 if replies:
-                    self._fetched = Fetched(p, replies[0][1])
+                    try:
+                        self._fetched = Fetched(p, join_snapshot([snap for _s, snap in replies]))
+                    except CodecError as err:  # missing or disagreeing chunks: ask again shortly
+                        log.warning("weights: snapshot from %s incomplete: %s", p, err)
                     return
 
         self._fetch = threading.Thread(target=fetch, name=f"{self.fabric.name}-catchup", daemon=True)
@@ -292,7 +295,7 @@ class WeightSync:
 
 def serve_snapshots(
     fabric: Fabric, sender: str, layout_hash: str, lock: threading.Lock, held: Callable[[], int],
-    snapshot: Callable[[], Snapshot], proof: Callable[[], bytes],
+    snapshot: Callable[[], Snapshot], proof: Callable[[], bytes], chunk_bytes: int = 1 << 20,
 ) -> None:
     """Declare ``sender``'s ``snapshot`` queryable (children's catch-up and repair).
 
@@ -300,11 +303,13 @@ def serve_snapshots(
     full; both are called under ``lock``, which the caller also holds while it changes what they
     read, so a reply never mixes two versions; ``proof()`` is the actor's signed manifest
     envelope of that version. A requester that is up to date (or asks before anything is held)
-    gets a header-only reply and never costs a full copy of the weights; the full reply is
+    gets a header-only reply and never costs a full copy of the weights; a full snapshot goes as
+    replies of at most `chunk_bytes` of parameters each (within the ctrl plane's message cap),
     encoded once per version, however many children ask. Requests are answered by one thread
     of their own from a short queue (never on Zenoh's receive thread; see Fabric.serve).
     """
-    encoded: dict[int, bytes] = {}
+    encoded: dict[int, list[bytes]] = {}
+    step = max(4, chunk_bytes - chunk_bytes % 4)  # whole float32 values per reply
 
     def reply(request: Any) -> Any:
         have = request.have_version if isinstance(request, SnapshotRequest) else -1
@@ -314,12 +319,14 @@ def serve_snapshots(
                 return WeightSnapshot(sender=sender, version=max(version, -1), layout_hash=layout_hash, checksum="", data=b"")
             if version not in encoded:
                 snap = snapshot()
+                data, manifest, now = memoryview(snap.payload), proof(), time.time_ns()
+                n = max(1, -(-len(data) // step))
                 encoded.clear()
-                encoded[version] = encode(WeightSnapshot(
+                encoded[version] = [encode(WeightSnapshot(
                     sender=sender, version=snap.version, layout_hash=layout_hash, checksum=snap.checksum,
-                    data=bytes(snap.payload), manifest=proof(), created_ns=time.time_ns(),
-                ))
-            return encoded[version]
+                    data=bytes(data[i * step:(i + 1) * step]), manifest=manifest, index=i, n_chunks=n, created_ns=now,
+                )) for i in range(n)]
+            return list(encoded[version])
 
     fabric.serve(fabric.keys.snapshot(sender), reply, SnapshotRequest, worker=True)
 
@@ -335,7 +342,6 @@ class WeightPublisher:
         self.sender = sender
         self.layout = layout
         self.replication = replication
-        check_snapshot_fits(fabric, layout)
         self.encoder = WeightEncoder.from_config(layout, replication, start_version=start_version)
         self._lock = threading.Lock()  # a snapshot being served never sees a half-encoded version
         #: the signed manifest envelope of the newest encoded version (sent first, and served
@@ -345,7 +351,8 @@ class WeightPublisher:
     def serve(self) -> None:
         """Declare the ``snapshot`` queryable: children's catch-up with the newest version."""
         serve_snapshots(self.fabric, self.sender, self.layout.hash, self._lock,
-                        lambda: self.encoder.latest, lambda: self.encoder.snapshot(), lambda: self._manifest)
+                        lambda: self.encoder.latest, lambda: self.encoder.snapshot(), lambda: self._manifest,
+                        self.replication.chunk_bytes)
 
     def renumber(self, start_version: int) -> None:
         """Continue numbering after `start_version` (the next version is a full one)."""
@@ -381,16 +388,6 @@ class WeightPublisher:
         """Checksum of the newest encoded version ("" before the first)."""
         with self._lock:
             return self.encoder.checksum
-
-
-def check_snapshot_fits(fabric: Fabric, layout: ParamLayout) -> None:
-    """Refuse to start when a full snapshot of this model exceeds the ctrl plane's message cap
-    (it could never be served or received)."""
-    cap = fabric.max_ctrl_bytes
-    need = layout.nbytes + (64 << 10)
-    if cap is not None and need > cap:
-        raise ValueError(f"replication.max_message_mib: {cap >> 20} MiB cannot carry a snapshot of this model "
-                         f"({need / 2**20:.1f} MiB); set it to at least {-(-need >> 20)}")
 
 
 def manifest_dict(m: WeightManifest) -> dict[str, Any]:

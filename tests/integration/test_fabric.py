@@ -584,3 +584,33 @@ def test_killed_member_is_seen_gone_within_a_second(pair: Pair) -> None:
         proc.wait(timeout=10)
         if proc.stdout is not None:
             proc.stdout.close()
+
+
+@pytest.mark.timeout(30)
+def test_a_snapshot_comes_in_chunks_bound_to_one_query(pair: Pair) -> None:
+    """serve_snapshots answers one query with one reply per chunk of parameters (each within the
+    ctrl plane's message cap); the querier joins them; the actor's manifest proves the content."""
+    import hashlib
+    import threading
+
+    from dvla.fabric.messages import SnapshotRequest, WeightManifest, WeightSnapshot, join_snapshot
+    from dvla.replication import Snapshot
+    from dvla.roles.weightsync import serve_snapshots
+
+    actor, rollout = pair.actor, pair.rollout
+    data = np.arange(2600, dtype=np.float32).tobytes()  # 10,400 bytes: 11 chunks of 1,000
+    manifest = actor.seal(actor.keys.weights_signed(), WeightManifest(
+        sender=actor.name, version=3, base_version=-1, encoding="full", layout_hash="ab", n_chunks=1,
+        total_bytes=len(data), checksum="c", digest=hashlib.sha256(data).hexdigest()))
+    serve_snapshots(actor, actor.name, "ab", threading.Lock(), lambda: 3, lambda: Snapshot(3, data, "c"),
+                    lambda: manifest, chunk_bytes=1000)
+    wait_route(actor.ctrl, rollout.ctrl)
+    replies = rollout.query(actor.keys.snapshot(actor.name), SnapshotRequest(requester=rollout.name, have_version=-1),
+                            expect=WeightSnapshot, timeout=5.0)
+    assert len(replies) == 11 and {s for s, _ in replies} == {actor.name}
+    whole = join_snapshot([snap for _s, snap in replies])
+    assert whole.version == 3 and whole.data == data and whole.manifest == manifest
+    # Up to date: one header-only reply.
+    replies = rollout.query(actor.keys.snapshot(actor.name), SnapshotRequest(requester=rollout.name, have_version=3),
+                            expect=WeightSnapshot, timeout=5.0)
+    assert [(s.version, s.data, s.n_chunks) for _n, s in replies] == [(3, b"", 1)]

@@ -647,3 +647,20 @@ def test_fuzz_trajectory_round_trip(t, n, a, obs_dtypes, trailing, seed):
                                                         for k, v in obs.items()},
                               final_obs={k: np.zeros_like(v) for k, v in obs.items()})
     assert_same(msg, decode(encode(msg)))
+
+
+def test_join_snapshot_needs_every_chunk_once_from_one_version():
+    from dvla.fabric.messages import join_snapshot
+
+    def piece(i: int, n: int = 3, version: int = 4, data: bytes | None = None) -> WeightSnapshot:
+        return WeightSnapshot(sender="r", version=version, layout_hash="ab", checksum="c", manifest=b"m",
+                              data=data if data is not None else bytes([i]) * 8, index=i, n_chunks=n)
+
+    whole = join_snapshot([piece(2), piece(0), piece(1)])
+    assert whole.data == bytes([0]) * 8 + bytes([1]) * 8 + bytes([2]) * 8 and whole.manifest == b"m"
+    assert join_snapshot([piece(0, n=1)]).data == bytes(8)
+    for bad in ([], [piece(0), piece(1)], [piece(0), piece(0), piece(1)], [piece(0), piece(1), piece(2, version=5)]):
+        with pytest.raises(CodecError):
+            join_snapshot(bad)
+    with pytest.raises(CodecError):
+        piece(3).validate()  # index outside n_chunks
