@@ -12,6 +12,7 @@ from typing import Any
 from ..config import BudgetConfig
 from ..fabric import Fabric
 from ..fabric.messages import EvalResult, RoleStatus
+from .tensorboard import TensorBoardLog
 from .view import latest_version
 
 
@@ -62,6 +63,7 @@ class Monitor:
         self._evals, self._ew = _append_csv(self.run_dir / "evals.csv", [
             "time_s", "version", "env_steps", "success_once", "success_at_end", "return_mean", "episodes"])
         self._inbox = self.fabric.subscribe_ctrl(self.fabric.keys.eval_all(), 64, EvalResult)
+        self.tensorboard = TensorBoardLog(self.run_dir)
 
     def now(self) -> float:
         return time.monotonic() - self.t0
@@ -91,6 +93,7 @@ class Monitor:
         self._mw.writerow([f"{t:.2f}", env_steps, produced, f"{self._rate:.1f}", version, f"{lag:.2f}", len(statuses),
                            f"{p50:.3f}", f"{p99:.3f}"])
         self._metrics.flush()
+        self.tensorboard.statuses(env_steps, statuses, self._rate, produced)
         self.last = snap
         self._drain_evals()
         return snap
@@ -104,6 +107,7 @@ class Monitor:
             self._ew.writerow([f"{p.time_s:.2f}", p.version, p.env_steps, f"{p.success_once:.4f}",
                                f"{p.success_at_end:.4f}", f"{p.return_mean:.4f}", p.episodes])
             self._evals.flush()
+            self.tensorboard.evaluation(p.env_steps, ev)
             if self.success_at_s is None and self.success_reached():
                 self.success_at_s = p.time_s
                 self.success_at_steps = p.env_steps
@@ -128,6 +132,7 @@ class Monitor:
     def close(self) -> None:
         self._metrics.close()
         self._evals.close()
+        self.tensorboard.close()
 
     def result(self) -> dict[str, Any]:
         last, first = self.last, self.first_step_s

@@ -18,6 +18,7 @@ inferred or shipped: what the simulators alone deliver in this process and place
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import logging
 import threading
@@ -73,6 +74,9 @@ class _Group:
     chunks: ChunkPool | None = None
     #: the chunk being filled, one of `chunks`: each step is written into its arrays
     chunk: TrajectoryChunk | None = None
+    #: per env: undiscounted return and length of the episode in progress
+    ep_return: np.ndarray | None = None
+    ep_len: np.ndarray | None = None
 
 
 class PolicyPool:
@@ -171,6 +175,9 @@ class Rollout:
         self.bytes_shipped = 0
         self.episodes = 0
         self.successes = 0
+        #: returns and lengths of the most recent finished training episodes (status, TensorBoard)
+        self.recent_returns: collections.deque[float] = collections.deque(maxlen=256)
+        self.recent_lengths: collections.deque[int] = collections.deque(maxlen=256)
         #: CPU seconds the sim lane spent inside env.step (resets included): what a step costs the
         #: simulator itself, apart from acting, recording and hand-offs
         self.step_cpu_s = 0.0
@@ -334,10 +341,19 @@ class Rollout:
         g.t += 1
         g.steps += 1
         self.env_steps += g.envs.n
+        if g.ep_return is None:
+            g.ep_return, g.ep_len = np.zeros(g.envs.n, np.float64), np.zeros(g.envs.n, np.int64)
+        g.ep_return += step.reward
+        g.ep_len += 1
         done = int(step.episode_done.sum())
         if done:
             self.episodes += done
             self.successes += int((step.episode_done & step.success).sum())
+            ended = np.asarray(step.episode_done, bool)
+            self.recent_returns.extend(g.ep_return[ended].tolist())
+            self.recent_lengths.extend(g.ep_len[ended].tolist())
+            g.ep_return[ended] = 0.0
+            g.ep_len[ended] = 0
 
     def _finish_chunk(self, g: _Group, ctx: LaneContext) -> None:
         for k, v in obs_as_dict(g.obs).items():
@@ -415,6 +431,9 @@ class Rollout:
             "episodes": self.episodes,
             "env_step_cpu_s": self.step_cpu_s,
             "train_success_rate": self.successes / self.episodes if self.episodes else 0.0,
+            # copies first: the sim lane appends while status runs (list() of a deque is atomic)
+            "episode_return_mean": _mean(list(self.recent_returns)),
+            "episode_len_mean": _mean(list(self.recent_lengths)),
             "infer_ms_p50": sample_percentile(ms, 0.5),
             "infer_ms_p99": sample_percentile(ms, 0.99),
             # cumulative bucket counts (dvla.roles.swimlane.LatencyHistogram): diff two readings
@@ -436,6 +455,10 @@ class Rollout:
         self.counters.close()
         for g in self.groups:
             g.envs.close()
+
+
+def _mean(values: list[float]) -> float:
+    return float(np.mean(values)) if values else 0.0
 
 
 if __name__ == "__main__":

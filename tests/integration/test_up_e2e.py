@@ -100,6 +100,26 @@ def test_up_tiny_end_to_end(tmp_path: Path) -> None:
     assert all((run_dir / "logs" / f"{r}.log").stat().st_size > 0 for r in ROLES)
     assert not (run_dir / "state.json").exists()
     assert pids_of_run(run_dir) == []
+    _check_tensorboard(run_dir, result["final_env_steps"])
+
+
+def _check_tensorboard(run_dir: Path, final_env_steps: int) -> None:
+    """The run's event files, read back with TensorBoard's own reader: scalars of every
+    namespace, indexed by env steps."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(run_dir / "tb"))
+    acc.Reload()
+    tags = acc.Tags()["scalars"]
+    for namespace in ("train/", "rollout/", "env/", "time/", "fabric/", "weights/"):
+        assert any(t.startswith(namespace) for t in tags), (namespace, tags)
+    for tag in ("train/approx_kl", "env/episode_return_mean", "env/success_rate", "fabric/data/received_bytes",
+                "weights/version", "time/actor.learn/busy"):
+        assert tag in tags, (tag, tags)
+    steps = [e.step for e in acc.Scalars("weights/version")]
+    assert steps == sorted(steps) and 0 < steps[-1] <= final_env_steps
+    versions = [e.value for e in acc.Scalars("weights/version")]
+    assert versions[-1] >= 3 and versions == sorted(versions)
 
 
 def up_tiny_variant(tmp_path: Path, text: str, max_env_steps: int) -> Path:

@@ -90,6 +90,7 @@ def up(
 def _run_to_end(u: Up, shown_events: list[int]) -> int:
     """Run `u` in this process; print its events and a closing line; return its exit code."""
     typer.echo(f"dvla: run {u.topo.run} -> {u.run_dir}  ({len(u.plan.processes)} processes)")
+    typer.echo(f"  tensorboard: tensorboard --logdir {u.run_dir / 'tb'}")
     try:
         code = u.run()
     except (NetnsError, SshError) as err:  # the cluster could not be built or reached (nothing is left)
@@ -119,6 +120,7 @@ def _report_detached(u: Up, pid: int | None, runs: Path) -> None:
     first = u.plan.processes[0].config.name
     typer.echo(f"dvla: run {run} is up in the background (orchestrator pid {pid}) -> {u.run_dir}")
     typer.echo(f"  status:  dvla status {run}{runs_opt}")
+    typer.echo(f"  tensorboard: tensorboard --logdir {u.run_dir / 'tb'}")
     typer.echo(f"  logs:    dvla logs {first} --run {run}{runs_opt} -f   (orchestrator: {log_path})")
     typer.echo(f"  stop:    dvla down {run}{runs_opt}")
 
