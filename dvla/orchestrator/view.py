@@ -31,7 +31,24 @@ def lane_utilisation(s: RoleStatus) -> dict[str, float]:
     return {lane: float(st.get("utilisation", 0.0)) for lane, st in s.lanes.items()}
 
 
+#: version of the JSON document `dvla status --format json` prints (docs/status.md)
+STATUS_SCHEMA = "dvla.status/1"
+
+
+def plane_totals(statuses: dict[str, RoleStatus]) -> dict[str, dict[str, int]]:
+    """Every role's plane counters summed: {plane: {counter: n}} (per-peer tables left out)."""
+    out: dict[str, dict[str, int]] = {}
+    for s in statuses.values():
+        for plane, counters in s.planes.items():
+            tot = out.setdefault(plane, {})
+            for name, n in counters.items():
+                if name != "peers" and isinstance(n, (int, float)):
+                    tot[name] = tot.get(name, 0) + int(n)
+    return out
+
+
 def render_json(statuses: dict[str, RoleStatus], extra: dict[str, Any] | None = None) -> str:
+    """The document of docs/status.md: every role's status plus the run's plane totals."""
     latest = latest_version(statuses)
     roles = []
     for name in sorted(statuses):
@@ -39,7 +56,9 @@ def render_json(statuses: dict[str, RoleStatus], extra: dict[str, Any] | None = 
         d["policy_lag"] = policy_lag(statuses[name], latest)
         d["lane_utilisation"] = lane_utilisation(statuses[name])
         roles.append(d)
-    return json.dumps({"roles": roles, **(extra or {})}, indent=1, sort_keys=True, default=str)
+    doc = {"schema": STATUS_SCHEMA, "roles": roles, "planes": plane_totals(statuses), "latest_version": latest,
+           **(extra or {})}
+    return json.dumps(doc, indent=1, sort_keys=True, default=str)
 
 
 def latest_version(statuses: dict[str, RoleStatus]) -> int:

@@ -52,6 +52,7 @@ def test_up_tiny_end_to_end(tmp_path: Path) -> None:
                 st = dvla("status", "tiny", "--runs", str(runs), "--format", "json", timeout=60)
                 if st.returncode == 0:
                     doc = json.loads(st.stdout)
+                    check_status_schema(doc)
                     for role in doc["roles"]:
                         if role["policy_version"] >= 1:
                             seen[role["name"]] = role
@@ -101,6 +102,18 @@ def test_up_tiny_end_to_end(tmp_path: Path) -> None:
     assert not (run_dir / "state.json").exists()
     assert pids_of_run(run_dir) == []
     _check_tensorboard(run_dir, result["final_env_steps"])
+
+
+def check_status_schema(doc: dict) -> None:
+    """`doc` satisfies the JSON Schema printed in docs/status.md."""
+    import jsonschema
+
+    text = (ROOT / "docs" / "status.md").read_text()
+    schema = json.loads(text.split("```json", 1)[1].split("```", 1)[0])
+    jsonschema.validate(doc, schema)
+    for role in doc["roles"]:  # every plane of every role carries its reject and drop counters
+        for counters in role["planes"].values():
+            assert all(isinstance(v, int) for k, v in counters.items() if k != "peers")
 
 
 def _check_tensorboard(run_dir: Path, final_env_steps: int) -> None:
