@@ -271,6 +271,9 @@ class EvalResult(Message):
     success_at_end: float
     #: mean undiscounted episode return
     return_mean: float
+    #: 95 % (Wilson) interval of ``success_once`` over these episodes
+    success_low: float = 0.0
+    success_high: float = 1.0
     #: wall-clock report time, ns since the Unix epoch
     time_ns: int = field(default_factory=_now_ns)
 

@@ -24,6 +24,7 @@ Torch is used only to unwrap ManiSkill's tensors and to call the policy during e
 from __future__ import annotations
 
 import importlib
+import math
 import time
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -406,6 +407,18 @@ def probe_spec(task: TaskConfig) -> tuple[ObsSpec, int]:
 # --- evaluation -------------------------------------------------------------------------------
 
 
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score interval of a success rate (95 % for the default ``z``); (0, 1) for n = 0.
+    Unlike the normal approximation it stays inside [0, 1] and is honest at 0 or n successes."""
+    if n <= 0:
+        return 0.0, 1.0
+    p = successes / n
+    denom = 1.0 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
 def run_eval_episodes(
     policy: Any,
     task: TaskConfig,
@@ -423,8 +436,9 @@ def run_eval_episodes(
     made here does). Env i plays episodes i, i + n, ...: every episode that is started is
     counted, so short (successful) episodes are not over-represented.
 
-    Returns success_once (fraction of episodes with a success at any step), success_at_end
-    (success at the last step), return_mean, episodes and env_steps.
+    Returns success_once (fraction of episodes with a success at any step) with its 95 % Wilson
+    interval (success_once_low, success_once_high), success_at_end (success at the last step),
+    return_mean, episodes and env_steps.
     """
     import torch
 
@@ -469,8 +483,11 @@ def _play_eval(policy: Any, group: EnvGroup, n_episodes: int, seed: int, device:
         once[res.episode_done] = False
         episode[res.episode_done] += n
         obs = res.next_obs
+    low, high = wilson_interval(int(np.sum(successes_once)), len(successes_once))
     return {
         "success_once": float(np.mean(successes_once)),
+        "success_once_low": low,
+        "success_once_high": high,
         "success_at_end": float(np.mean(successes_end)),
         "return_mean": float(np.mean(returns)),
         "episodes": len(returns),

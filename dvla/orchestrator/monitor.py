@@ -25,6 +25,9 @@ class EvalPoint:
     success_at_end: float
     return_mean: float
     episodes: int
+    #: 95 % (Wilson) interval of success_once
+    success_low: float = 0.0
+    success_high: float = 1.0
 
 
 @dataclass
@@ -61,7 +64,8 @@ class Monitor:
             # rollouts' per-step inference latency, the slowest rollout's percentiles
             "infer_ms_p50", "infer_ms_p99"])
         self._evals, self._ew = _append_csv(self.run_dir / "evals.csv", [
-            "time_s", "version", "env_steps", "success_once", "success_at_end", "return_mean", "episodes"])
+            "time_s", "version", "env_steps", "success_once", "success_at_end", "return_mean", "episodes",
+            "success_low", "success_high"])
         self._inbox = self.fabric.subscribe_ctrl(self.fabric.keys.eval_all(), 64, EvalResult)
         self.tensorboard = TensorBoardLog(self.run_dir)
 
@@ -102,10 +106,12 @@ class Monitor:
         while (got := self._inbox.get_nowait()) is not None:
             _sender, ev = got
             steps = self.last.env_steps if self.last else 0
-            p = EvalPoint(self.now(), ev.policy_version, steps, ev.success_once, ev.success_at_end, ev.return_mean, ev.episodes)
+            p = EvalPoint(self.now(), ev.policy_version, steps, ev.success_once, ev.success_at_end, ev.return_mean,
+                          ev.episodes, ev.success_low, ev.success_high)
             self.evals.append(p)
             self._ew.writerow([f"{p.time_s:.2f}", p.version, p.env_steps, f"{p.success_once:.4f}",
-                               f"{p.success_at_end:.4f}", f"{p.return_mean:.4f}", p.episodes])
+                               f"{p.success_at_end:.4f}", f"{p.return_mean:.4f}", p.episodes,
+                               f"{p.success_low:.4f}", f"{p.success_high:.4f}"])
             self._evals.flush()
             self.tensorboard.evaluation(p.env_steps, ev)
             if self.success_at_s is None and self.success_reached():

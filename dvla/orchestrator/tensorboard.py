@@ -8,7 +8,8 @@ Namespaces, as the field uses them:
 - ``rollout/``: env steps/s (learner) and env steps produced, inference latency p50/p99;
 - ``env/``: the training episodes: success rate, mean return and length over the rollouts'
   recent episodes (weighted by their episode counts);
-- ``eval/``: evaluation results (``success_once``, ``success_at_end``, ``return_mean``, version);
+- ``eval/``: evaluation results (``success_once`` and its 95 % interval ``success_low`` /
+  ``success_high``, ``success_at_end``, ``return_mean``, version);
 - ``time/``: per role kind and lane, the busy and wait fractions and items/s of the lanes (mean
   over the processes of that kind);
 - ``fabric/``: per plane, sent/received bytes and rejected/dropped message counts summed over
@@ -55,7 +56,7 @@ class TensorBoardLog:
             self._writer.add_scalar(tag, value, env_steps)
 
     def evaluation(self, env_steps: int, ev: EvalResult) -> None:
-        for name in ("success_once", "success_at_end", "return_mean"):
+        for name in ("success_once", "success_at_end", "return_mean", "success_low", "success_high"):
             self._writer.add_scalar(f"eval/{name}", float(getattr(ev, name)), env_steps)
         self._writer.add_scalar("eval/version", ev.policy_version, env_steps)
 

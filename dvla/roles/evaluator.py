@@ -86,12 +86,14 @@ class Evaluator:
             msg = EvalResult(
                 sender=self.cfg.name, policy_version=version, episodes=int(res["episodes"]),
                 success_once=float(res["success_once"]), success_at_end=float(res["success_at_end"]),
-                return_mean=float(res["return_mean"]), time_ns=time.time_ns(),
+                return_mean=float(res["return_mean"]), success_low=float(res["success_once_low"]),
+                success_high=float(res["success_once_high"]), time_ns=time.time_ns(),
             )
             self.fabric.publish_ctrl(self.fabric.keys.eval(self.cfg.name), msg)
             self.results.append({"version": version, **{k: float(v) for k, v in res.items()}})
-            log.info("eval v%d: success_once %.2f success_at_end %.2f (%.1f s)", version,
-                     res["success_once"], res["success_at_end"], time.perf_counter() - t0)
+            log.info("eval v%d: success_once %.2f [%.2f, %.2f] success_at_end %.2f (%d episodes, %.1f s)", version,
+                     res["success_once"], res["success_once_low"], res["success_once_high"], res["success_at_end"],
+                     res["episodes"], time.perf_counter() - t0)
             ctx.count()
 
     def status_extra(self) -> dict[str, Any]:

@@ -49,10 +49,11 @@ def test_event_files_read_back_at_env_steps(tmp_path: Path):
     sts["a"].extra["publish_bytes"] = {"full_versions": 1, "full_bytes": 1000, "delta_versions": 2, "delta_bytes": 600}
     log.statuses(200, sts, 10.0, 200)
     log.evaluation(200, EvalResult(sender="e", policy_version=3, episodes=50, success_once=0.9, success_at_end=0.8,
-                                   return_mean=4.0))
+                                   return_mean=4.0, success_low=0.79, success_high=0.96))
     log.close()
     acc = EventAccumulator(str(tmp_path / "tb"))
     acc.Reload()
     assert [(e.step, e.value) for e in acc.Scalars("weights/version")] == [(100, 3.0), (200, 3.0)]
     assert [(e.step, e.value) for e in acc.Scalars("weights/bytes_per_version")] == [(200, 300.0)]
     assert [(e.step, round(e.value, 3)) for e in acc.Scalars("eval/success_once")] == [(200, 0.9)]
+    assert [(e.step, round(e.value, 3)) for e in acc.Scalars("eval/success_low")] == [(200, 0.79)]

@@ -63,7 +63,8 @@ def up(
         ev = m.evals[-1] if m.evals else None
         head = (
             f"{u.topo.run}  t={m.now():6.1f}s  env_steps={snap.env_steps}  steps/s={snap.steps_per_s:.0f}  "
-            f"version={snap.version}  eval success_once={'-' if ev is None else f'{ev.success_once:.2f}'}"
+            f"version={snap.version}  eval success_once="
+            f"{'-' if ev is None else f'{ev.success_once:.2f} [{ev.success_low:.2f}, {ev.success_high:.2f}]'}"
         )
         if live:
             expected = [p.config.name for p in u.plan.processes]
