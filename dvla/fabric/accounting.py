@@ -19,7 +19,10 @@ one, and a reader that tells rollouts from foreign traffic by name counts it as 
 MAX_OTHER_PEERS = 64
 """Default number of distinct peers outside the known set that get counters of their own."""
 
-RESERVED_PEERS = frozenset({OTHER_PEER, "<unauthenticated>"})
+#: peer under which the fabric counts traffic that fails authentication (never a role name, so the
+#: run's accounting reports it as foreign)
+UNAUTHENTICATED = "<unauthenticated>"
+RESERVED_PEERS = frozenset({OTHER_PEER, UNAUTHENTICATED})
 """Aggregate peer keys that are always counted under their own key: :data:`OTHER_PEER` and the
 fabric's ``UNAUTHENTICATED`` (traffic that failed authentication). Like it, none is a role name."""
 

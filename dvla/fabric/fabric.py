@@ -22,13 +22,12 @@ from __future__ import annotations
 import logging
 import queue
 import threading
-import threading
 import time
 from typing import Any, Callable
 
 import zenoh
 
-from .accounting import Accounting
+from .accounting import UNAUTHENTICATED, Accounting  # noqa: F401 (re-exported: fabric.UNAUTHENTICATED)
 from .codec import CodecError, decode, encode, encode_into
 from .identity import Identity, authorize
 from .keys import KeySpace
@@ -38,10 +37,6 @@ log = logging.getLogger("dvla.fabric")
 
 DATA, CTRL = "data", "ctrl"
 
-#: peer name under which traffic that fails authentication is counted: never a role name (roles
-#: match ``[A-Za-z0-9][A-Za-z0-9_.-]*``), so the run's accounting reports it as foreign, never as a
-#: real rollout's own rejects, and 100,000 forged key names cost one counter
-UNAUTHENTICATED = "<unauthenticated>"
 
 #: priority of commands, status and eval results: above everything else on the ctrl link
 PRIO_CTRL = zenoh.Priority.INTERACTIVE_HIGH

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
-from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
+from cryptography.hazmat.primitives.serialization import Encoding, NoEncryption, PrivateFormat, PublicFormat
 
 from .keys import KeySpace, check_name
 
@@ -97,8 +97,6 @@ class Identity:
 
     # -- the credential text -------------------------------------------------------------------
     def seed(self) -> bytes:
-        from cryptography.hazmat.primitives.serialization import NoEncryption, PrivateFormat
-
         return self.key.private_bytes(Encoding.Raw, PrivateFormat.Raw, NoEncryption())
 
     def to_text(self) -> str:

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 from collections import defaultdict
 from pathlib import Path
-from typing import Any
 
 from ..fabric.messages import EvalResult, RoleStatus
 

@@ -84,7 +84,7 @@ class WeightSync:
         self.version = -1
         #: the actor's signed manifest envelope of `version` (served with snapshots of it)
         self.proof = b""
-        self._proofs: dict[int, bytes] = {}  # manifest envelopes of versions being assembled
+        self._pending_proof: tuple[int, bytes] = (-1, b"")  # manifest envelope of the version being assembled
         self.counters = {"versions": 0, "snapshots": 0, "rejected": 0, "repairs": 0, "reattach": 0}
         self._alive: set[str] = set(parents)
         self._lock = threading.Lock()
@@ -167,7 +167,7 @@ class WeightSync:
             if self.on_message is not None:
                 self.on_message(msg, envelope)
             if isinstance(msg, WeightManifest):
-                self._proofs = {msg.version: envelope}
+                self._pending_proof = (msg.version, envelope)
             self._handle(msg)
             ctx.count()
 
@@ -214,7 +214,7 @@ class WeightSync:
             self._want_snapshot = True
             return
         self.version = m.version
-        self.proof = self._proofs.get(m.version, b"")
+        self.proof = self._pending_proof[1] if self._pending_proof[0] == m.version else b""
         self.counters["versions"] += 1
         self.on_version(m.version, flat)
 

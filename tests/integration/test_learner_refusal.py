@@ -3,21 +3,12 @@ one rank's batch holds a NaN reward, both ranks refuse, restore and keep identic
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from dvla.config import PPOConfig
 from dvla.learn.policies import MLPPolicy
-from dvla.learn.ppo import PPOLearner, Trajectories, gae_batch
-
-
-def _trajectories(T=8, N=8, obs_dim=4, act_dim=2, seed=0):
-    rng = np.random.default_rng(seed)
-    t = lambda *shape: torch.as_tensor(rng.normal(size=shape).astype(np.float32))  # noqa: E731
-    no = torch.zeros(T, N, dtype=torch.bool)
-    return Trajectories(obs={"state": t(T, N, obs_dim)}, actions=t(T, N, act_dim), logprobs=t(T, N) - 2.0,
-                        rewards=t(T, N), terminated=no, truncated=no.clone(),
-                        final_obs={"state": torch.zeros(T, N, obs_dim)}, next_obs={"state": t(N, obs_dim)})
+from dvla.learn.ppo import PPOLearner, gae_batch
+from tests.unit.test_ppo import _trajectories
 
 
 def _refusing_rank(rank: int, port: int, out: str) -> None:

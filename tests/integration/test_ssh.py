@@ -215,10 +215,8 @@ def test_remote_rollout_over_ssh_trains_with_local_actor(remote: RemoteHost, tmp
     assert _processes_mentioning(str(run_dir)) == []
 
 
-@pytest.mark.timeout(60)
-def test_failed_login_is_one_line_naming_the_host(remote: RemoteHost, tmp_path: Path) -> None:
-    run = f"sshbad{TAG}"
-    topo = _topology(tmp_path, remote, run, remote.wrong_key)
+def _up_fails_with_one_line(topo: Path, tmp_path: Path) -> str:
+    """`dvla up topo` exits 2 before starting anything, with exactly one `dvla:` error line."""
     proc = subprocess.run(
         [sys.executable, "-m", "dvla", "up", str(topo), "--runs", str(tmp_path / "runs"), "--quiet"],
         cwd=ROOT, capture_output=True, text=True, timeout=50,
@@ -226,7 +224,14 @@ def test_failed_login_is_one_line_naming_the_host(remote: RemoteHost, tmp_path: 
     assert proc.returncode == 2, proc.stdout + proc.stderr
     errors = [line for line in proc.stderr.splitlines() if line.startswith("dvla:")]
     assert len(errors) == 1, proc.stderr
-    assert f"ssh {REMOTE_IP}:{SSH_PORT} failed" in errors[0] and "Permission denied" in errors[0], errors[0]
+    return errors[0]
+
+
+@pytest.mark.timeout(60)
+def test_failed_login_is_one_line_naming_the_host(remote: RemoteHost, tmp_path: Path) -> None:
+    run = f"sshbad{TAG}"
+    error = _up_fails_with_one_line(_topology(tmp_path, remote, run, remote.wrong_key), tmp_path)
+    assert f"ssh {REMOTE_IP}:{SSH_PORT} failed" in error and "Permission denied" in error, error
     assert _processes_mentioning(str(tmp_path)) == []
 
 
@@ -238,15 +243,8 @@ def test_foreign_remote_run_directory_is_left_alone(remote: RemoteHost, tmp_path
     foreign = remote.workdir / run
     foreign.mkdir(parents=True)
     (foreign / "notes.txt").write_text("not dvla's")
-    topo = _topology(tmp_path, remote, run, remote.key)
-    proc = subprocess.run(
-        [sys.executable, "-m", "dvla", "up", str(topo), "--runs", str(tmp_path / "runs"), "--quiet"],
-        cwd=ROOT, capture_output=True, text=True, timeout=50,
-    )
-    assert proc.returncode == 2, proc.stdout + proc.stderr
-    errors = [line for line in proc.stderr.splitlines() if line.startswith("dvla:")]
-    assert len(errors) == 1, proc.stderr
-    assert f"ssh {REMOTE_IP}:{SSH_PORT}: " in errors[0] and f"{foreign} exists and is not a dvla run directory" in errors[0]
+    error = _up_fails_with_one_line(_topology(tmp_path, remote, run, remote.key), tmp_path)
+    assert f"ssh {REMOTE_IP}:{SSH_PORT}: " in error and f"{foreign} exists and is not a dvla run directory" in error
     assert sorted(p.name for p in foreign.iterdir()) == ["notes.txt"]
     assert not (tmp_path / "runs" / run / "logs" / "rollout-far-0.log").exists()  # nothing started
 

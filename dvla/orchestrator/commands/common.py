@@ -11,7 +11,6 @@ from pathlib import Path
 import typer
 
 from ...config import Topology
-from ...fabric import load_secret
 from ..topology import TopologyError, load_topology
 
 #: directory of run directories (DVLA_RUNS overrides it)
