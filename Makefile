@@ -4,16 +4,20 @@ PY ?= python3
 TOPOLOGY ?= topologies/local.yaml
 PYTEST_ARGS ?=
 
-.PHONY: setup run test test-slow
+.PHONY: setup setup-test run test test-slow
 
 setup:
 	@bash scripts/setup.sh
 
+# the suite also uses a real Slurm (slurm-wlm, munge) and LIBERO (the `libero` extra)
+setup-test:
+	@bash scripts/setup.sh test
+
 run: setup
 	$(PY) -m dvla up $(TOPOLOGY)
 
-test: setup
+test: setup-test
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
-test-slow: setup
+test-slow: setup-test
 	$(PY) -m pytest -q -m slow $(PYTEST_ARGS)

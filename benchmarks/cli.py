@@ -22,18 +22,27 @@ def e2e(
     seeds: Annotated[str, typer.Option(help="comma-separated seeds")] = "1,2,3",
     json_path: Annotated[Optional[Path], typer.Option("--json", help="write results here")] = None,
     base_port: Annotated[int, typer.Option(help="first TCP port")] = 19400,
+    modes: Annotated[str, typer.Option(help="comma-separated modes, run interleaved per seed (async, sync)")] = "async,sync",
 ) -> None:
-    """Train once per seed to the topology's success target; time and steps to get there."""
+    """Train once per seed and mode to the topology's success target; time and steps to get there,
+    learning curves, median and spread across seeds per mode."""
     from benchmarks.e2e import run_seeds
 
     try:
         seed_list = [int(s) for s in seeds.split(",") if s.strip()]
     except ValueError:
         raise fail(f"--seeds: expected comma-separated integers, got {seeds!r}")
-    doc = run_seeds(topology, seed_list, base_port, [])
+    mode_list = tuple(m.strip() for m in modes.split(",") if m.strip())
+    if not mode_list or any(m not in ("async", "sync") for m in mode_list):
+        raise fail(f"--modes: expected a comma-separated list of async and sync, got {modes!r}")
+    doc = run_seeds(topology, seed_list, base_port, [], mode_list)
     for r in doc["runs"]:
-        typer.echo(f"seed {r['seed']}: {r['reason']}  env_steps={r['env_steps']}  train_s={_f(r['train_s'])}  "
+        typer.echo(f"seed {r['seed']} {r['mode']}: {r['reason']}  env_steps={r['env_steps']}  train_s={_f(r['train_s'])}  "
                    f"startup_s={_f(r['startup_s'])}  steps/s={_f(r['train_steps_per_s'])}")
+    for mode, m in doc["modes"].items():
+        spread = {k: m[k] for k in ("env_steps", "train_s", "train_steps_per_s")}
+        typer.echo(f"{mode}: {m['successes']}/{m['runs']} reached the target; " + "  ".join(
+            f"{k} median {_f(v['median'])} [{_f(v['min'])}, {_f(v['max'])}]" for k, v in spread.items() if v))
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(doc, indent=1))
@@ -195,6 +204,27 @@ def vla(
         raise fail(f"bench vla: {err}", code=1)
     doc["command"] = "dvla bench vla --json " + str(json_path) + (" --quick" if quick else "")
     _save(doc, json_path, format_table)
+
+
+@app.command("envs")
+def envs(
+    json_path: Annotated[Path, typer.Option("--json", help="write the results (JSON) here")],
+    kind: Annotated[Optional[list[str]], typer.Option(help="env kind (repeatable): maniskill-cpu, libero (default: both)")] = None,
+    placement: Annotated[str, typer.Option(help="split (simulators alone on core 0), split-roles or file")] = "split",
+    quick: Annotated[bool, typer.Option("--quick", help="tiny windows: checks the machinery, not the speed")] = False,
+    runs: Annotated[Optional[Path], typer.Option(help="keep the runs' directories here (default: a temporary directory)")] = None,
+) -> None:
+    """Per env kind this machine can run: simulators alone (random actions) vs training in the same
+    placement, with the ratio; for LIBERO also one env's reset, task-switch, step and render times."""
+    from benchmarks.envs import KINDS, PROFILE, QUICK, format_table, run_bench
+    from benchmarks.swimlane import PLACEMENTS
+
+    kinds = tuple(kind or KINDS)
+    if any(k not in KINDS for k in kinds) or placement not in PLACEMENTS:
+        raise fail(f"--kind must be among {', '.join(KINDS)} and --placement one of {', '.join(PLACEMENTS)} "
+                   f"(got {list(kinds)}, {placement!r})")
+    _run_and_save("envs", json_path, format_table, lambda progress: run_bench(
+        QUICK if quick else PROFILE, kinds, placement, runs, progress))
 
 
 @app.command("learners")

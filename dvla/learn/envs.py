@@ -3,7 +3,7 @@
 This module owns everything that touches a simulator:
 
 * :func:`make_env` builds one Gymnasium env from a :class:`~dvla.config.TaskConfig` (a ManiSkill3
-  id, or a user ``"module:factory"``).
+  id, ``"libero"`` for LIBERO's tasks (:mod:`dvla.learn.libero`), or a user ``"module:factory"``).
 * :class:`EnvGroup` steps ``n`` such envs sequentially in one process and hides the simulator's
   types: callers get numpy arrays with a leading env axis, auto-reset included.
 * :func:`run_eval_episodes` plays deterministic episodes and reports success rates.
@@ -17,6 +17,8 @@ Observations come in two forms, described by :attr:`EnvGroup.obs_spec`:
   uint8 all the way to the policy), ``"proprio"`` float32 ``[n, 18]`` (``agent.qpos`` then
   ``agent.qvel``) and ``"tokens"`` int32 ``[n, L]`` (the task instruction, see
   :mod:`dvla.learn.vla.tokenizer`). These names are exactly the trajectory chunk's obs keys.
+  An env whose Dict observation already has ``rgb`` and ``proprio`` (LIBERO) is taken as it is;
+  an env with an ``instruction`` attribute (LIBERO) gives each episode its own instruction.
 
 Torch is used only to unwrap ManiSkill's tensors and to call the policy during evaluation.
 """
@@ -31,28 +33,14 @@ from typing import Any, Callable
 
 import numpy as np
 
-from dvla.config import TaskConfig
+from dvla.config import LIBERO_ENV, TaskConfig
+
+from .spec import ArraySpec, EnvSetupError, ObsSpec
 
 __all__ = [
-    "make_env", "ArraySpec", "ObsSpec", "EnvGroup", "StepResult", "run_eval_episodes",
+    "make_env", "EnvSetupError", "ArraySpec", "ObsSpec", "EnvGroup", "StepResult", "run_eval_episodes",
     "obs_as_dict", "obs_to_torch", "probe_spec",
 ]
-
-
-@dataclass(frozen=True)
-class ArraySpec:
-    """Shape (without the env axis) and dtype of one observation array."""
-
-    #: per-env shape, e.g. (64, 64, 3)
-    shape: tuple[int, ...]
-    #: numpy dtype name: "float32", "uint8" or "int32"
-    dtype: str
-    #: token arrays: ids lie in [0, vocab) (None for other arrays)
-    vocab: int | None = None
-
-
-ObsSpec = dict[str, ArraySpec]
-"""Observation name -> :class:`ArraySpec`; the names are the trajectory chunk's obs keys."""
 
 
 def obs_as_dict(obs: Any) -> dict[str, np.ndarray]:
@@ -85,12 +73,16 @@ def _load_factory(spec: str) -> Callable[[TaskConfig, int], Any]:
 def make_env(task: TaskConfig, seed: int) -> Any:
     """One Gymnasium env for ``task``.
 
-    ``task.env`` is either a ManiSkill3 id (``"PushCube-v1"``) or ``"module:factory"``, where
-    ``factory(task, seed)`` returns a Gymnasium env. ``seed`` is only forwarded to factories;
-    ManiSkill envs are seeded at reset by :class:`EnvGroup`.
+    ``task.env`` is a ManiSkill3 id (``"PushCube-v1"``), ``"libero"`` or ``"module:factory"``,
+    where ``factory(task, seed)`` returns a Gymnasium env. ``seed`` is only forwarded to factories
+    and LIBERO (it picks the env's first task); ManiSkill envs are seeded at reset by :class:`EnvGroup`.
     """
     if ":" in task.env:
         return _load_factory(task.env)(task, seed)
+    if task.env == LIBERO_ENV:
+        from .libero import make_env as make_libero_env
+
+        return make_libero_env(task, seed)
     import gymnasium as gym
     import mani_skill.envs  # noqa: F401  (registers the ManiSkill ids; slow, so imported lazily)
 
@@ -125,7 +117,10 @@ def _flat_obs(obs: Any) -> np.ndarray:
 
 
 def _structured_obs(obs: dict, tokens: np.ndarray) -> dict[str, np.ndarray]:
-    """rgb / proprio / tokens of one env from ManiSkill's rgb observation dict (batch dim 1)."""
+    """rgb / proprio / tokens of one env from ManiSkill's rgb observation dict (batch dim 1), or
+    from an env that already gives rgb and proprio (LIBERO)."""
+    if "rgb" in obs and "proprio" in obs:
+        return {"rgb": obs["rgb"], "proprio": obs["proprio"], "tokens": tokens}
     try:
         cameras = obs["sensor_data"]
         images = [_to_numpy(cameras[name]["rgb"])[0] for name in sorted(cameras)]
@@ -229,13 +224,16 @@ class EnvGroup:
         high = np.asarray(act_space.high, dtype=np.float32).reshape(self.env_act_dim)
         self.action_low, self.action_high = np.tile(low, self.chunk), np.tile(high, self.chunk)
         self.structured = hasattr(obs_space, "spaces")  # a gymnasium Dict space
-        self._tokens: np.ndarray | None = None
+        #: per env: the instruction of the episode in progress (None for flat observations)
+        self.instructions: list[str | None] = [None] * n
+        self._tokens: list[np.ndarray] = []
+        #: per env: the env's name for the task of the episode in progress ("" when it has none)
+        self.task_labels: list[str] = [""] * n
         if self.structured:
-            from .vla.instructions import instruction_for
-            from .vla.tokenizer import DEFAULT_VOCAB_SIZE, tokenize
+            from .vla.tokenizer import DEFAULT_VOCAB_SIZE
 
-            self.instruction = instruction_for(task.env, task.instruction)
-            self._tokens = tokenize(self.instruction, task.instruction_tokens)
+            self._tokens = [self._instruction_tokens(env, i) for i, env in enumerate(self._envs)]
+            self.instruction = self.instructions[0]
             self.obs_spec: ObsSpec | None = _structured_spec(obs_space, task.instruction_tokens, DEFAULT_VOCAB_SIZE)
         else:
             self.instruction = None
@@ -246,6 +244,20 @@ class EnvGroup:
         self._episode_seeds = np.zeros(n, dtype=np.int64)
         self._succeeded = np.zeros(n, dtype=bool)
         self._obs: dict[str, np.ndarray] | None = None
+
+    def _instruction_tokens(self, env: Any, i: int) -> np.ndarray:
+        """Tokens of env i's instruction: ``task.instruction``, else the env's own (LIBERO: its
+        current task's), else the table's default for ``task.env``; recorded in ``instructions``."""
+        from .vla.instructions import instruction_for
+        from .vla.tokenizer import tokenize
+
+        own = getattr(env.unwrapped, "instruction", None)
+        text = self.task.instruction if self.task.instruction is not None else own
+        text = text if text is not None else instruction_for(self.task.env)
+        if text != self.instructions[i] or i >= len(self._tokens):
+            self.instructions[i] = text
+            return tokenize(text, self.task.instruction_tokens)
+        return self._tokens[i]
 
     @property
     def obs_dim(self) -> int | None:
@@ -293,14 +305,18 @@ class EnvGroup:
         return s
 
     def _reset_one(self, i: int, seed: int) -> dict[str, np.ndarray]:
-        obs, _info = self._envs[i].reset(seed=seed)
+        env = self._envs[i]
+        obs, _info = env.reset(seed=seed)
         self._episode_seeds[i] = seed
         self._succeeded[i] = False
-        return self._convert(obs)
-
-    def _convert(self, obs: Any) -> dict[str, np.ndarray]:
+        self.task_labels[i] = str(getattr(env.unwrapped, "task_label", ""))
         if self.structured:
-            return _structured_obs(obs, self._tokens)
+            self._tokens[i] = self._instruction_tokens(env, i)
+        return self._convert(obs, i)
+
+    def _convert(self, obs: Any, i: int) -> dict[str, np.ndarray]:
+        if self.structured:
+            return _structured_obs(obs, self._tokens[i])
         flat = _flat_obs(obs)
         if self.obs_spec is None:
             self.obs_spec = {"state": ArraySpec((flat.shape[0],), "float32")}
@@ -342,7 +358,7 @@ class EnvGroup:
                 truncated[i] = _scalar(trunc, bool)
                 if terminated[i] or truncated[i]:
                     break
-            obs = self._convert(raw)
+            obs = self._convert(raw, i)
             if terminated[i] or truncated[i]:
                 for key, arr in obs.items():
                     final_obs[key][i] = arr
@@ -371,7 +387,12 @@ class EnvGroup:
 
 
 def _structured_spec(space: Any, n_tokens: int, vocab: int) -> ObsSpec:
-    """The spec of :func:`_structured_obs`'s output, read from ManiSkill's Dict space."""
+    """The spec of :func:`_structured_obs`'s output, read from ManiSkill's Dict space (or from
+    one that already has rgb and proprio)."""
+    tokens = ArraySpec((n_tokens,), "int32", vocab=vocab)
+    if "rgb" in space.spaces and "proprio" in space.spaces:
+        return {"rgb": ArraySpec(tuple(space["rgb"].shape), "uint8"),
+                "proprio": ArraySpec(tuple(space["proprio"].shape), "float32"), "tokens": tokens}
     try:
         cameras = space["sensor_data"]
         shapes = [tuple(cameras[name]["rgb"].shape) for name in sorted(cameras.spaces)]
@@ -388,13 +409,18 @@ def _structured_spec(space: Any, n_tokens: int, vocab: int) -> ObsSpec:
     return {
         "rgb": ArraySpec((h, w, sum(s[2] for s in shapes)), "uint8"),
         "proprio": ArraySpec((n_proprio,), "float32"),
-        "tokens": ArraySpec((n_tokens,), "int32", vocab=vocab),
+        "tokens": tokens,
     }
 
 
 def probe_spec(task: TaskConfig) -> tuple[ObsSpec, int]:
     """(observation spec, act_dim) of ``task``'s env, for processes that build a policy without
-    stepping envs (actor, replicator): one env is made, read and closed."""
+    stepping envs (actor, replicator): one env is made, read and closed (LIBERO's sizes follow
+    from the config, no env is made)."""
+    if task.env == LIBERO_ENV:
+        from .libero import obs_spec
+
+        return obs_spec(task)
     group = EnvGroup(task, 1, 0)
     try:
         if group.obs_spec is None:
@@ -427,8 +453,10 @@ def run_eval_episodes(
     device: Any = "cpu",
     group: EnvGroup | None = None,
     n_envs: int = 8,
-) -> dict[str, float]:
-    """Play ``n_episodes`` episodes with deterministic actions (the policy mean).
+    stop: Any = None,
+) -> dict[str, Any] | None:
+    """Play ``n_episodes`` episodes with deterministic actions (the policy mean); None when
+    ``stop`` (a ``threading.Event``) is set before they are all played.
 
     Episode j starts from seed ``seed + j``, so two calls with the same seed see the same
     initial states. Pass ``group`` to reuse envs between evaluations (it is reset here; create it
@@ -438,7 +466,8 @@ def run_eval_episodes(
 
     Returns success_once (fraction of episodes with a success at any step) with its 95 % Wilson
     interval (success_once_low, success_once_high), success_at_end (success at the last step),
-    return_mean, episodes and env_steps.
+    return_mean, episodes and env_steps; with envs that name their tasks (LIBERO), also
+    ``per_task``: task label -> (episodes, episodes with a success at any step).
     """
     import torch
 
@@ -448,13 +477,13 @@ def run_eval_episodes(
     if own:
         group = EnvGroup(task, min(n_envs, n_episodes), seed, ignore_terminations=True)
     try:
-        return _play_eval(policy, group, n_episodes, seed, torch.device(device))
+        return _play_eval(policy, group, n_episodes, seed, torch.device(device), stop)
     finally:
         if own:
             group.close()
 
 
-def _play_eval(policy: Any, group: EnvGroup, n_episodes: int, seed: int, device: Any) -> dict[str, float]:
+def _play_eval(policy: Any, group: EnvGroup, n_episodes: int, seed: int, device: Any, stop: Any) -> dict[str, Any] | None:
     import torch
 
     from .policies import sample_actions
@@ -465,11 +494,15 @@ def _play_eval(policy: Any, group: EnvGroup, n_episodes: int, seed: int, device:
     ret = np.zeros(n)
     once = np.zeros(n, dtype=bool)
     returns, successes_once, successes_end = [], [], []
+    per_task: dict[str, tuple[int, int]] = {}
     env_steps = 0
     started = time.perf_counter()
     while len(returns) < n_episodes:
+        if stop is not None and stop.is_set():
+            return None
         with torch.no_grad():
             action, _ = sample_actions(policy, obs_to_torch(obs, device), deterministic=True)
+        labels = list(group.task_labels)  # the episodes in progress (a step may reset into another task)
         res = group.step(action.cpu().numpy())
         active = episode < n_episodes
         env_steps += int(active.sum())
@@ -479,12 +512,15 @@ def _play_eval(policy: Any, group: EnvGroup, n_episodes: int, seed: int, device:
             returns.append(ret[i])
             successes_once.append(once[i])
             successes_end.append(res.success[i])
+            if labels[i]:
+                done, ok = per_task.get(labels[i], (0, 0))
+                per_task[labels[i]] = (done + 1, ok + int(once[i]))
         ret[res.episode_done] = 0.0
         once[res.episode_done] = False
         episode[res.episode_done] += n
         obs = res.next_obs
     low, high = wilson_interval(int(np.sum(successes_once)), len(successes_once))
-    return {
+    out: dict[str, Any] = {
         "success_once": float(np.mean(successes_once)),
         "success_once_low": low,
         "success_once_high": high,
@@ -494,3 +530,6 @@ def _play_eval(policy: Any, group: EnvGroup, n_episodes: int, seed: int, device:
         "env_steps": env_steps,
         "eval_s": time.perf_counter() - started,
     }
+    if per_task:
+        out["per_task"] = dict(sorted(per_task.items()))
+    return out

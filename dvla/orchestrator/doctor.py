@@ -21,7 +21,7 @@ import sys
 from dataclasses import asdict, dataclass
 from typing import Callable, Literal
 
-from ..config import Topology
+from ..config import LIBERO_ASSETS_ENV, LIBERO_ENV, LIBERO_RENDERER_FIX, LiberoConfig, Topology, libero_assets_problem
 from .launcher import last_line
 from .plan import make_plan, pinning_problems, role_cpus
 from .process import endpoint_address, is_local_host
@@ -70,6 +70,8 @@ class Needs:
     simulator: bool = True
     #: a role here wants CUDA (device or sim backend set to cuda)
     cuda: bool = False
+    #: rollouts or evaluators here run LIBERO tasks (task.env: libero)
+    libero: bool = False
     #: emulate: netns
     netns: bool = False
     #: (role, listen endpoint) of every plane bound on this machine
@@ -90,6 +92,7 @@ def needs_of(topo: Topology | None) -> Needs:
     return Needs(
         simulator=bool(kinds & {"rollout", "evaluator"}),
         cuda=task.device == "cuda" or task.sim_backend == "physx_cuda",
+        libero=task.env == LIBERO_ENV and bool(kinds & {"rollout", "evaluator"}),
         netns=topo.emulate == "netns",
         endpoints=tuple((p.config.name, ep) for p in local for ep in (*p.config.ctrl.listen, *p.config.data.listen)),
         remote_nodes=tuple(n.name for _r, n in topo.nodes() if not is_local_host(n.host)),
@@ -199,6 +202,54 @@ def check_maniskill(needs: Needs) -> CheckResult:
     rc, out, err = _python_probe("import mani_skill; print(mani_skill.__version__)")
     detail = f"mani_skill {last_line(out)}" if rc == 0 else f"import failed: {last_line(err)}"
     return outcome("maniskill", rc == 0, detail, fix=SETUP_PYTHON, required=needs.simulator)
+
+
+LIBERO_INSTALL = ("pip install -e '.[libero]' -c <a constraints file pinning your torch and numpy> "
+                  "(docs/libero.md)")
+
+
+def check_libero(topo: Topology | None, needs: Needs) -> CheckResult:
+    """LIBERO's needs: hf-libero importable, MuJoCo rendering offscreen with the topology's
+    renderer (one frame, in a subprocess) and, for a LIBERO topology, its assets directory.
+    Optional (skipped when hf-libero is absent) unless the topology runs LIBERO here."""
+    import importlib.util
+
+    required = needs.libero
+    if importlib.util.find_spec("libero") is None:
+        if not required:
+            return skip("libero", f"hf-libero not installed (optional, for task.env: libero: {LIBERO_INSTALL})")
+        return outcome("libero", False, "hf-libero not installed", fix=LIBERO_INSTALL, required=True)
+    cfg = (topo.task.libero if topo is not None else None) or LiberoConfig()
+    problem = render_problem(cfg.renderer)
+    if problem:
+        return outcome("libero", False, f"MuJoCo cannot render offscreen: {problem}",
+                       fix=LIBERO_RENDERER_FIX[cfg.renderer], required=required)
+    detail = f"hf-libero installed; MuJoCo renders offscreen with MUJOCO_GL={cfg.renderer}"
+    if required:
+        assets = cfg.assets or os.environ.get(LIBERO_ASSETS_ENV)
+        problem = libero_assets_problem(os.path.abspath(assets)) if assets else f"not set and {LIBERO_ASSETS_ENV} is empty"
+        if problem:
+            return outcome("libero", False, f"task.libero.assets: {problem}",
+                           fix="set task.libero.assets to LIBERO's assets directory (docs/libero.md)", required=True)
+        detail += f"; assets {assets}"
+    return outcome("libero", True, detail, required=required)
+
+
+def render_problem(renderer: str, size: int = 32) -> str | None:
+    """Why MuJoCo cannot render one frame offscreen with MUJOCO_GL=`renderer` here, or None
+    (a fresh interpreter: MuJoCo picks its GL backend once per process)."""
+    code = "\n".join((
+        "import os",
+        f"os.environ['MUJOCO_GL'] = os.environ['PYOPENGL_PLATFORM'] = {renderer!r}",
+        "import mujoco",
+        "m = mujoco.MjModel.from_xml_string('<mujoco><worldbody><light pos=\"0 0 1\"/>"
+        "<geom type=\"sphere\" size=\".1\"/></worldbody></mujoco>')",
+        "d = mujoco.MjData(m); mujoco.mj_forward(m, d)",
+        f"r = mujoco.Renderer(m, {size}, {size}); r.update_scene(d); img = r.render()",
+        f"assert img.shape == ({size}, {size}, 3) and img.any(), 'the frame is blank'",
+    ))
+    rc, _out, err = _python_probe(code)
+    return None if rc == 0 else f"MUJOCO_GL={renderer}: {last_line(err) or f'exit {rc}'}"
 
 
 def _bind_error(endpoint: str) -> tuple[str, int, int | None]:
@@ -333,6 +384,7 @@ CHECKS: dict[str, Callable[[Topology | None, Needs], CheckResult | list[CheckRes
     "zenoh": lambda topo, needs: check_zenoh(),
     "vulkan": lambda topo, needs: check_vulkan(needs),
     "maniskill": lambda topo, needs: check_maniskill(needs),
+    "libero": check_libero,
     "ports": lambda topo, needs: check_ports(needs),
     "cpus": lambda topo, needs: check_cpus(topo),
     "netns": lambda topo, needs: check_netns(needs),

@@ -12,8 +12,11 @@ from typing import Any
 from ..config import BudgetConfig
 from ..fabric import Fabric
 from ..fabric.messages import EvalResult, RoleStatus
+from ..learn.envs import wilson_interval
+from .evaljoin import EvalJoin
 from .tensorboard import TensorBoardLog
 from .view import latest_version
+from .wandb_log import WandbLog
 
 
 @dataclass
@@ -47,6 +50,8 @@ class Monitor:
     fabric: Fabric
     run_dir: Path
     budget: BudgetConfig
+    #: joins the blocks of the run's evaluators into whole evaluations
+    eval_join: EvalJoin = field(default_factory=lambda: EvalJoin(1, 1))
     t0: float = field(default_factory=time.monotonic)
     evals: list[EvalPoint] = field(default_factory=list)
     last: Snapshot | None = None
@@ -55,6 +60,8 @@ class Monitor:
     success_at_steps: int | None = None
     _rate_mark: tuple[float, int] | None = None
     _rate: float = 0.0
+    #: W&B copy of the TensorBoard scalars (None: `logging.wandb` not set); never waited on
+    wandb: WandbLog | None = None
 
     def __post_init__(self) -> None:
         # A resumed run appends to its files, its clock continuing from their last row.
@@ -65,7 +72,9 @@ class Monitor:
             "infer_ms_p50", "infer_ms_p99"])
         self._evals, self._ew = _append_csv(self.run_dir / "evals.csv", [
             "time_s", "version", "env_steps", "success_once", "success_at_end", "return_mean", "episodes",
-            "success_low", "success_high"])
+            "success_low", "success_high",
+            # "all": the whole evaluation; else one task's episodes (LIBERO), on rows of their own
+            "task"])
         self._inbox = self.fabric.subscribe_ctrl(self.fabric.keys.eval_all(), 64, EvalResult)
         self.tensorboard = TensorBoardLog(self.run_dir)
 
@@ -97,23 +106,35 @@ class Monitor:
         self._mw.writerow([f"{t:.2f}", env_steps, produced, f"{self._rate:.1f}", version, f"{lag:.2f}", len(statuses),
                            f"{p50:.3f}", f"{p99:.3f}"])
         self._metrics.flush()
-        self.tensorboard.statuses(env_steps, statuses, self._rate, produced)
+        scalars = self.tensorboard.statuses(env_steps, statuses, self._rate, produced)
+        if self.wandb is not None:
+            self.wandb.log(env_steps, scalars)
         self.last = snap
         self._drain_evals()
         return snap
 
     def _drain_evals(self) -> None:
         while (got := self._inbox.get_nowait()) is not None:
-            _sender, ev = got
+            whole = self.eval_join.add(got[1])
+            if whole is None:
+                continue
+            ev = whole
             steps = self.last.env_steps if self.last else 0
             p = EvalPoint(self.now(), ev.policy_version, steps, ev.success_once, ev.success_at_end, ev.return_mean,
                           ev.episodes, ev.success_low, ev.success_high)
             self.evals.append(p)
             self._ew.writerow([f"{p.time_s:.2f}", p.version, p.env_steps, f"{p.success_once:.4f}",
                                f"{p.success_at_end:.4f}", f"{p.return_mean:.4f}", p.episodes,
-                               f"{p.success_low:.4f}", f"{p.success_high:.4f}"])
+                               f"{p.success_low:.4f}", f"{p.success_high:.4f}", "all"])
+            for task, n in ev.task_episodes.items():
+                ok = ev.task_successes[task]
+                low, high = wilson_interval(ok, n)
+                self._ew.writerow([f"{p.time_s:.2f}", p.version, p.env_steps, f"{ok / max(n, 1):.4f}", "", "", n,
+                                   f"{low:.4f}", f"{high:.4f}", task])
             self._evals.flush()
-            self.tensorboard.evaluation(p.env_steps, ev)
+            scalars = self.tensorboard.evaluation(p.env_steps, ev)
+            if self.wandb is not None:
+                self.wandb.log(p.env_steps, scalars)
             if self.success_at_s is None and self.success_reached():
                 self.success_at_s = p.time_s
                 self.success_at_steps = p.env_steps
@@ -122,7 +143,8 @@ class Monitor:
         b = self.budget
         if b.until_success is None or len(self.evals) < b.consecutive:
             return False
-        return all(e.success_once >= b.until_success for e in self.evals[-b.consecutive:])
+        stat = "success_low" if b.success_on == "lower_bound" else "success_once"
+        return all(getattr(e, stat) >= b.until_success for e in self.evals[-b.consecutive:])
 
     def stop_reason(self) -> str | None:
         """Why the run should stop now, or None."""
@@ -153,6 +175,9 @@ class Monitor:
             "final_env_steps": last.env_steps if last else 0,
             "final_version": last.version if last else 0,
             "evals": [e.__dict__ for e in self.evals],
+            # windows some evaluator skipped, and blocks naming another number of evaluators
+            "evals_incomplete": self.eval_join.incomplete,
+            "evals_refused": self.eval_join.refused,
             "success_reached": self.success_reached() or self.success_at_s is not None,
         }
 

@@ -120,6 +120,7 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
             out.append(cur)
         return out
 
+    evaluators = [s for s in slots if s.kind == "evaluator"]
     order = {"actor": 0, "replicator": 1, "rollout": 2, "evaluator": 3}
     processes = []
     for s in sorted(slots, key=lambda s: (order[s.kind], s.index)):
@@ -147,6 +148,8 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
             cpus=role_cpus(s.node, s.placement), lane_cpus=s.placement.lane_cpus,
             lockstep_steps=_lockstep_steps(topo, s, by_name), task=topo.task, replication=topo.replication,
             group=_group_rank(topo, actors, s, f"tcp://{addresses[root.node.name]}:{group_port}") if group_port else None,
+            eval_shard=(evaluators.index(s), len(evaluators)) if s.kind == "evaluator" else (0, 1),
+            eval_seed=topo.seed * 1000 + topo.task.eval.seed_offset,
         )
         netns = netns_name(topo.run, s.node.name) if topo.emulate == "netns" else None
         processes.append(Process(config=cfg, host=s.node.host, netns=netns))

@@ -20,7 +20,7 @@ def plot_run(run_dir: Path) -> Path:
     import matplotlib.pyplot as plt
 
     metrics = _read(run_dir / "metrics.csv")
-    evals = _read(run_dir / "evals.csv")
+    evals = [r for r in _read(run_dir / "evals.csv") if r.get("task", "all") == "all"]  # not per-task rows
     fig, (ax1, ax2, ax3) = plt.subplots(3, 1, figsize=(8, 9), sharex=True)
     if evals:
         t = [float(r["time_s"]) for r in evals]

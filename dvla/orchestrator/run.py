@@ -26,6 +26,7 @@ from ..fabric.identity import Identity, IdentityError
 from ..fabric.messages import Command
 from .accounting import run_accounting
 from .launcher import Launcher, log_tail
+from .evaljoin import EvalJoin
 from .monitor import Monitor
 from .netns import NetnsCluster, NetnsWrapper
 from .plan import make_plan, pinning_problems
@@ -33,6 +34,7 @@ from .plots import plot_run
 from .process import Plan, is_local_host
 from .ssh import SshWrapper, write_private
 from .topology import dump_topology_yaml
+from .wandb_log import WandbLog, missing_wandb
 
 log = logging.getLogger("dvla.up")
 #: seconds between status collections
@@ -203,6 +205,9 @@ class Up:
         pinning = pinning_problems(self.topo)
         if pinning:  # caught before anything is created, not as a role that dies on start
             raise ValueError("\n".join(f"{self.topo.source}: {p}" for p in pinning))
+        no_wandb = missing_wandb(self.topo)
+        if no_wandb:
+            raise ValueError(no_wandb)
         self.run_dir, self.continued = prepare_run_dir(opts.runs_root, self.topo.run, opts.resume, opts.fresh)
         self.plan: Plan = make_plan(self.topo, str(self.run_dir), opts.base_port)
         self.secret, self.secret_source = resolve_secret(self.topo, self.run_dir)
@@ -212,6 +217,8 @@ class Up:
         self.monitor: Monitor | None = None
         self._interrupted = threading.Event()
         self.netns: NetnsCluster | None = None
+        #: the W&B copy of the scalars (started by run(): its thread must not cross a fork)
+        self.wandb: WandbLog | None = None
         env = dict(os.environ)
         env["DVLA_SECRET"] = self.secret
         env.setdefault("PYTHONUNBUFFERED", "1")
@@ -253,6 +260,8 @@ class Up:
             ssh = SshWrapper(self.topo, self.secret, self.launcher.env, local=self.launcher.wrap)
             ssh.check_all()  # one clear line naming the host, before anything starts
             self.launcher.wrap = ssh
+        # W&B starts (on its own thread) while the roles start; nothing ever waits on it
+        self.wandb = WandbLog.start(self.topo, self.run_dir, len(self.plan.processes))
         try:
             for p in self.plan.processes:
                 self.launcher.add(p)
@@ -261,7 +270,10 @@ class Up:
             fabric = tool_fabric(self.topo.run, self.plan.ctrl_entry, bytes.fromhex(self.secret),
                                  tls=ctrl_tls(self.topo), identity=self.operator)
             try:
-                self.monitor = Monitor(fabric, self.run_dir, self.topo.task.budget)
+                evaluators = sum(p.config.kind == "evaluator" for p in self.plan.processes)
+                self.monitor = Monitor(fabric, self.run_dir, self.topo.task.budget,
+                                       EvalJoin(max(1, evaluators), self.topo.task.eval.every_versions),
+                                       wandb=self.wandb)
                 code = self._watch(fabric)
                 self._shutdown(fabric)
             finally:
@@ -272,6 +284,8 @@ class Up:
             return code
         finally:
             self.launcher.kill_all()
+            if self.wandb is not None:  # bounded: finish_timeout_s and a margin
+                self.events.extend(self.wandb.close())
             if self.netns is not None:
                 self.netns.destroy()
             state = self.run_dir / "state.json"
@@ -294,6 +308,8 @@ class Up:
                 return ExitCode.ROLE_FAILED
             if events:
                 self._write_state()
+            if self.wandb is not None:  # where the W&B run is, or why there is none
+                self.events.extend(self.wandb.take_notes())
             self.monitor.collect()
             if self.on_tick is not None:
                 self.on_tick(self)

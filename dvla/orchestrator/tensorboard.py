@@ -16,7 +16,9 @@ Namespaces, as the field uses them:
   every role;
 - ``weights/``: published version, policy lag (mean, p99) and bytes per published version.
 
-Uses ``torch.utils.tensorboard`` (the ``tensorboard`` package writes the files).
+Uses ``torch.utils.tensorboard`` (the ``tensorboard`` package writes the files). Both writing
+methods return the scalars they wrote, so the same values can go elsewhere too (W&B:
+``wandb_log.py``) without being computed twice.
 """
 
 from __future__ import annotations
@@ -40,8 +42,9 @@ class TensorBoardLog:
         self._writer = SummaryWriter(log_dir=str(self.logdir), flush_secs=10)
         self._published_bytes: tuple[int, int] | None = None  # (versions, bytes) at the last write
 
-    def statuses(self, env_steps: int, statuses: dict[str, RoleStatus], steps_per_s: float, produced: int) -> None:
-        """One collection round's scalars at `env_steps`."""
+    def statuses(self, env_steps: int, statuses: dict[str, RoleStatus], steps_per_s: float,
+                 produced: int) -> dict[str, float]:
+        """Writes one collection round's scalars at `env_steps`; returns them by tag."""
         scalars = status_scalars(statuses, steps_per_s, produced)
         actor = _first_actor(statuses)
         if actor is not None:
@@ -53,11 +56,14 @@ class TensorBoardLog:
             self._published_bytes = (versions, sent)
         for tag, value in scalars.items():
             self._writer.add_scalar(tag, value, env_steps)
+        return scalars
 
-    def evaluation(self, env_steps: int, ev: EvalResult) -> None:
-        for name in ("success_once", "success_at_end", "return_mean", "success_low", "success_high"):
-            self._writer.add_scalar(f"eval/{name}", float(getattr(ev, name)), env_steps)
-        self._writer.add_scalar("eval/version", ev.policy_version, env_steps)
+    def evaluation(self, env_steps: int, ev: EvalResult) -> dict[str, float]:
+        """Writes one evaluation's scalars at `env_steps`; returns them by tag."""
+        scalars = eval_scalars(ev)
+        for tag, value in scalars.items():
+            self._writer.add_scalar(tag, value, env_steps)
+        return scalars
 
     def close(self) -> None:
         self._writer.close()
@@ -66,6 +72,14 @@ class TensorBoardLog:
 def _first_actor(statuses: dict[str, RoleStatus]) -> RoleStatus | None:
     actors = sorted((s for s in statuses.values() if s.kind == "actor"), key=lambda s: s.extra.get("rank", 0))
     return actors[0] if actors else None
+
+
+def eval_scalars(ev: EvalResult) -> dict[str, float]:
+    """The scalars of one evaluation, by tag (pure)."""
+    out = {f"eval/{name}": float(getattr(ev, name))
+           for name in ("success_once", "success_at_end", "return_mean", "success_low", "success_high")}
+    out["eval/version"] = float(ev.policy_version)
+    return out
 
 
 def status_scalars(statuses: dict[str, RoleStatus], steps_per_s: float, produced: int) -> dict[str, float]:

@@ -32,11 +32,16 @@ import yaml
 from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 
 from dvla.config import (
+    LIBERO_ASSETS_ENV,
+    LIBERO_ASSETS_FIX,
+    LIBERO_ENV,
+    LIBERO_SUITES,
     OBS_MODES,
     ROLE_KINDS,
     ROLE_LANES,
     BudgetConfig,
     EvalConfig,
+    LiberoConfig,
     LinkConfig,
     SimulateConfig,
     NodeConfig,
@@ -48,7 +53,9 @@ from dvla.config import (
     TlsConfig,
     TaskConfig,
     Topology,
+    WandbConfig,
     grpo_layout_problems,
+    libero_assets_problem,
 )
 
 from ..fabric.keys import check_name
@@ -600,7 +607,7 @@ _RANGES: dict[type, dict[str, _Range]] = {
         "target_kl": _POSITIVE,
         "max_policy_lag": _AT_LEAST_0,
     },
-    EvalConfig: {"episodes": _AT_LEAST_1, "every_versions": _AT_LEAST_1, "seed_offset": _AT_LEAST_0},
+    EvalConfig: {"episodes": _AT_LEAST_1, "every_versions": _AT_LEAST_1, "seed_offset": _AT_LEAST_0, "envs": _AT_LEAST_1},
     BudgetConfig: {
         "max_env_steps": _AT_LEAST_1,
         "until_success": _FRACTION,
@@ -622,6 +629,8 @@ _RANGES: dict[type, dict[str, _Range]] = {
     },
     RolePlacement: {"count": _AT_LEAST_1},
     SshConfig: {"port": _Range(low=1, high=65535), "connect_timeout_s": _AT_LEAST_1},
+    WandbConfig: {"init_timeout_s": _Range(low=0, high=600, low_open=True),
+                  "finish_timeout_s": _Range(low=0, high=600, low_open=True)},
 }
 
 
@@ -739,6 +748,24 @@ def _check_required_roles(p: _Partial, ctx: _Context) -> None:
             ctx.report(p.where("racks"), f"no {required} placed (expected at least one node with role {required})")
 
 
+def _check_eval_shards(p: _Partial, ctx: _Context) -> None:
+    """Each evaluator plays a block of every evaluation's episodes: no more evaluators than episodes."""
+    task = p.get("task")
+    ev = task.get("eval") if isinstance(task, _Partial) else None
+    episodes = ev.get("episodes") if isinstance(ev, _Partial) else EvalConfig().episodes
+    if type(episodes) is not int:
+        return
+    evaluators = 0
+    for node in _placed_nodes(p)[0]:
+        for placement in node.get("roles") if isinstance(node.get("roles"), tuple) else ():
+            if isinstance(placement, _Partial) and placement.get("role") == "evaluator":
+                count = placement.get("count")
+                evaluators += count if type(count) is int else 1
+    if evaluators > episodes:
+        ctx.report(p.where("racks"), f"{evaluators} evaluators but task.eval.episodes is {episodes} "
+                                     "(each evaluator plays a block of every evaluation's episodes: place at most that many)")
+
+
 def _check_netns_hosts(p: _Partial, ctx: _Context) -> None:
     if p.get("emulate") != "netns":
         return
@@ -807,6 +834,65 @@ def _check_grpo(p: _Partial, ctx: _Context) -> None:
         return
     for key, message in grpo_layout_problems(types.SimpleNamespace(**values)):
         ctx.report(p.where(key), message)
+
+
+# --- LIBERO -----------------------------------------------------------------------------------
+
+
+def _check_libero_task(p: _Partial, ctx: _Context) -> None:
+    """``env: libero`` reads images (obs_mode rgb); ``task.libero`` goes with it and nothing else."""
+    env, libero = p.get("env"), p.get("libero")
+    if env != LIBERO_ENV:
+        if isinstance(libero, _Partial) and isinstance(env, str):
+            ctx.report(p.where("libero"), f"set, but task.env is {_show(env)} (expected env: {LIBERO_ENV} to run "
+                                          "LIBERO tasks, or no libero section)")
+        return
+    obs_mode = p.get("obs_mode")
+    if isinstance(obs_mode, str) and obs_mode != "rgb":
+        ctx.report(p.where("obs_mode"), f"{obs_mode!r} with env {LIBERO_ENV} (expected rgb: LIBERO's observations are "
+                                        "camera images and proprioception)")
+    if libero is None:  # LiberoConfig's defaults: assets from the environment
+        problem = _libero_assets_from_env()
+        if problem:
+            ctx.report(_join(p.path, "libero.assets"), problem)
+
+
+def _libero_assets_from_env() -> str | None:
+    path = os.environ.get(LIBERO_ASSETS_ENV)
+    if not path:
+        return f"not set and {LIBERO_ASSETS_ENV} is empty (expected LIBERO's assets directory; {LIBERO_ASSETS_FIX})"
+    problem = libero_assets_problem(os.path.abspath(os.path.expanduser(path)))
+    return f"{LIBERO_ASSETS_ENV}: {problem}" if problem else None
+
+
+def _check_libero(p: _Partial, ctx: _Context) -> None:
+    """Task ids of the suite, each once; the assets directory (relative to the file) exists."""
+    suite, ids = p.get("suite"), p.get("task_ids")
+    n = LIBERO_SUITES.get(suite) if isinstance(suite, str) else None
+    if ids == ():
+        ctx.report(p.where("task_ids"), "empty list (expected task ids of the suite, or null for every task)")
+    first: dict[int, int] = {}
+    for i, t in enumerate(ids if isinstance(ids, tuple) else ()):
+        if type(t) is not int:
+            continue
+        where = f"{p.where('task_ids')}[{i}]"
+        if n is not None and not 0 <= t < n:
+            ctx.report(where, f"unknown task id {t} in {suite} (expected 0 .. {n - 1})")
+        elif t in first:
+            ctx.report(where, f"duplicate task id {t} (already at task_ids[{first[t]}])")
+        else:
+            first[t] = i
+    assets = p.get("assets")
+    if isinstance(assets, str) and assets.strip():
+        resolved = os.path.abspath(os.path.join(ctx.base_dir, os.path.expanduser(assets)))
+        p.values["assets"] = resolved
+        problem = libero_assets_problem(resolved)
+    elif assets is None:
+        problem = _libero_assets_from_env()
+    else:
+        return
+    if problem:
+        ctx.report(p.where("assets"), problem)
 
 
 def _check_stop_condition(p: _Partial, ctx: _Context) -> None:
@@ -951,6 +1037,22 @@ def _check_tls(p: _Partial, ctx: _Context) -> None:
                 ctx.report(p.where("planes"), f"repeated plane in {named}")
 
 
+#: characters W&B refuses in project names
+_WANDB_PROJECT_FORBIDDEN = "/\\#?%:"
+#: longest W&B tag
+_WANDB_TAG_MAX = 64
+
+
+def _check_wandb(p: _Partial, ctx: _Context) -> None:
+    project = p.get("project")
+    if isinstance(project, str) and any(c in project for c in _WANDB_PROJECT_FORBIDDEN):
+        ctx.report(p.where("project"), f"invalid W&B project {_show(project)} (no {' '.join(_WANDB_PROJECT_FORBIDDEN)})")
+    tags = p.get("tags")
+    for i, tag in enumerate(tags if isinstance(tags, tuple) else ()):
+        if isinstance(tag, str) and not 1 <= len(tag.strip()) <= _WANDB_TAG_MAX:
+            ctx.report(f"{p.where('tags')}[{i}]", f"invalid W&B tag {_show(tag)} (expected 1 to {_WANDB_TAG_MAX} characters)")
+
+
 def _role_counts(node: _Partial) -> dict[str, int] | None:
     """role kind -> processes placed on `node` (None when a placement could not be read)."""
     roles = node.get("roles")
@@ -998,11 +1100,13 @@ def _check_learners(p: _Partial, ctx: _Context) -> None:
 _CHECKS: dict[type, list[Callable[[_Partial, _Context], None]]] = {
     Topology: [
         _check_run_id, _check_has_racks, _check_names, _check_required_roles, _check_netns_hosts, _check_remote_addresses,
-        _check_learners,
+        _check_learners, _check_eval_shards,
     ],
     SshConfig: [_check_ssh],
     TlsConfig: [_check_tls],
-    TaskConfig: [_check_obs_and_policy, _check_grpo],
+    WandbConfig: [_check_wandb],
+    TaskConfig: [_check_obs_and_policy, _check_grpo, _check_libero_task],
+    LiberoConfig: [_check_libero],
     BudgetConfig: [_check_stop_condition],
     RackConfig: [_check_rack_nodes, _check_key_name],
     NodeConfig: [_check_node_roles, _check_cpus, _check_key_name, _check_host],
@@ -1015,10 +1119,13 @@ _NOT_EMPTY: dict[type, dict[str, str]] = {
     Topology: {"secret_file": "a path, or null for a per-run secret"},
     TaskConfig: {"env": "an env id like 'PushCube-v1' or 'module:function'",
                  "instruction": "words, or null for the task's default"},
+    LiberoConfig: {"assets": "a directory, or null for $DVLA_LIBERO_ASSETS"},
     NodeConfig: {"host": "a host name; localhost for this machine", "address": "an IP address, or null to derive it"},
     SshConfig: {"python": "a non-empty string", "workdir": "a non-empty string",
                 "identity_file": "a path, or null for ssh's default", "known_hosts_file": "a path, or null for ssh's default"},
     TlsConfig: {"root_ca": "a PEM file path", "cert": "a PEM file path", "key": "a PEM file path"},
+    WandbConfig: {"project": "a W&B project name", "entity": "a W&B user or team, or null for the default",
+                  "name": "a W&B run name, or null for the run id"},
 }
 
 #: file paths (resolved against the topology file's directory, "~" expanded), and what a missing

@@ -166,9 +166,10 @@ class Actor:
                     self.receipts.count(src, "dropped.stale")
                     continue
                 slot = self.slots.acquire(ctx.stop)
-                if slot is None:
+                if slot is None:  # stopping while every slot is taken: the inbox is still drained below
+                    self.fabric.accounting.dropped(DATA, "shutdown", chunk.rollout)
                     self.receipts.count(src, "dropped.shutdown")
-                    return
+                    break
                 err = self.slots.fill(slot, chunk)
                 if err is not None:
                     self.slots.release(slot)

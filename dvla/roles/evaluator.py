@@ -3,8 +3,14 @@ publishes the success rates, so evaluation never stalls training.
 
 Lanes:
 - ``sync``: verified weight versions from the parent (as a rollout does).
-- ``eval``: whenever `every_versions` new versions have arrived, loads the newest one and plays
+- ``eval``: whenever the newest version enters a new window of `every_versions` versions
+            (version // every_versions grows), loads it and plays its block of the evaluation's
             `episodes` episodes (ManiSkill's `success_once` and `success_at_end`).
+
+Several evaluators split every evaluation: evaluator i of n plays the i-th contiguous block of the
+episodes, from the run's fixed eval seeds, and the orchestrator joins the n blocks of one window
+into one evaluation (docs/evaluation.md). Windows, not exact versions, line the shards up: an
+evaluator that missed a version evaluates the next one of the same window.
 """
 
 from __future__ import annotations
@@ -33,7 +39,11 @@ class Evaluator:
         self.cfg = cfg
         self.fabric = fabric
         task = cfg.task
-        self.group = EnvGroup(task, min(8, task.eval.episodes), cfg.seed + task.eval.seed_offset, ignore_terminations=True)
+        self.shard, self.shards = cfg.eval_shard
+        first, end = eval_block(task.eval.episodes, self.shard, self.shards)
+        #: this evaluator's episodes: [first, first + n_episodes) of every evaluation
+        self.first_episode, self.n_episodes = first, end - first
+        self.group = EnvGroup(task, min(task.eval.envs, self.n_episodes), cfg.eval_seed + first, ignore_terminations=True)
         self.policy = make_policy(task.policy, self.group.obs_spec, self.group.act_dim, **task.policy_kwargs).eval()
         self.layout = ParamLayout.from_state_dict(self.policy.state_dict())
         self.policy_version = -1
@@ -63,7 +73,7 @@ class Evaluator:
 
     def _eval(self, ctx: LaneContext) -> None:
         every = self.cfg.task.eval.every_versions
-        evaluated = -(10**9)
+        window = -1  # the window of the last evaluation (version // every)
         while ctx.running:
             with ctx.waiting():
                 if not self._new.wait(0.1):
@@ -71,26 +81,31 @@ class Evaluator:
             with self._lock:
                 version, flat = self._latest_version, self._latest
                 self._new.clear()
-            if version < evaluated + every:
+            if version // every <= window:
                 continue
             with ctx.busy():
                 unflatten_into(flat, self.policy, self.layout)
                 self.policy_version = version
                 t0 = time.perf_counter()
                 res = run_eval_episodes(
-                    self.policy, self.cfg.task, self.cfg.task.eval.episodes,
-                    self.cfg.seed + self.cfg.task.eval.seed_offset, "cpu", group=self.group,
+                    self.policy, self.cfg.task, self.n_episodes, self.cfg.eval_seed + self.first_episode, "cpu",
+                    group=self.group, stop=ctx.stop,
                 )
+                if res is None:  # stopped part-way: nothing to report
+                    break
                 self.env_steps += int(res["env_steps"])
-                evaluated = version
+                window = version // every
             msg = EvalResult(
                 sender=self.cfg.name, policy_version=version, episodes=int(res["episodes"]),
                 success_once=float(res["success_once"]), success_at_end=float(res["success_at_end"]),
                 return_mean=float(res["return_mean"]), success_low=float(res["success_once_low"]),
-                success_high=float(res["success_once_high"]), time_ns=time.time_ns(),
+                success_high=float(res["success_once_high"]), shard=self.shard, shards=self.shards,
+                task_episodes={k: n for k, (n, _ok) in res.get("per_task", {}).items()},
+                task_successes={k: ok for k, (_n, ok) in res.get("per_task", {}).items()},
+                time_ns=time.time_ns(),
             )
             self.fabric.publish_ctrl(self.fabric.keys.eval(self.cfg.name), msg)
-            self.results.append({"version": version, **{k: float(v) for k, v in res.items()}})
+            self.results.append({"version": version, **{k: float(v) for k, v in res.items() if k != "per_task"}})
             log.info("eval v%d: success_once %.2f [%.2f, %.2f] success_at_end %.2f (%d episodes, %.1f s)", version,
                      res["success_once"], res["success_once_low"], res["success_once_high"], res["success_at_end"],
                      res["episodes"], time.perf_counter() - t0)
@@ -98,10 +113,19 @@ class Evaluator:
 
     def status_extra(self) -> dict[str, Any]:
         last = self.results[-1] if self.results else {}
-        return {"evals": len(self.results), "last_eval": last, "weights": self.weights.status()}
+        return {"evals": len(self.results), "last_eval": last, "shard": [self.shard, self.shards],
+                "weights": self.weights.status()}
 
     def close(self) -> None:
         self.group.close()
+
+
+def eval_block(episodes: int, shard: int, shards: int) -> tuple[int, int]:
+    """[first, end) of the episodes evaluator `shard` of `shards` plays in every evaluation:
+    contiguous blocks as equal as can be, every block at least one episode."""
+    if not 0 <= shard < shards or shards > episodes:
+        raise ValueError(f"evaluator {shard} of {shards} cannot take a block of {episodes} episodes")
+    return shard * episodes // shards, (shard + 1) * episodes // shards
 
 
 if __name__ == "__main__":

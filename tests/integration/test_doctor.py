@@ -13,7 +13,7 @@ from pathlib import Path
 
 from .test_up_e2e import ROOT, free_port_block
 
-CHECKS = ["python", "torch", "cuda", "zenoh", "vulkan", "maniskill", "ports", "cpus", "netns", "ssh", "clock"]
+CHECKS = ["python", "torch", "cuda", "zenoh", "vulkan", "maniskill", "libero", "ports", "cpus", "netns", "ssh", "clock"]
 
 
 def _doctor(*args: str) -> subprocess.CompletedProcess:

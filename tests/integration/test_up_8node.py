@@ -48,7 +48,7 @@ def test_8node_cluster_runs_shows_every_node_and_cleans_up(tmp_path: Path) -> No
             rollouts = [r for r in doc.get("roles", []) if r["kind"] == "rollout"]
             actor = [r for r in doc.get("roles", []) if r["kind"] == "actor"]
             if (
-                len(rollouts) == 8 and actor and actor[0]["extra"].get("published_version", 0) >= 3
+                len(doc.get("roles", [])) == 12 and len(rollouts) == 8 and actor and actor[0]["extra"].get("published_version", 0) >= 3
                 and all(r["policy_version"] >= 2 and r["env_steps"] > 0 for r in rollouts)
             ):
                 break
@@ -76,7 +76,7 @@ def test_8node_cluster_runs_shows_every_node_and_cleans_up(tmp_path: Path) -> No
     run_dir = runs / "cluster8"
     result = json.loads((run_dir / "result.json").read_text())
     assert result["final_version"] >= 3
-    assert result["accounting"]["unaccounted"] == 0
+    assert result["accounting"]["unaccounted"] == 0, result["accounting"]
     assert not [n for n in list_netns() if n.startswith(prefix)]
     assert not [n for n in list_links() if n.startswith(prefix)]
     assert not pids_of_run(run_dir)

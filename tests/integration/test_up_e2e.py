@@ -8,6 +8,7 @@ the run directory holds what it should, and no process of the run is left.
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import subprocess
@@ -155,10 +156,22 @@ def up_tiny_variant(tmp_path: Path, text: str, max_env_steps: int) -> Path:
 @pytest.mark.timeout(300)
 def test_up_with_inline_inference(tmp_path: Path) -> None:
     """`rollout_infer: inline`: the rollouts act on their sim lane (no infer lane), weights still
-    advance, and the chunk accounting closes exactly."""
+    advance, and the chunk accounting closes exactly. Two evaluators share every evaluation
+    (3 episodes each): the orchestrator records whole evaluations of 6."""
     text = (ROOT / "topologies/tiny.yaml").read_text()
-    assert "  algorithm: ppo\n" in text
-    run_dir = up_tiny_variant(tmp_path, text.replace("  algorithm: ppo\n", "  algorithm: ppo\n  rollout_infer: inline\n", 1), 1600)
+    assert "  algorithm: ppo\n" in text and text.endswith("          - role: evaluator\n")
+    text = text.replace("  algorithm: ppo\n", "  algorithm: ppo\n  rollout_infer: inline\n"
+                        "  eval: {episodes: 6, every_versions: 2, envs: 3}\n", 1) + "            count: 2\n"
+    run_dir = up_tiny_variant(tmp_path, text, 1600)
+    blocks = []
+    for name in ("evaluator-node0-0", "evaluator-node0-1"):
+        s = json.loads((run_dir / "summaries" / f"{name}.json").read_text())
+        blocks.append(s["extra"]["shard"])
+        assert s["extra"]["evals"] >= 1 and s["extra"]["last_eval"]["episodes"] == 3, s["extra"]
+    assert sorted(blocks) == [[0, 2], [1, 2]]
+    with open(run_dir / "evals.csv") as f:
+        evals = list(csv.DictReader(f))
+    assert evals and all(int(e["episodes"]) == 6 for e in evals), evals
     for name in ("rollout-node0-0", "rollout-node0-1"):
         s = json.loads((run_dir / "summaries" / f"{name}.json").read_text())
         assert "infer" not in s["lanes"] and s["lanes"]["sim"]["items"] > 0, s["lanes"]

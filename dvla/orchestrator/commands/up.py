@@ -13,6 +13,7 @@ from ..netns import NetnsError
 from ..run import ORCHESTRATOR_LOG, ExitCode, Up, UpOptions, install_sigint, start_detached
 from ..ssh import SshError
 from ..view import render_table
+from ..wandb_log import open_hint
 from .common import RUNS_ROOT, fail, topology_or_exit
 
 
@@ -92,6 +93,8 @@ def _run_to_end(u: Up, shown_events: list[int]) -> int:
     """Run `u` in this process; print its events and a closing line; return its exit code."""
     typer.echo(f"dvla: run {u.topo.run} -> {u.run_dir}  ({len(u.plan.processes)} processes)")
     typer.echo(f"  tensorboard: tensorboard --logdir {u.run_dir / 'tb'}")
+    if u.topo.logging.wandb is not None:
+        typer.echo(f"  wandb: {open_hint(u.topo.logging.wandb, u.run_dir)}")
     try:
         code = u.run()
     except (NetnsError, SshError) as err:  # the cluster could not be built or reached (nothing is left)
@@ -122,6 +125,8 @@ def _report_detached(u: Up, pid: int | None, runs: Path) -> None:
     typer.echo(f"dvla: run {run} is up in the background (orchestrator pid {pid}) -> {u.run_dir}")
     typer.echo(f"  status:  dvla status {run}{runs_opt}")
     typer.echo(f"  tensorboard: tensorboard --logdir {u.run_dir / 'tb'}")
+    if u.topo.logging.wandb is not None:
+        typer.echo(f"  wandb: {open_hint(u.topo.logging.wandb, u.run_dir)}")
     typer.echo(f"  logs:    dvla logs {first} --run {run}{runs_opt} -f   (orchestrator: {log_path})")
     typer.echo(f"  stop:    dvla down {run}{runs_opt}")
 

@@ -1,0 +1,58 @@
+"""`dvla bench e2e`: the harness (seeds x modes interleaved, result.json and evals.csv read back,
+per-mode spread and learning curves), not the learning: tiny.yaml stops at its step budget."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from benchmarks.e2e import curve_quantiles
+from benchmarks.ports import free_port_block
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_curve_quantiles_hold_the_last_value_of_stopped_runs():
+    a = [{"env_steps": 4000, "success_once": 0.25}, {"env_steps": 12000, "success_once": 0.75}]
+    b = [{"env_steps": 6000, "success_once": 0.5}]
+    curve = curve_quantiles([a, b, []], step=4000)
+    assert [p["env_steps"] for p in curve] == [4000, 8000, 12000]
+    assert curve[0]["median"] == pytest.approx(0.125)  # b has no eval yet at 4000: 0
+    assert curve[1]["median"] == pytest.approx(0.375) and curve[2]["median"] == pytest.approx(0.625)
+    assert all(p["p25"] <= p["median"] <= p["p75"] for p in curve)
+
+
+def test_bench_e2e_rejects_unknown_modes():
+    proc = subprocess.run([sys.executable, "-m", "dvla", "bench", "e2e", "topologies/tiny.yaml", "--modes", "lockstep"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert proc.returncode != 0 and "--modes" in proc.stdout + proc.stderr
+
+
+@pytest.mark.timeout(240)
+def test_bench_e2e_runs_both_modes_per_seed(tmp_path: Path) -> None:
+    out = tmp_path / "e2e.json"
+    text = (ROOT / "topologies/tiny.yaml").read_text()
+    assert "  algorithm: ppo\n" in text
+    topo = tmp_path / "tiny-evals.yaml"  # frequent short evaluations: a curve within the budget
+    topo.write_text(text.replace("  algorithm: ppo\n", "  algorithm: ppo\n  eval: {episodes: 4, every_versions: 1}\n", 1))
+    proc = subprocess.run(
+        [sys.executable, "-m", "dvla", "bench", "e2e", str(topo), "--seeds", "3", "--modes", "async,sync",
+         "--json", str(out), "--base-port", str(free_port_block())],
+        cwd=ROOT, capture_output=True, text=True, timeout=220,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    doc = json.loads(out.read_text())
+    assert [(r["seed"], r["mode"]) for r in doc["runs"]] == [(3, "async"), (3, "sync")]
+    for r in doc["runs"]:
+        assert r["exit_code"] == 0 and r["reason"] == "max_env_steps" and not r["success"], r
+        assert r["accounting"]["unaccounted"] == 0
+        assert r["curve"] and all(0.0 <= p["success_once"] <= 1.0 for p in r["curve"]), r
+        assert [p["env_steps"] for p in r["curve"]] == sorted(p["env_steps"] for p in r["curve"])
+    assert set(doc["modes"]) == {"async", "sync"}
+    for m in doc["modes"].values():
+        assert m["runs"] == 1 and m["successes"] == 0 and m["curve"]
+    assert "async: 0/1 reached the target" in proc.stdout
