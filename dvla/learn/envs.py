@@ -26,7 +26,6 @@ Torch is used only to unwrap ManiSkill's tensors and to call the policy during e
 from __future__ import annotations
 
 import importlib
-import math
 import time
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -35,6 +34,7 @@ import numpy as np
 
 from dvla.config import LIBERO_ENV, TaskConfig
 
+from ..stats import wilson_interval
 from .spec import ArraySpec, EnvSetupError, ObsSpec
 
 __all__ = [
@@ -431,18 +431,6 @@ def probe_spec(task: TaskConfig) -> tuple[ObsSpec, int]:
 
 
 # --- evaluation -------------------------------------------------------------------------------
-
-
-def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """Wilson score interval of a success rate (95 % for the default ``z``); (0, 1) for n = 0.
-    Unlike the normal approximation it stays inside [0, 1] and is honest at 0 or n successes."""
-    if n <= 0:
-        return 0.0, 1.0
-    p = successes / n
-    denom = 1.0 + z * z / n
-    centre = (p + z * z / (2 * n)) / denom
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return max(0.0, centre - half), min(1.0, centre + half)
 
 
 def run_eval_episodes(

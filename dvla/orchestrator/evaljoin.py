@@ -15,7 +15,7 @@ import logging
 from dataclasses import replace
 
 from ..fabric.messages import EvalResult
-from ..learn.envs import wilson_interval
+from ..stats import wilson_interval
 
 log = logging.getLogger("dvla.orchestrator")
 

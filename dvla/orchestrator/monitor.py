@@ -12,7 +12,7 @@ from typing import Any
 from ..config import BudgetConfig
 from ..fabric import Fabric
 from ..fabric.messages import EvalResult, RoleStatus
-from ..learn.envs import wilson_interval
+from ..stats import wilson_interval
 from .evaljoin import EvalJoin
 from .tensorboard import TensorBoardLog
 from .view import latest_version

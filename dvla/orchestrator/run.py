@@ -176,7 +176,8 @@ def tool_fabric(run: str, entry: tuple[str, ...], secret: bytes, name: str = "or
                   identity=identity)
 
 
-def state_fabric(state: dict[str, Any], name: str, entry: tuple[str, ...] | None = None) -> Fabric:
+def state_fabric(state: dict[str, Any], name: str, entry: tuple[str, ...] | None = None,
+                 open_timeout_s: float = 60.0) -> Fabric:
     """A tool's fabric for the live run whose state.json is `state`: its secret, its operator
     identity (commands and status queries need it), its TLS files. Raises ValueError (secret or
     identity unreadable) or ConnectionError."""
@@ -192,7 +193,7 @@ def state_fabric(state: dict[str, Any], name: str, entry: tuple[str, ...] | None
             raise ValueError(str(err)) from err
     tls = state.get("ctrl_tls")
     return tool_fabric(state["run"], entry or tuple(state["ctrl_entry"]), secret, name=name,
-                       tls=TlsFiles(**tls) if tls else None, identity=identity)
+                       tls=TlsFiles(**tls) if tls else None, identity=identity, open_timeout_s=open_timeout_s)
 
 
 class Up:

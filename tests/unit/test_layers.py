@@ -218,3 +218,16 @@ def test_the_checks_catch_what_they_look_for(tmp_path: Path) -> None:
         "benchmarks/probe.py:2: private name _x of dvla.fabric",
         "benchmarks/probe.py:6: private name _ip of a dvla module",
     ]
+
+
+def test_the_cli_does_not_import_torch():
+    """`dvla status`, `dvla stop`, `dvla logs` and the tests' many status calls start in half a
+    second because the orchestrator's modules stay free of torch (dvla.learn imports it); a torch
+    import there once made every `dvla` call 1.5 s slower and a timing-bound test flaky."""
+    import subprocess
+    import sys
+
+    code = "import sys, dvla.orchestrator.cli; print(sorted(m for m in ('torch', 'mani_skill', 'wandb') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]", out.stdout

@@ -22,11 +22,15 @@ def status(
     format: Annotated[Format, typer.Option("--format", "-f", help="table or json")] = Format.table,
     runs: Annotated[Path, typer.Option(help="directory of run directories")] = RUNS_ROOT,
     timeout: Annotated[float, typer.Option(help="seconds to wait for replies")] = 2.0,
+    connect_timeout: Annotated[float, typer.Option(help="seconds to keep trying to reach the control plane "
+                                                        "(a run that has just ended is not there any more)")] = 15.0,
 ) -> None:
     """Show the live roles of a run."""
+    if not (timeout > 0 and connect_timeout > 0):
+        raise fail(f"--timeout ({timeout}) and --connect-timeout ({connect_timeout}) must be > 0")
     run_id, state = find_run(run, runs)
     try:
-        fabric = state_fabric(state, "status-cli")
+        fabric = state_fabric(state, "status-cli", open_timeout_s=connect_timeout)
     except (ConnectionError, ValueError) as err:
         raise fail(f"run {run_id}: control plane unreachable: {err}")
     try:
