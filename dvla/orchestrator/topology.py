@@ -755,12 +755,7 @@ def _check_eval_shards(p: _Partial, ctx: _Context) -> None:
     episodes = ev.get("episodes") if isinstance(ev, _Partial) else EvalConfig().episodes
     if type(episodes) is not int:
         return
-    evaluators = 0
-    for node in _placed_nodes(p)[0]:
-        for placement in node.get("roles") if isinstance(node.get("roles"), tuple) else ():
-            if isinstance(placement, _Partial) and placement.get("role") == "evaluator":
-                count = placement.get("count")
-                evaluators += count if type(count) is int else 1
+    evaluators = sum((_role_counts(node) or {}).get("evaluator", 0) for node in _placed_nodes(p)[0])
     if evaluators > episodes:
         ctx.report(p.where("racks"), f"{evaluators} evaluators but task.eval.episodes is {episodes} "
                                      "(each evaluator plays a block of every evaluation's episodes: place at most that many)")

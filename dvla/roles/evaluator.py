@@ -95,13 +95,14 @@ class Evaluator:
                     break
                 self.env_steps += int(res["env_steps"])
                 window = version // every
+            per_task = res.get("per_task", {})
             msg = EvalResult(
                 sender=self.cfg.name, policy_version=version, episodes=int(res["episodes"]),
                 success_once=float(res["success_once"]), success_at_end=float(res["success_at_end"]),
                 return_mean=float(res["return_mean"]), success_low=float(res["success_once_low"]),
                 success_high=float(res["success_once_high"]), shard=self.shard, shards=self.shards,
-                task_episodes={k: n for k, (n, _ok) in res.get("per_task", {}).items()},
-                task_successes={k: ok for k, (_n, ok) in res.get("per_task", {}).items()},
+                task_episodes={k: n for k, (n, _ok) in per_task.items()},
+                task_successes={k: ok for k, (_n, ok) in per_task.items()},
                 time_ns=time.time_ns(),
             )
             self.fabric.publish_ctrl(self.fabric.keys.eval(self.cfg.name), msg)
