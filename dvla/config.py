@@ -69,12 +69,19 @@ class PPOConfig:
     #: bootstrap from the final observation's value when an episode *terminates* (success), as
     #: for a time limit: ManiSkill resets on success for throughput, the task itself goes on
     terminal_bootstrap: bool = True
+    #: transitions per forward/backward pass: a minibatch is split into micro-batches of this
+    #: size whose gradients are accumulated before the optimizer step (None: the whole minibatch
+    #: at once). The update is the same; peak activation memory scales with this instead of the
+    #: minibatch (what lets a billion-parameter VLA learn on one GPU)
+    micro_batch: int | None = None
 
     def __post_init__(self) -> None:
         if not 0.0 < self.gamma <= 1.0:
             raise ValueError(f"gamma must be in (0, 1], got {self.gamma!r}")
         if self.batch_steps < self.minibatches:
             raise ValueError(f"batch_steps ({self.batch_steps}) must be >= minibatches ({self.minibatches})")
+        if self.micro_batch is not None and self.micro_batch < 1:
+            raise ValueError(f"micro_batch must be >= 1 (or null), got {self.micro_batch!r}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -205,8 +212,12 @@ class TaskConfig:
     rollout_infer: Literal["lane", "inline"] = "lane"
     #: steps per env in one trajectory chunk
     chunk_steps: int = 25
-    #: torch device: "auto" (cuda when present), "cpu", "cuda"
+    #: the actor's torch device (it learns there): "auto" (cuda when present), "cpu", "cuda"
     device: str = "auto"
+    #: where rollouts run the policy: "auto" (cuda when the node has it, else cpu), "cpu", "cuda"
+    rollout_device: str = "auto"
+    #: where evaluators run the policy (as rollout_device)
+    eval_device: str = "auto"
     # --- vision-language observations (obs_mode "rgb") and GRPO ---
     #: width and height (pixels) of every camera image when obs_mode is "rgb"
     image_size: int = 64

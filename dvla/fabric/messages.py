@@ -99,6 +99,11 @@ class TrajectoryChunk(Message):
     #: observation before auto-reset where an episode ended at that step, zeros elsewhere;
     #: name -> [T, N, ...], same keys, shapes and dtypes as ``obs``
     final_obs: dict[str, np.ndarray]
+    #: what the policy declares it needs besides the action to recompute its log-probability
+    #: (``extras_spec``, docs/policies.md), name -> [T, N, ...]: e.g. a flow-matching policy's
+    #: denoising chain float32 [T, N, K+1, A], a token policy's action bins int32 [T, N, A];
+    #: empty for Gaussian policies
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
     #: wall-clock creation time, ns since the Unix epoch
     created_ns: int = field(default_factory=_now_ns)
 
@@ -139,6 +144,9 @@ class TrajectoryChunk(Message):
                 raise CodecError("shape", f"obs[{key!r}]: shape {arr.shape}, expected (T={t}, N={n}, ...)")
             _check_array(f"final_obs[{key!r}]", self.final_obs[key], arr.shape, arr.dtype)
             _check_array(f"next_obs[{key!r}]", self.next_obs[key], arr.shape[1:], arr.dtype)
+        for key, arr in self.extras.items():
+            if arr.ndim < 2 or arr.shape[:2] != (t, n):
+                raise CodecError("shape", f"extras[{key!r}]: shape {arr.shape}, expected (T={t}, N={n}, ...)")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -167,6 +175,12 @@ class WeightManifest(Message):
     #: SHA-256 (hex) of those same bytes: what a snapshot of this version served by any relay
     #: must hash to (the actor signed it; ``checksum`` is fast, not collision resistant)
     digest: str = ""
+    #: elements of the flat vector (a relay learns the layout's size from the first manifest
+    #: instead of building the model)
+    numel: int = 0
+    #: content hash of the frozen base checkpoint the replicated tensors apply to ("" when the
+    #: whole policy replicates); a receiver whose own base differs refuses the version
+    base_hash: str = ""
     #: wall-clock creation time, ns since the Unix epoch
     created_ns: int = field(default_factory=_now_ns)
 
@@ -175,6 +189,7 @@ class WeightManifest(Message):
         _require(self.base_version >= -1, "schema", f"base_version {self.base_version} < -1")
         _require(self.n_chunks >= 0, "schema", f"n_chunks {self.n_chunks} < 0")
         _require(self.total_bytes >= 0, "schema", f"total_bytes {self.total_bytes} < 0")
+        _require(0 <= self.numel < 2**32, "schema", f"numel {self.numel} out of range")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -230,11 +230,13 @@ class EnvGroup:
         #: per env: the env's name for the task of the episode in progress ("" when it has none)
         self.task_labels: list[str] = [""] * n
         if self.structured:
-            from .vla.tokenizer import DEFAULT_VOCAB_SIZE
+            from .vla.tokenizer import instruction_tokenizer
 
+            #: the hashed tokenizer, or the policy checkpoint's own (docs/policies.md)
+            self.tokenizer = instruction_tokenizer(task.policy_kwargs, task.instruction_tokens)
             self._tokens = [self._instruction_tokens(env, i) for i, env in enumerate(self._envs)]
             self.instruction = self.instructions[0]
-            self.obs_spec: ObsSpec | None = _structured_spec(obs_space, task.instruction_tokens, DEFAULT_VOCAB_SIZE)
+            self.obs_spec: ObsSpec | None = _structured_spec(obs_space, task.instruction_tokens, self.tokenizer.vocab)
         else:
             self.instruction = None
             shape = getattr(obs_space, "shape", None)
@@ -249,14 +251,13 @@ class EnvGroup:
         """Tokens of env i's instruction: ``task.instruction``, else the env's own (LIBERO: its
         current task's), else the table's default for ``task.env``; recorded in ``instructions``."""
         from .vla.instructions import instruction_for
-        from .vla.tokenizer import tokenize
 
         own = getattr(env.unwrapped, "instruction", None)
         text = self.task.instruction if self.task.instruction is not None else own
         text = text if text is not None else instruction_for(self.task.env)
         if text != self.instructions[i] or i >= len(self._tokens):
             self.instructions[i] = text
-            return tokenize(text, self.task.instruction_tokens)
+            return self.tokenizer.encode(text)
         return self._tokens[i]
 
     @property
@@ -489,7 +490,8 @@ def _play_eval(policy: Any, group: EnvGroup, n_episodes: int, seed: int, device:
         if stop is not None and stop.is_set():
             return None
         with torch.no_grad():
-            action, _ = sample_actions(policy, obs_to_torch(obs, device), deterministic=True)
+            action, _, _ = sample_actions(policy, obs_to_torch(obs, device), deterministic=True)
+            action = action.float()
         labels = list(group.task_labels)  # the episodes in progress (a step may reset into another task)
         res = group.step(action.cpu().numpy())
         active = episode < n_episodes

@@ -51,8 +51,8 @@ class _Evaluate(nn.Module):
         super().__init__()
         self.policy = policy
 
-    def forward(self, obs: Any, actions: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        return self.policy.evaluate(obs, actions)
+    def forward(self, obs: Any, actions: Tensor, extras: Any = None) -> tuple[Tensor, Tensor, Tensor]:
+        return self.policy.evaluate(obs, actions, extras) if extras else self.policy.evaluate(obs, actions)
 
 
 class LearnerGroup:

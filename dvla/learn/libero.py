@@ -53,7 +53,7 @@ from dvla.config import (
 )
 
 from .spec import ArraySpec, EnvSetupError
-from .vla.tokenizer import DEFAULT_VOCAB_SIZE
+from .vla.tokenizer import instruction_tokenizer
 
 __all__ = [
     "LiberoError", "LiberoEnv", "LiberoTask", "make_env", "obs_spec", "assets_dir", "suite_tasks", "config_dir",
@@ -114,7 +114,8 @@ def obs_spec(task: TaskConfig) -> tuple[dict[str, Any], int]:
     spec = {
         "rgb": ArraySpec((s, s, 3 * cameras), "uint8"),
         "proprio": ArraySpec((PROPRIO_DIM,), "float32"),
-        "tokens": ArraySpec((task.instruction_tokens,), "int32", vocab=DEFAULT_VOCAB_SIZE),
+        "tokens": ArraySpec((task.instruction_tokens,), "int32",
+                            vocab=instruction_tokenizer(task.policy_kwargs, task.instruction_tokens).vocab),
     }
     return spec, ACT_DIM * task.action_chunk
 

@@ -12,7 +12,11 @@ A policy is a ``torch.nn.Module`` with ``act(obs, deterministic=False) -> (actio
 value)``, ``evaluate(obs, action) -> (logprob, entropy, value)`` and ``value(obs)``, and
 optionally ``observe(obs)`` (the learner's batches, e.g. for normalisation statistics) and
 ``sample(obs, deterministic=False) -> (action, logprob)`` (``act`` without the critic).
-Register a class with ``@register_policy("name")`` to make it addressable by name.
+A policy that needs more than the action to recompute its log-probability (a flow chain, action
+token ids) declares ``extras_spec`` (name -> ArraySpec, per step); its ``sample`` then returns
+``(action, logprob, extras)``, the rollout ships the extras with each transition and the learner
+calls ``evaluate(obs, action, extras)``. Register a class with ``@register_policy("name")`` to
+make it addressable by name.
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ from torch.distributions import Normal
 from .group import all_reduce_sum
 
 __all__ = ["Policy", "MLPPolicy", "register_policy", "make_policy", "policy_obs_arg", "registered_policies",
-           "sample_actions"]
+           "sample_actions", "extras_spec", "policy_base_hash"]
 
 
 @runtime_checkable
@@ -50,17 +54,29 @@ class Policy(Protocol):
 
 
 def sample_actions(policy: Any, obs: Any, deterministic: bool = False,
-                   generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
-    """(action, logprob) from the policy's optional ``sample``, else from ``act`` (value dropped).
+                   generator: torch.Generator | None = None) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
+    """(action, logprob, extras) from the policy's optional ``sample``, else from ``act`` (value
+    dropped); ``extras`` is empty for policies without an ``extras_spec``.
 
     ``generator`` (the noise source, for reproducible sampling) is passed on to policies whose
     ``sample``/``act`` take a ``generator`` keyword; others draw from torch's global generator."""
     sample = getattr(policy, "sample", None)
     extra = {"generator": generator} if generator is not None and _takes_generator(sample or policy.act) else {}
     if sample is not None:
-        return sample(obs, deterministic, **extra)
+        out = sample(obs, deterministic, **extra)
+        return (out[0], out[1], out[2]) if len(out) == 3 else (out[0], out[1], {})
     action, logprob, _ = policy.act(obs, deterministic, **extra)
-    return action, logprob
+    return action, logprob, {}
+
+
+def extras_spec(policy: Any) -> dict[str, Any]:
+    """The per-step tensors the policy ships besides the action (name -> ArraySpec; {} for none)."""
+    return dict(getattr(policy, "extras_spec", None) or {})
+
+
+def policy_base_hash(policy: Any) -> str:
+    """Content hash of the policy's frozen base checkpoint ("" when the whole policy replicates)."""
+    return str(getattr(policy, "base_hash", "") or "")
 
 
 _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
@@ -86,7 +102,12 @@ def registered_policies() -> list[str]:
 
 #: built-in policies living in their own modules, imported on first use (torch models of the
 #: VLA package are not needed by state-only runs)
-_LAZY: dict[str, str] = {"tiny-vla": "dvla.learn.vla.model"}
+_LAZY: dict[str, str] = {
+    "tiny-vla": "dvla.learn.vla.model",
+    # Hugging Face checkpoints (docs/policies.md): token actions and flow matching
+    "vla-tokens": "dvla.learn.vla.token_action",
+    "vla-flow": "dvla.learn.vla.flow",
+}
 
 
 def _policy_class(spec: str) -> type:

@@ -15,10 +15,11 @@ about ``target_kl``, so most samples start an update already outside the clip ra
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Any, Mapping
 
 import numpy as np
@@ -72,7 +73,8 @@ class Trajectories:
     Shapes: ``obs``, ``final_obs`` [T, N, ...]; ``actions`` [T, N, A]; ``logprobs`` (of the
     behaviour policy), ``rewards``, ``terminated``, ``truncated`` [T, N]; ``next_obs`` [N, ...].
     ``final_obs`` is the pre-reset observation where an episode ended (zeros elsewhere),
-    ``next_obs`` the observation after the last step (for bootstrapping).
+    ``next_obs`` the observation after the last step (for bootstrapping). ``extras`` [T, N, ...]
+    are the policy's per-step extras (a flow chain, action bins; empty for Gaussian policies).
     """
 
     obs: dict[str, Tensor]
@@ -83,11 +85,13 @@ class Trajectories:
     truncated: Tensor
     final_obs: dict[str, Tensor]
     next_obs: dict[str, Tensor]
+    extras: dict[str, Tensor] = field(default_factory=dict)
 
     @classmethod
     def of(cls, arrays: Mapping[str, Any]) -> "Trajectories":
-        """The fields of ``arrays`` (other keys, such as ``success``, are ignored)."""
-        return cls(**{f.name: arrays[f.name] for f in fields(cls)})
+        """The fields of ``arrays`` (other keys, such as ``success``, are ignored; ``extras`` may
+        be absent)."""
+        return cls(**{f.name: arrays[f.name] for f in fields(cls) if f.name in arrays or f.name != "extras"})
 
     @property
     def steps(self) -> int:
@@ -104,6 +108,7 @@ class Trajectories:
             "advantages": advantages.reshape(n),
             "returns": returns.reshape(n),
             "values": values.reshape(n),
+            "extras": {k: v.reshape(n, *v.shape[2:]) for k, v in self.extras.items()},
         }
 
 
@@ -192,7 +197,9 @@ class PPOLearner:
         self.decoupled = bool(getattr(cfg, "decoupled", True)) if decoupled is None else decoupled
         self.is_clip = float(getattr(cfg, "is_clip", 2.0)) if is_clip is None else is_clip
         self.device = torch.device(device)
-        self.optimizer = make_adam(policy.parameters(), lr=cfg.lr, eps=1e-5)
+        #: what the optimizer updates: parameters that require grad (a frozen base does not)
+        self._trainable = [p for p in policy.parameters() if p.requires_grad]
+        self.optimizer = make_adam(self._trainable, lr=cfg.lr, eps=1e-5)
         self._gen = torch.Generator()
         if seed is not None:
             self._gen.manual_seed(seed)
@@ -209,8 +216,10 @@ class PPOLearner:
             raise KeyError(f"batch lacks {missing}")
         out = {k: torch.as_tensor(batch[k], dtype=torch.float32, device=self.device) for k in BATCH_KEYS if k != "obs"}
         out["obs"] = _obs_tensors(batch["obs"], self.device)
+        out["extras"] = {k: torch.as_tensor(v, device=self.device) for k, v in (batch.get("extras") or {}).items()}
         obs = out["obs"]
-        shapes = {k: tuple(v.shape) for k, v in out.items() if k != "obs"}
+        shapes = {k: tuple(v.shape) for k, v in out.items() if k not in ("obs", "extras")}
+        shapes |= {f"extras.{k}": tuple(v.shape) for k, v in out["extras"].items()}
         shapes |= {f"obs.{k}": tuple(v.shape) for k, v in obs.items()} if isinstance(obs, Mapping) else {"obs": tuple(obs.shape)}
         size = _obs_len(obs)
         if any(shape[0] != size for shape in shapes.values()):
@@ -231,7 +240,10 @@ class PPOLearner:
         if callable(observe):
             observe(b["obs"])
         with torch.no_grad():
-            start_logprobs, _, _ = self.policy.evaluate(b["obs"], b["actions"])
+            start_logprobs = torch.cat([
+                _evaluate(self.policy.evaluate, _take(b["obs"], rows), b["actions"][rows], _take(b["extras"], rows))[0]
+                for rows in _slices(size, cfg.micro_batch or size, self.device)
+            ])
         behaviour_kl = _approx_kl(start_logprobs - b["logprobs"])
         mb_size = size // cfg.minibatches
         stats: dict[str, list[float]] = {k: [] for k in ("pg_loss", "v_loss", "entropy", "approx_kl", "clipfrac")}
@@ -241,21 +253,33 @@ class PPOLearner:
             for start in range(0, mb_size * cfg.minibatches, mb_size):
                 idx = order[start : start + mb_size]
                 mb = {k: _take(v, idx) for k, v in b.items()}
-                logprob, entropy, value = self._forward(mb["obs"], mb["actions"])
-                log_ratio = logprob.detach() - start_logprobs[idx]
                 adv = mb["advantages"].double()
-                # One sum over the group: the KL estimate and advantage moments every rank uses.
-                n, kl_sum, a_sum, a_sq = self._sum([adv.numel(), _kl_sum(log_ratio), adv.sum(), adv.square().sum()])
-                kl = kl_sum / n
-                if cfg.target_kl is not None and kl > cfg.target_kl:
-                    stopped = True
-                    break
+                # One sum over the group: the advantage moments every rank normalises with.
+                n, a_sum, a_sq = self._sum([adv.numel(), adv.sum(), adv.square().sum()])
                 adv_mean = a_sum / n
                 adv_std = max(a_sq / n - adv_mean * adv_mean, 0.0) ** 0.5
-                loss, parts = self._loss(mb, start_logprobs[idx], logprob, entropy, value, adv_mean, adv_std)
+                # Micro-batches (cfg.micro_batch): forward and backward a slice at a time, each
+                # loss weighted by its share of the minibatch, so the summed gradient is the
+                # minibatch's; only activations of one slice are alive at once.
                 self.optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                grad_norm = float(nn.utils.clip_grad_norm_(self.policy.parameters(), cfg.max_grad_norm))
+                kl_sum, parts = 0.0, {}
+                slices = _slices(mb_size, cfg.micro_batch or mb_size, self.device)
+                for i, rows in enumerate(slices):
+                    part = {k: _take(v, rows) for k, v in mb.items()}
+                    with self._no_sync(last=i == len(slices) - 1):
+                        logprob, entropy, value = _evaluate(self._forward, part["obs"], part["actions"], part["extras"])
+                        start_lp = start_logprobs[idx[rows]]
+                        kl_sum += _kl_sum(logprob.detach() - start_lp)
+                        loss, got = self._loss(part, start_lp, logprob, entropy, value, adv_mean, adv_std)
+                        (loss * (rows.numel() / mb_size)).backward()
+                    for k, v in got.items():
+                        parts[k] = parts.get(k, 0.0) + v * rows.numel() / mb_size
+                kl = self._sum([kl_sum])[0] / n
+                if cfg.target_kl is not None and kl > cfg.target_kl:
+                    self.optimizer.zero_grad(set_to_none=True)
+                    stopped = True
+                    break
+                grad_norm = float(nn.utils.clip_grad_norm_(self._trainable, cfg.max_grad_norm))
                 # The gradients were averaged across the group by DDP in backward(): a non-finite
                 # value on any rank reached every rank, so every rank computes this norm from the
                 # same gradients and takes the same decision (the loss is rank-local: it would not).
@@ -290,9 +314,16 @@ class PPOLearner:
         )
         return out
 
+    def _no_sync(self, last: bool) -> Any:
+        """DDP's ``no_sync`` for all but a minibatch's last micro-batch (one all-reduce of the
+        accumulated gradients per step instead of one per micro-batch)."""
+        no_sync = getattr(self._forward, "no_sync", None)
+        return no_sync() if no_sync is not None and not last else contextlib.nullcontext()
+
     def _state(self) -> list[Tensor]:
-        """Parameters and floating-point buffers (observation statistics): what an update changes."""
-        return [*self.policy.parameters(), *(t for t in self.policy.buffers() if t.is_floating_point())]
+        """Trainable parameters and floating-point buffers (observation statistics): what an
+        update changes."""
+        return [*self._trainable, *(t for t in self.policy.buffers() if t.is_floating_point())]
 
     @torch.no_grad()
     def _keep(self, state: list[Tensor]) -> None:
@@ -357,6 +388,16 @@ def _obs_tensors(obs: Any, device: torch.device) -> Any:
 
 def _obs_len(obs: Any) -> int:
     return int(next(iter(obs.values())).shape[0]) if isinstance(obs, Mapping) else int(obs.shape[0])
+
+
+def _evaluate(fn: Any, obs: Any, actions: Tensor, extras: Mapping[str, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+    """``fn(obs, actions)``, with the policy's extras when it declares any (docs/policies.md)."""
+    return fn(obs, actions, extras) if extras else fn(obs, actions)
+
+
+def _slices(size: int, step: int, device: Any) -> list[Tensor]:
+    """Row indices [0, size) in consecutive slices of at most ``step`` rows."""
+    return [torch.arange(i, min(i + step, size), device=device) for i in range(0, size, step)]
 
 
 def _take(v: Any, idx: Tensor) -> Any:

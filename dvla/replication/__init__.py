@@ -35,7 +35,9 @@ from dvla.replication.encoding import (
     split_chunks,
     split_encoding,
 )
-from dvla.replication.layout import LayoutMismatch, ParamLayout, ReplicationError, bind_flat, flatten, unflatten_into
+from dvla.replication.layout import (
+    LayoutMismatch, ParamLayout, ReplicationError, bind_flat, flatten, replicated_tensors, unflatten_into,
+)
 
 __all__ = [
     "MANIFEST_FIELDS",
@@ -55,6 +57,7 @@ __all__ = [
     "bf16_round_bits",
     "bf16_to_float32",
     "bind_flat",
+    "replicated_tensors",
     "checksum",
     "chunk_count",
     "flatten",

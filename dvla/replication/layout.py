@@ -5,7 +5,9 @@ shapes and dtypes, and a stable digest of all that), :func:`flatten` and :func:`
 plus the root of the replication error hierarchy (:class:`ReplicationError`,
 :class:`LayoutMismatch`).
 
-Only floating-point tensors are replicated. Integer and boolean buffers (for example BatchNorm's
+Only floating-point tensors are replicated, and of a module only those that can change: a
+parameter with ``requires_grad=False`` (a frozen base under LoRA adapters, docs/policies.md) is
+loaded from the same checkpoint on every node and never shipped. Integer and boolean buffers (for example BatchNorm's
 ``num_batches_tracked`` counter) are ignored: they are bookkeeping of the learner, not part of the
 policy function, and replicating them would break the single-dtype flat vector. Floating buffers
 (running means and variances) are carried like parameters.
@@ -76,7 +78,8 @@ class ParamLayout:
 
     @staticmethod
     def from_state_dict(sd: StateDictLike) -> "ParamLayout":
-        """The layout of the floating tensors of ``sd`` (a module or a state_dict)."""
+        """The layout of the floating tensors of ``sd`` (a module or a state_dict); of a module,
+        without its frozen parameters (see :func:`replicated_tensors`)."""
         names, shapes, dtypes = [], [], []
         for name, tensor in _state_dict(sd).items():
             if not torch.is_floating_point(tensor):
@@ -85,6 +88,16 @@ class ParamLayout:
             shapes.append(tuple(int(s) for s in tensor.shape))
             dtypes.append(_dtype_name(tensor.dtype))
         return ParamLayout(names=tuple(names), shapes=tuple(shapes), dtypes=tuple(dtypes))
+
+    @staticmethod
+    def opaque(layout_hash: str, numel: int) -> "ParamLayout":
+        """A layout known only by its hash and size, as a relay learns it from a verified
+        manifest: it can decode, verify and forward versions without building the model."""
+        if not 0 < numel < 2**32:
+            raise ValueError(f"layout size {numel} out of range")
+        layout = ParamLayout(names=("<flat>",), shapes=((int(numel),),), dtypes=("float32",))
+        object.__setattr__(layout, "hash", str(layout_hash))
+        return layout
 
     @property
     def nbytes(self) -> int:
@@ -111,10 +124,18 @@ def _dtype_name(dtype: torch.dtype) -> str:
     return str(dtype).removeprefix("torch.")
 
 
+def replicated_tensors(module: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """The state dict entries of ``module`` that replicate: all but frozen parameters
+    (``requires_grad=False``; tied names of a frozen tensor included). Non-floating entries are
+    dropped later by the layout."""
+    frozen = {name for name, p in module.named_parameters(remove_duplicate=False) if not p.requires_grad}
+    return {k: v for k, v in module.state_dict().items() if k not in frozen}
+
+
 def _state_dict(sd: StateDictLike) -> Mapping[str, torch.Tensor]:
     # Module.state_dict() returns detached tensors that share storage with the parameters, so
     # in-place copies into them update the module itself.
-    return sd.state_dict() if isinstance(sd, torch.nn.Module) else sd
+    return replicated_tensors(sd) if isinstance(sd, torch.nn.Module) else sd
 
 
 def _check_flat(flat: np.ndarray, layout: ParamLayout) -> None:
@@ -182,16 +203,17 @@ def unflatten_into(flat: np.ndarray, model_or_state_dict: StateDictLike, layout:
 
 
 def bind_flat(module: torch.nn.Module, layout: ParamLayout) -> torch.Tensor | None:
-    """Make the layout's tensors of ``module`` views into one flat float32 tensor; return it.
+    """Make the layout's tensors of ``module`` views into one flat tensor; return it.
 
     Afterwards copying a whole version into the module is one ``flat.copy_(src)`` (a single
     memcpy, one GIL release) instead of one copy per tensor, and :func:`unflatten_into` and
-    ``state_dict`` still work through the views. The current values are kept. Returns None, and
-    changes nothing, when the tensors are not all float32 on one device (a bf16 model keeps the
-    per-tensor path) or a layout name is not a parameter or buffer of ``module``.
+    ``state_dict`` still work through the views. The current values are kept. The flat tensor
+    has the tensors' own dtype (float32, or bfloat16 for a bf16 model: the copy converts).
+    Returns None, and changes nothing, when the tensors do not share one dtype and one device,
+    or a layout name is not a parameter or buffer of ``module``.
     """
     owners: list[tuple[torch.nn.Module, str, bool]] = []
-    devices = set()
+    devices, dtypes = set(), set()
     for name, dtype in zip(layout.names, layout.dtypes):
         path, _, attr = name.rpartition(".")
         try:
@@ -204,14 +226,15 @@ def bind_flat(module: torch.nn.Module, layout: ParamLayout) -> torch.Tensor | No
             tensor, is_param = owner._buffers[attr], False
         else:
             return None
-        if dtype != "float32" or tensor.dtype != torch.float32:
+        if _dtype_name(tensor.dtype) != dtype:
             return None
         devices.add(tensor.device)
+        dtypes.add(tensor.dtype)
         owners.append((owner, attr, is_param))
-    if len(devices) > 1:
+    if len(devices) > 1 or len(dtypes) > 1:
         return None
     device = devices.pop() if devices else torch.device("cpu")
-    flat = torch.empty(layout.numel, dtype=torch.float32, device=device)
+    flat = torch.empty(layout.numel, dtype=dtypes.pop() if dtypes else torch.float32, device=device)
     with torch.no_grad():
         for i, (owner, attr, is_param) in enumerate(owners):
             start, stop = layout.span(i)

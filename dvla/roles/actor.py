@@ -33,7 +33,8 @@ from ..learn import PPOLearner, Trajectories, gae_batch, make_policy
 from ..learn.group import LearnerGroup
 from ..learn.envs import probe_spec
 from ..learn.grpo import grpo_batch
-from ..replication import ParamLayout, checksum, flatten, unflatten_into
+from ..learn.policies import extras_spec, policy_base_hash
+from ..replication import ParamLayout, checksum, flatten, replicated_tensors, unflatten_into
 from .checkpoint import Checkpoint, load_checkpoint, optimizer_tensors, reserve_versions, save_checkpoint
 from ..counters import CounterFile, source_key, split_seq
 from .runtime import main
@@ -62,8 +63,10 @@ class Actor:
         torch.manual_seed(cfg.seed)
         self.obs_spec, self.act_dim = probe_spec(task)  # flat: {"state"}; rgb: rgb/proprio/tokens
         self.policy = make_policy(task.policy, self.obs_spec, self.act_dim, **task.policy_kwargs).to(self.device)
+        #: per-step tensors the policy's rollouts ship besides the action (docs/policies.md)
+        self.extras_spec = extras_spec(self.policy)
         self.learner = PPOLearner(self.policy, task.ppo, self.device, seed=cfg.seed, group=self.group)
-        self.layout = ParamLayout.from_state_dict(self.policy.state_dict())
+        self.layout = ParamLayout.from_state_dict(self.policy)
         self.ckpt_dir = Path(cfg.run_dir) / "checkpoints"
         # Rank 0 resumes from the last checkpoint and numbers versions above every one that may
         # have been published before (the persisted high-water mark); the others get its state.
@@ -78,12 +81,14 @@ class Actor:
                      self.resumed.version, self.resumed.checksum, env_steps, start)
         self._first_version = start + 1  # this incarnation's first (checkpointed at once)
         self.reserved = start  # versions up to here are covered by the high-water mark on disk
-        self.publisher = WeightPublisher(fabric, cfg.name, self.layout, cfg.replication, start) if self.is_root else None
+        self.publisher = WeightPublisher(
+            fabric, cfg.name, self.layout, cfg.replication, start, base_hash=policy_base_hash(self.policy)
+        ) if self.is_root else None
         groups = env_group_sizes(task.envs_per_rollout)  # a chunk holds one env group's columns
         chunks_per_batch = -(-task.ppo.batch_steps // (task.chunk_steps * min(groups)))
         self.slots = SlotPool(
             n_slots=3 * chunks_per_batch + 8, T=task.chunk_steps, n_max=max(groups),
-            obs_spec=self.obs_spec, act_dim=self.act_dim, pin=self.device.type == "cuda",
+            obs_spec=self.obs_spec, act_dim=self.act_dim, pin=self.device.type == "cuda", extras_spec=self.extras_spec,
         )
         #: newest version learned (the learn lane numbers the next one from here)
         self.policy_version = start
@@ -136,7 +141,7 @@ class Actor:
     def _flat_weights(self, policy: torch.nn.Module | None = None) -> np.ndarray:
         flat = np.empty(self.layout.numel, np.float32)
         with torch.no_grad():
-            flatten((policy or self.policy).state_dict(), self.layout, out=flat)
+            flatten(policy or self.policy, self.layout, out=flat)
         return flat
 
     def _new_version(self, checkpoint: bool) -> "NewVersion":
@@ -155,7 +160,7 @@ class Actor:
                 continue
             with ctx.busy():
                 src = self.receipts.got(chunk)
-                problem = chunk_problem(chunk, self.obs_spec, self.act_dim, self.released_version)
+                problem = chunk_problem(chunk, self.obs_spec, self.act_dim, self.released_version, self.extras_spec)
                 if problem is not None:
                     self._reject(chunk, src, *problem)
                     continue
@@ -310,7 +315,8 @@ class Actor:
         """Checkpoint the weights *as published* with `version` (what every replica holds), with
         the optimizer state taken right after that version was learned."""
         assert self.publisher is not None
-        sd = {k: v.detach().clone() for k, v in self.policy.state_dict().items()}
+        # What replicates, nothing of a frozen base (loaded from its own checkpoint directory)
+        sd = {k: v.detach().clone() for k, v in replicated_tensors(self.policy).items()}
         unflatten_into(self.publisher.encoder.published, sd, self.layout)
         try:
             save_checkpoint(self.ckpt_dir, sd, optimizer, version, env_steps, self.publisher.checksum)
@@ -368,7 +374,7 @@ class NewVersion:
 
 
 def chunk_problem(chunk: TrajectoryChunk, obs_spec: Mapping[str, Any], act_dim: int,
-                  newest_version: int) -> tuple[str, str] | None:
+                  newest_version: int, extras_spec: Mapping[str, Any] | None = None) -> tuple[str, str] | None:
     """``(reason, detail)`` when ``chunk`` must not reach the learner, else None.
 
     The codec has already checked that the arrays agree with each other (T, N, dtypes, keys);
@@ -376,8 +382,10 @@ def chunk_problem(chunk: TrajectoryChunk, obs_spec: Mapping[str, Any], act_dim: 
     (a policy version no actor of this group released, newest ``newest_version``), ``shape``
     (observation keys, per-env shapes and dtypes as ``obs_spec`` says, ``act_dim`` actions),
     ``nonfinite`` (NaN or inf in a float array) and ``out_of_range`` (token ids outside the
-    spec's vocabulary). One pass over each float array; integer images are not read.
+    spec's vocabulary). The policy's extras (``extras_spec``: a flow chain, action bins) are held
+    to the same rules. One pass over each float array; integer images are not read.
     """
+    extras_spec = extras_spec or {}
     v = chunk.policy_version
     if v < 0:
         return "negative_version", f"policy_version {v} < 0"
@@ -391,7 +399,14 @@ def chunk_problem(chunk: TrajectoryChunk, obs_spec: Mapping[str, Any], act_dim: 
             return "shape", f"obs[{key!r}] {arr.dtype}{list(arr.shape[2:])} != the run's {spec.dtype}{list(spec.shape)}"
     if chunk.actions.shape[2:] != (act_dim,):
         return "shape", f"actions {list(chunk.actions.shape)}, expected {act_dim} per step"
+    if chunk.extras.keys() != extras_spec.keys():
+        return "shape", f"extras {sorted(chunk.extras)} != the policy's {sorted(extras_spec)}"
+    for key, spec in extras_spec.items():
+        arr = chunk.extras[key]
+        if arr.shape[2:] != tuple(spec.shape) or arr.dtype != np.dtype(spec.dtype):
+            return "shape", f"extras[{key!r}] {arr.dtype}{list(arr.shape[2:])} != the policy's {spec.dtype}{list(spec.shape)}"
     floats = {"rewards": chunk.rewards, "logprobs": chunk.logprobs, "actions": chunk.actions}
+    floats.update({f"extras[{k!r}]": a for k, a in chunk.extras.items() if a.dtype.kind == "f"})
     for part in ("obs", "next_obs", "final_obs"):
         floats.update({f"{part}[{k!r}]": a for k, a in getattr(chunk, part).items() if a.dtype.kind == "f"})
     for name, arr in floats.items():
@@ -405,6 +420,10 @@ def chunk_problem(chunk: TrajectoryChunk, obs_spec: Mapping[str, Any], act_dim: 
             arr = getattr(chunk, part)[key]
             if arr.size and (arr.min() < 0 or arr.max() >= vocab):
                 return "out_of_range", f"{part}[{key!r}] holds token ids outside [0, {vocab})"
+    for key, spec in extras_spec.items():
+        vocab, arr = getattr(spec, "vocab", None), chunk.extras[key]
+        if vocab is not None and arr.size and (arr.min() < 0 or arr.max() >= vocab):
+            return "out_of_range", f"extras[{key!r}] holds ids outside [0, {vocab})"
     return None
 
 

@@ -32,6 +32,7 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 
 from ..learn.optstate import optimizer_from_tensors, optimizer_to_tensors
+from ..replication import replicated_tensors
 
 MANIFEST = "MANIFEST.json"
 HIGH_WATER = "high_water.json"
@@ -127,15 +128,21 @@ def load_checkpoint(directory: Path, policy: torch.nn.Module, optimizer: torch.o
     except (KeyError, ValueError, TypeError, AttributeError) as err:
         why = f"{type(err).__name__}: {err}"
         raise CheckpointError(f"{where / 'optimizer.safetensors'}: unusable optimizer state ({why})") from err
-    backup = {k: v.clone() for k, v in policy.state_dict().items()}
+    # A checkpoint holds what replicates: a frozen base comes from its own checkpoint directory.
+    expected = replicated_tensors(policy)
+    if weights.keys() != expected.keys():
+        missing, extra = sorted(expected.keys() - weights.keys()), sorted(weights.keys() - expected.keys())
+        raise CheckpointError(f"{where / 'policy.safetensors'}: not this policy's tensors (missing {missing[:3]}"
+                              f"{'...' if len(missing) > 3 else ''}, unexpected {extra[:3]}{'...' if len(extra) > 3 else ''})")
+    backup = {k: v.clone() for k, v in expected.items()}
     try:
-        policy.load_state_dict(weights)
-    except RuntimeError as err:  # names or shapes of another policy
-        policy.load_state_dict(backup)
+        policy.load_state_dict(weights, strict=False)
+    except RuntimeError as err:  # shapes of another policy
+        policy.load_state_dict(backup, strict=False)
         raise CheckpointError(f"{where / 'policy.safetensors'}: {str(err).splitlines()[0]}") from err
     got = flat_checksum(policy)
     if got != checksum:
-        policy.load_state_dict(backup)
+        policy.load_state_dict(backup, strict=False)
         raise CheckpointError(f"{where / 'policy.safetensors'}: weights checksum {got} != {checksum} in the manifest")
     optimizer.load_state_dict(opt_state)
     return Checkpoint(version, env_steps, checksum, max(version, high))

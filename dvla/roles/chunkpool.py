@@ -20,8 +20,10 @@ from ..fabric import TrajectoryChunk
 from .freelist import FreeList
 
 
-def chunk_template(rollout: str, T: int, n: int, obs_spec: dict[str, Any], act_dim: int) -> TrajectoryChunk:
-    """A zero-filled chunk of T steps of n envs: the shape every chunk of a group's pool has."""
+def chunk_template(rollout: str, T: int, n: int, obs_spec: dict[str, Any], act_dim: int,
+                   extras_spec: dict[str, Any] | None = None) -> TrajectoryChunk:
+    """A zero-filled chunk of T steps of n envs: the shape every chunk of a group's pool has
+    (``extras_spec``: the policy's per-step extras, name -> ArraySpec)."""
 
     def obs(*lead: int) -> dict[str, np.ndarray]:
         # observations keep their dtype (uint8 images) all the way to the wire
@@ -33,6 +35,7 @@ def chunk_template(rollout: str, T: int, n: int, obs_spec: dict[str, Any], act_d
         logprobs=np.zeros((T, n), np.float32), rewards=np.zeros((T, n), np.float32),
         terminated=np.zeros((T, n), bool), truncated=np.zeros((T, n), bool), success=np.zeros((T, n), bool),
         next_obs=obs(n), final_obs=obs(T, n), created_ns=0,
+        extras={k: np.zeros((T, n, *s.shape), s.dtype) for k, s in (extras_spec or {}).items()},
     )
 
 

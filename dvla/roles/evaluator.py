@@ -21,11 +21,13 @@ import time
 from typing import Any
 
 import numpy as np
+import torch
 
-from ..config import RoleConfig
+from ..config import RoleConfig, resolve_device
 from ..fabric import Fabric
 from ..fabric.messages import EvalResult
 from ..learn import EnvGroup, make_policy, run_eval_episodes
+from ..learn.policies import policy_base_hash
 from ..replication import ParamLayout, unflatten_into
 from .runtime import main
 from .swimlane import LaneContext, Swimlane
@@ -44,8 +46,10 @@ class Evaluator:
         #: this evaluator's episodes: [first, first + n_episodes) of every evaluation
         self.first_episode, self.n_episodes = first, end - first
         self.group = EnvGroup(task, min(task.eval.envs, self.n_episodes), cfg.eval_seed + first, ignore_terminations=True)
-        self.policy = make_policy(task.policy, self.group.obs_spec, self.group.act_dim, **task.policy_kwargs).eval()
-        self.layout = ParamLayout.from_state_dict(self.policy.state_dict())
+        self.device = torch.device(resolve_device(task.eval_device))
+        policy = make_policy(task.policy, self.group.obs_spec, self.group.act_dim, **task.policy_kwargs)
+        self.policy = policy.to(self.device).eval()
+        self.layout = ParamLayout.from_state_dict(self.policy)
         self.policy_version = -1
         self.env_steps = 0
         #: sync -> eval: the newest verified version (a copy) and its number; replaced, not queued
@@ -57,7 +61,8 @@ class Evaluator:
 
     def build(self, sl: Swimlane) -> None:
         self.weights = WeightSync(  # verified versions from the parent
-            self.fabric, self.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version
+            self.fabric, self.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version,
+            base_hash=policy_base_hash(self.policy), base_source=str(self.cfg.task.policy_kwargs.get("checkpoint", "")),
         )
         sl.lane("sync", self._sync)
         sl.lane("eval", self._eval)
@@ -88,7 +93,7 @@ class Evaluator:
                 self.policy_version = version
                 t0 = time.perf_counter()
                 res = run_eval_episodes(
-                    self.policy, self.cfg.task, self.n_episodes, self.cfg.eval_seed + self.first_episode, "cpu",
+                    self.policy, self.cfg.task, self.n_episodes, self.cfg.eval_seed + self.first_episode, self.device,
                     group=self.group, stop=ctx.stop,
                 )
                 if res is None:  # stopped part-way: nothing to report

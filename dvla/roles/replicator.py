@@ -3,7 +3,9 @@
 Lanes (and what flows between them):
 - ``recv``:    weight messages from the parent (signature checked by the fabric); each one is
                queued for forwarding at once (cut-through, chunk by chunk), then assembled and
-               verified (layout, base version, checksum) into the local dual pool.
+               verified (layout, base version, checksum) into the local dual pool. The layout's
+               size and hash come from the first verified manifest: a replicator builds no
+               model and no environment, and needs neither torch's policy code nor a GPU.
 - ``forward``: sends each message's signed envelope, unchanged, to the children (the actor
                signed it for every hop: ``keys.weights_signed()``).
 - ``serve``:   answers snapshot queries from the verified active pool (catch-up, repair), and
@@ -22,8 +24,6 @@ import numpy as np
 from ..config import RoleConfig
 from ..fabric import Fabric
 from ..fabric.messages import WeightChunk, WeightManifest
-from ..learn import make_policy
-from ..learn.envs import probe_spec
 from ..replication import ParamLayout, Snapshot
 from .runtime import main
 from .swimlane import LaneContext, Swimlane
@@ -44,10 +44,7 @@ class Replicator:
     def __init__(self, cfg: RoleConfig, fabric: Fabric, layout: ParamLayout | None = None) -> None:
         self.cfg = cfg
         self.fabric = fabric
-        if layout is None:  # the task's policy defines it (as on the actor and the rollouts)
-            obs_spec, act_dim = probe_spec(cfg.task)
-            policy = make_policy(cfg.task.policy, obs_spec, act_dim, **cfg.task.policy_kwargs)
-            layout = ParamLayout.from_state_dict(policy.state_dict())
+        #: None until the first verified manifest names it (see WeightSync)
         self.layout = layout
         self.policy_version = -1
         self.env_steps = 0
@@ -70,7 +67,7 @@ class Replicator:
             f, self.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version, on_message=self._cut_through
         )
         serve_snapshots(  # children's catch-up: the verified active version
-            f, self.cfg.name, self.layout.hash, self._snap_lock, lambda: self.policy_version, self._held_snapshot,
+            f, self.cfg.name, lambda: self.weights.layout_hash, self._snap_lock, lambda: self.policy_version, self._held_snapshot,
             lambda: self._proof, self.cfg.replication.chunk_bytes,
         )
         self._stop = sl.stop_event

@@ -29,13 +29,13 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from ..config import RoleConfig, env_group_sizes
+from ..config import RoleConfig, env_group_sizes, resolve_device
 from ..fabric import Fabric, TrajectoryChunk
 from ..learn import EnvGroup, make_policy
-from ..learn.policies import sample_actions
+from ..learn.policies import extras_spec, policy_base_hash, sample_actions
 from ..learn.envs import obs_as_dict, obs_to_torch
 from ..learn.grpo import grpo_envs
-from ..replication import ParamLayout, bind_flat, unflatten_into
+from ..replication import ParamLayout, bind_flat, replicated_tensors
 from ..counters import INCARNATION_SHIFT, CounterFile
 from .chunkpool import ChunkPool, Shipment, chunk_template
 from .runtime import main
@@ -57,6 +57,8 @@ class Actions(NamedTuple):
     logprobs: np.ndarray
     #: the policy version that chose them
     version: int
+    #: the policy's per-step extras for them (name -> [n, ...]; empty for Gaussian policies)
+    extras: dict[str, np.ndarray]
 
 
 @dataclass
@@ -80,21 +82,24 @@ class _Group:
 
 
 class PolicyPool:
-    """Dual-pool weights: `active` serves inference, `staging` receives the next version.
+    """Dual-pool weights: `active` (the policy module) serves inference, `staging` (a flat float32
+    tensor of the *replicated* tensors only, on the policy's device) receives the next version.
 
-    The sync lane writes `staging` under a lock; the infer lane swaps the two between batches.
-    A newer version overwrites an unswapped one, so sync never waits on inference.
+    The sync lane writes `staging` under a lock; the infer lane installs it into `active` between
+    batches (one copy of the replicated tensors: a single flat copy where they are views of one
+    flat tensor, see `bind_flat`). A newer version overwrites an uninstalled one, so sync never
+    waits on inference, and inference never waits on a write (it installs on a later batch).
+    A LoRA policy thus holds its base once and its adapters twice, not the model twice.
     """
 
-    def __init__(self, make: Any) -> None:
-        self.active = make()
-        self.staging = make()
+    def __init__(self, policy: torch.nn.Module) -> None:
+        self.active = policy
         self.active_version = -1
-        self.layout = ParamLayout.from_state_dict(self.active.state_dict())
-        # Each module's weights as views of one flat tensor where the policy allows (all
-        # float32): a staging write is then one copy, a short window with one GIL release,
-        # instead of one copy per tensor. Keyed by module, since the two swap roles.
-        self._flat: dict[int, torch.Tensor | None] = {id(m): bind_flat(m, self.layout) for m in (self.active, self.staging)}
+        self.layout = ParamLayout.from_state_dict(policy)
+        device = next((t.device for t in policy.state_dict().values()), torch.device("cpu"))
+        #: the replicated tensors of `active` as views of one flat tensor (None: per-tensor copies)
+        self._bound = bind_flat(policy, self.layout)
+        self.staging = torch.zeros(self.layout.numel, dtype=torch.float32, device=device)
         self._pending: int | None = None
         self._lock = threading.Lock()
         self.swaps = 0
@@ -114,12 +119,20 @@ class PolicyPool:
             self.stage_seq += 1
 
     def _write_staging(self, flat: np.ndarray) -> None:
-        target = self._flat[id(self.staging)]
-        if target is not None and flat.dtype == np.float32 and flat.shape == (self.layout.numel,):
-            with torch.no_grad():
-                target.copy_(torch.from_numpy(flat))
-        else:
-            unflatten_into(flat, self.staging, self.layout)  # checks the vector, copies per tensor
+        if flat.dtype != np.float32 or flat.shape != (self.layout.numel,):
+            raise ValueError(f"staged weights: {flat.dtype} {flat.shape}, expected float32 ({self.layout.numel},)")
+        with torch.no_grad():
+            self.staging.copy_(torch.from_numpy(flat))
+
+    @torch.no_grad()
+    def _install(self) -> None:
+        if self._bound is not None:
+            self._bound.copy_(self.staging)  # converts to the policy's dtype (bf16) on the way
+            return
+        tensors = replicated_tensors(self.active)
+        for i, name in enumerate(self.layout.names):
+            start, stop = self.layout.span(i)
+            tensors[name].copy_(self.staging[start:stop].view(self.layout.shapes[i]))
 
     def maybe_swap(self) -> bool:
         """Called between batches; never waits: during a staging write it retries next batch."""
@@ -129,9 +142,9 @@ class PolicyPool:
             self.swap_deferred += 1
             return False
         try:
-            if self._pending is None:  # another lane swapped first; swapping again would undo it
+            if self._pending is None:  # another lane installed it first
                 return False
-            self.active, self.staging = self.staging, self.active
+            self._install()
             self.active_version = self._pending
             self._pending = None
             self.swaps += 1
@@ -147,23 +160,26 @@ class Rollout:
         self.cfg = cfg
         self.fabric = fabric
         task = cfg.task
-        self.device = torch.device("cpu")  # inference of small policies stays on the host CPU
+        self.device = torch.device(resolve_device(task.rollout_device))
         # torch.distributions re-validates its arguments on every call, a large share of an
         # inference on a batch of a few observations; the infer lane's CPU comes straight out
         # of the simulators' share.
         torch.distributions.Distribution.set_default_validate_args(False)
         self.groups: list[_Group] = []
-        self._noise = torch.Generator()
+        self._noise = torch.Generator(device=self.device)
         seed = cfg.seed * 10_000
         for gid, size in enumerate(env_group_sizes(task.envs_per_rollout)):
             envs = EnvGroup(task, size, seed + gid * 1000, **grpo_envs(task))
             self.groups.append(_Group(gid, envs, envs.reset()))
         g0 = self.groups[0].envs
         self.obs_spec, self.act_dim = g0.obs_spec, g0.act_dim  # flat: {"state"}; rgb: rgb/proprio/tokens
-        self.pool = PolicyPool(lambda: make_policy(task.policy, self.obs_spec, self.act_dim, **task.policy_kwargs).eval())
+        policy = make_policy(task.policy, self.obs_spec, self.act_dim, **task.policy_kwargs)
+        self.pool = PolicyPool(policy.to(self.device).eval())
+        #: per-step tensors the policy ships with each transition (flow chain, action tokens)
+        self.extras_spec = extras_spec(policy)
         self.T = task.chunk_steps
         for g in self.groups:
-            template = chunk_template(cfg.name, self.T, g.envs.n, self.obs_spec, self.act_dim)
+            template = chunk_template(cfg.name, self.T, g.envs.n, self.obs_spec, self.act_dim, self.extras_spec)
             g.chunks = ChunkPool(template, SHIP_QUEUE + 2)
             g.chunk = g.chunks.take(threading.Event())
         # Counters that survive a kill -9 (counters.py); the incarnation goes in seq's high bits.
@@ -209,7 +225,8 @@ class Rollout:
         self.to_ship = sl.queue("chunks", SHIP_QUEUE)  # Shipment: a finished chunk and its pool
         self._count()
         self.weights = WeightSync(  # verified versions from the parent (ancestors as fallback)
-            self.fabric, self.pool.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version
+            self.fabric, self.pool.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version,
+            base_hash=policy_base_hash(self.pool.active), base_source=str(self.cfg.task.policy_kwargs.get("checkpoint", "")),
         )
         inline = self.cfg.task.rollout_infer == "inline"
         sl.lane("sim", self._sim_random if self.sim_only else self._sim_inline if inline else self._sim)
@@ -257,8 +274,10 @@ class Rollout:
         # (A generator of the infer lane's own: simulators may draw from torch's global one.)
         self._noise.manual_seed((self.cfg.seed * 4 + gid) * 2**32 + g.steps)
         with torch.no_grad():
-            obs = obs_to_torch(g.obs)
-            action, logprob = sample_actions(self.pool.active, obs, generator=self._noise)
+            obs = obs_to_torch(g.obs, self.device)
+            action, logprob, extras = sample_actions(self.pool.active, obs, generator=self._noise)
+            action, logprob = action.float().cpu().numpy(), logprob.float().cpu().numpy()
+            extras = {k: v.cpu().numpy() for k, v in extras.items()}
         ms = (time.perf_counter() - t0) * 1e3
         seq1 = self.pool.stage_seq
         self.infer_latency.record("swap" if swapped or seq0 % 2 == 1 else "no_swap", ms)
@@ -268,7 +287,7 @@ class Rollout:
         self.infer_ms.append(ms)
         if len(self.infer_ms) > 2048:
             del self.infer_ms[:1024]
-        return Actions(gid, action.numpy(), logprob.numpy(), self.pool.active_version)
+        return Actions(gid, action, logprob, self.pool.active_version, extras)
 
     def _sim_inline(self, ctx: LaneContext) -> None:
         """``rollout_infer: inline``: act and step each group in turn on this one thread."""
@@ -277,7 +296,7 @@ class Rollout:
             for g in self.groups:
                 with ctx.busy():
                     a = self._act(g.gid)
-                    self._record_step(g, a.actions, a.logprobs, a.version)
+                    self._record_step(g, a)
                     ctx.count(g.envs.n)
                 if g.t == self.T:
                     self._finish_chunk(g, ctx)
@@ -296,7 +315,7 @@ class Rollout:
                 self.to_infer.put(a.gid, ctx.stop, stats=ctx.stats)
                 continue
             with ctx.busy():
-                self._record_step(g, a.actions, a.logprobs, a.version)
+                self._record_step(g, a)
                 ctx.count(g.envs.n)
             if g.t == self.T:
                 self._finish_chunk(g, ctx)
@@ -323,13 +342,16 @@ class Rollout:
         self.step_cpu_s += time.thread_time() - t0
         return step
 
-    def _record_step(self, g: _Group, actions: np.ndarray, logprobs: np.ndarray, version: int) -> None:
+    def _record_step(self, g: _Group, a: Actions) -> None:
+        actions, logprobs, version = a.actions, a.logprobs, a.version
         m, t = g.chunk, g.t
         for k, v in obs_as_dict(g.obs).items():
             m.obs[k][t] = v
         step = self._step(g.envs, actions)
         m.actions[t] = actions  # as sampled: the log-probs are of these, the env clips
         m.logprobs[t] = logprobs
+        for k, v in a.extras.items():
+            m.extras[k][t] = v
         m.rewards[t] = step.reward
         m.terminated[t] = step.terminated
         m.truncated[t] = step.truncated

@@ -34,10 +34,11 @@ class SlotPool:
 
     def __init__(
         self, *, n_slots: int, T: int, n_max: int, act_dim: int, obs_dim: int | None = None,
-        obs_spec: Mapping[str, Any] | None = None, pin: bool = False,
+        obs_spec: Mapping[str, Any] | None = None, pin: bool = False, extras_spec: Mapping[str, Any] | None = None,
     ) -> None:
         """``obs_spec`` (name -> spec with ``shape`` and numpy ``dtype``) or, for flat
-        observations, ``obs_dim`` D (the same as ``{"state": ((D,), float32)}``)."""
+        observations, ``obs_dim`` D (the same as ``{"state": ((D,), float32)}``); ``extras_spec``
+        the policy's per-step extras (docs/policies.md), held like observations."""
         self.n_slots, self.T, self.n_max = n_slots, T, n_max
         if obs_spec is None:
             if obs_dim is None:
@@ -54,6 +55,8 @@ class SlotPool:
         self.final_obs = {k: alloc((S, T, n_max, *v.shape), dtypes[k]) for k, v in obs_spec.items()}
         self.next_obs = {k: alloc((S, n_max, *v.shape), dtypes[k]) for k, v in obs_spec.items()}
         self.actions = alloc((S, T, n_max, act_dim), torch.float32)
+        extras_spec = extras_spec or {}
+        self.extras = {k: alloc((S, T, n_max, *v.shape), _TORCH_DTYPES[np.dtype(v.dtype).name]) for k, v in extras_spec.items()}
         self.tn = {
             "logprobs": alloc((S, T, n_max), torch.float32),
             "rewards": alloc((S, T, n_max), torch.float32),
@@ -90,11 +93,18 @@ class SlotPool:
         for k, arr in c.obs.items():
             if arr.shape[2:] != self.obs[k].shape[3:] or _TORCH_DTYPES.get(arr.dtype.name) != self.obs[k].dtype:
                 return f"obs[{k!r}] {arr.dtype}{list(arr.shape)} does not match the policy"
+        if c.extras.keys() != self.extras.keys():
+            return f"extras {sorted(c.extras)} != the policy's {sorted(self.extras)}"
+        for k, arr in c.extras.items():
+            if arr.shape[2:] != self.extras[k].shape[3:] or _TORCH_DTYPES.get(arr.dtype.name) != self.extras[k].dtype:
+                return f"extras[{k!r}] {arr.dtype}{list(arr.shape)} does not match the policy"
         for k in self.obs:
             _copy(self.obs[k][slot, :, :n], c.obs[k])
             _copy(self.final_obs[k][slot, :, :n], c.final_obs[k])
             _copy(self.next_obs[k][slot, :n], c.next_obs[k])
         _copy(self.actions[slot, :, :n], c.actions)
+        for k, arr in c.extras.items():
+            _copy(self.extras[k][slot, :, :n], arr)
         for name in _FIELDS_TN:
             _copy(self.tn[name][slot, :, :n], getattr(c, name))
         self._n[slot] = n
@@ -128,6 +138,7 @@ class SlotPool:
         out["obs"] = {k: cat(v, 1) for k, v in self.obs.items()}
         out["final_obs"] = {k: cat(v, 1) for k, v in self.final_obs.items()}
         out["actions"] = cat(self.actions, 1)
+        out["extras"] = {k: cat(v, 1) for k, v in self.extras.items()}
         out["next_obs"] = {k: cat(v, 0) for k, v in self.next_obs.items()}
         for name, src in self.tn.items():
             out[name] = cat(src, 1)

@@ -5,6 +5,9 @@ replicators), with the one snapshot queryable both ends serve (`serve_snapshots`
 - Listens on the parent's weights key; assembles each version's chunks into a reusable buffer;
   decodes into the staging pool; verifies layout, base version and checksum; only a verified,
   complete version is handed to `on_version`.
+- A relay (replicator) is given no layout: it learns the size and hash from the first verified
+  manifest (or snapshot proof), never building the model. A receiver holding a model is given
+  its frozen base's content hash and refuses versions made for another base.
 - Anything that does not fit (a missed base version, a bad checksum, a fresh start) is repaired by
   asking the parent's `snapshot` queryable (falling back to further ancestors).
 - When the parent's liveliness token goes, it re-subscribes to the nearest live ancestor; when
@@ -56,36 +59,49 @@ class WeightSync:
 
     `on_message(msg, envelope)` sees every verified manifest and chunk with the signed envelope
     it came in, before it is assembled (a relay forwards that envelope to its children as is).
+
+    ``layout`` None: learnt from the first verified manifest (relays). ``base_hash`` (not None):
+    this node's frozen base checkpoint hash ("" for a policy that replicates whole); a version
+    whose manifest names another is refused, counted under ``refused_base`` and logged once per
+    distinct base, and never applied. ``base_source`` names the local checkpoint in that line.
     """
 
     def __init__(
         self,
         fabric: Fabric,
-        layout: ParamLayout,
+        layout: ParamLayout | None,
         parents: tuple[str, ...],
         on_version: Callable[[int, np.ndarray], None],
         *,
         on_message: Callable[[Any, bytes], None] | None = None,
         inbox_size: int = 64,
+        base_hash: str | None = None,
+        base_source: str = "",
     ) -> None:
         if not parents:
             raise ValueError("WeightSync needs at least one parent")
         self.fabric = fabric
-        self.layout = layout
         self.parents = parents
         self.on_version = on_version
         self.on_message = on_message
         self.inbox_size = inbox_size
-        self.decoder = WeightDecoder(layout)
+        self.base_hash = base_hash
+        self.base_source = base_source
+        self._base_logged: set[str] = set()
+        self.layout: ParamLayout | None = None
+        self.decoder: WeightDecoder | None = None
         self.assembler: ChunkAssembler | None = None
         self.manifest: WeightManifest | None = None
-        # No encoding produces more than a full version: the assembler buffer is that big, once.
-        self.max_bytes = layout.nbytes
+        self.max_bytes = 0
+        #: how long one snapshot query waits for its reply (a full snapshot of a large model)
+        self.fetch_timeout_s = 5.0
+        if layout is not None:
+            self._adopt(layout)
         self.version = -1
         #: the actor's signed manifest envelope of `version` (served with snapshots of it)
         self.proof = b""
         self._pending_proof: tuple[int, bytes] = (-1, b"")  # manifest envelope of the version being assembled
-        self.counters = {"versions": 0, "snapshots": 0, "rejected": 0, "repairs": 0, "reattach": 0}
+        self.counters = {"versions": 0, "snapshots": 0, "rejected": 0, "repairs": 0, "reattach": 0, "refused_base": 0}
         self._alive: set[str] = set(parents)
         self._lock = threading.Lock()
         self._want_snapshot = True
@@ -93,8 +109,6 @@ class WeightSync:
         #: fetch thread -> lane: the snapshot the finished fetch brought (None: nobody answered)
         self._fetched: Fetched | None = None
         self._next_fetch = 0.0
-        #: how long one snapshot query waits for its reply (a full snapshot of a large model)
-        self.fetch_timeout_s = 5.0 + layout.nbytes / 25e6
         self._current: str | None = None
         # Only the current parent's key is subscribed: every further subscription would bring
         # each version once more over every link on the way (a chain of relays would carry a
@@ -105,6 +119,32 @@ class WeightSync:
         fabric.watch_alive(self._on_alive)
         self._select()
         self._follow()
+
+    def _adopt(self, layout: ParamLayout) -> None:
+        self.layout = layout
+        self.decoder = WeightDecoder(layout)
+        # No encoding produces more than a full version: the assembler buffer is that big, once.
+        self.max_bytes = layout.nbytes
+        self.fetch_timeout_s = 5.0 + layout.nbytes / 25e6
+
+    def _fits(self, m: WeightManifest) -> bool:
+        """Whether a verified manifest is for this node: the same frozen base (when this node
+        has one to compare), and a layout it holds or, for a relay, can adopt."""
+        if self.base_hash is not None and m.base_hash != self.base_hash:
+            self.counters["refused_base"] += 1
+            if m.base_hash not in self._base_logged and len(self._base_logged) < 16:
+                self._base_logged.add(m.base_hash)
+                log.error("weights v%d from %s refused: made for base checkpoint %s, this node's base %s is %s",
+                          m.version, m.sender, m.base_hash or "<none: full policy>", self.base_source or "<none>",
+                          self.base_hash or "<none: full policy>")
+            return False
+        if self.layout is None:
+            if m.numel < 1:
+                self.counters["rejected"] += 1
+                return False
+            self._adopt(ParamLayout.opaque(m.layout_hash, m.numel))
+            log.info("weights: layout %s of %d elements learnt from v%d's manifest", m.layout_hash, m.numel, m.version)
+        return True
 
     def _follow(self) -> None:
         """Subscribe to the current parent's weights (and drop the previous one's)."""
@@ -173,6 +213,9 @@ class WeightSync:
 
     def _handle(self, msg: Any) -> None:
         if isinstance(msg, WeightManifest):
+            if not self._fits(msg):
+                self.manifest = None
+                return
             if msg.total_bytes > self.max_bytes or msg.n_chunks < 1:
                 self.counters["rejected"] += 1
                 log.warning("weights: manifest v%d from %s rejected (size %d)", msg.version, msg.sender, msg.total_bytes)
@@ -257,9 +300,12 @@ class WeightSync:
         if not snap.data:  # header-only although we are behind: it moved on meanwhile; ask again
             return
         try:
+            m = self._check_proof(p, snap)
+            if not self._fits(m):
+                self._next_fetch = time.monotonic() + 5.0
+                return
             if snap.layout_hash != self.layout.hash:
                 raise ReplicationError(f"layout {snap.layout_hash} != ours {self.layout.hash}")
-            self._check_proof(p, snap)
             self.decoder.reset()
             flat = self.decoder.load_snapshot(Snapshot(snap.version, snap.data, snap.checksum))
         except ReplicationError as err:
@@ -274,7 +320,7 @@ class WeightSync:
         log.info("weights: caught up to v%d by snapshot from %s", snap.version, p)
         self.on_version(snap.version, flat)
 
-    def _check_proof(self, parent: str, snap: WeightSnapshot) -> None:
+    def _check_proof(self, parent: str, snap: WeightSnapshot) -> WeightManifest:
         """A snapshot is applied only if the actor signed its content: its manifest envelope
         verifies as the actor's, names the same version and layout, and its SHA-256 digest is
         that of the data (a relay cannot make up weights)."""
@@ -288,13 +334,19 @@ class WeightSync:
             raise ReplicationError(f"snapshot v{snap.version} from {parent} carries the manifest of v{m.version}")
         if not m.digest or hashlib.sha256(snap.data).hexdigest() != m.digest:
             raise ReplicationError(f"snapshot v{snap.version} from {parent}: data does not hash to the actor's digest")
+        return m
 
     def status(self) -> dict[str, Any]:
         return {"parent": self.parent, "version": self.version, **self.counters}
 
+    @property
+    def layout_hash(self) -> str:
+        """The layout's hash ("" while a relay has not learnt it)."""
+        return self.layout.hash if self.layout is not None else ""
+
 
 def serve_snapshots(
-    fabric: Fabric, sender: str, layout_hash: str, lock: threading.Lock, held: Callable[[], int],
+    fabric: Fabric, sender: str, layout_hash: Callable[[], str], lock: threading.Lock, held: Callable[[], int],
     snapshot: Callable[[], Snapshot], proof: Callable[[], bytes], chunk_bytes: int = 1 << 20,
 ) -> None:
     """Declare ``sender``'s ``snapshot`` queryable (children's catch-up and repair).
@@ -307,6 +359,7 @@ def serve_snapshots(
     replies of at most `chunk_bytes` of parameters each (within the ctrl plane's message cap),
     encoded once per version, however many children ask. Requests are answered by one thread
     of their own from a short queue (never on Zenoh's receive thread; see Fabric.serve).
+    ``layout_hash()`` is read per reply (a relay learns it with its first version).
     """
     encoded: dict[int, list[bytes]] = {}
     step = max(4, chunk_bytes - chunk_bytes % 4)  # whole float32 values per reply
@@ -316,14 +369,14 @@ def serve_snapshots(
         with lock:
             version = held()
             if version < 0 or have >= version:
-                return WeightSnapshot(sender=sender, version=max(version, -1), layout_hash=layout_hash, checksum="", data=b"")
+                return WeightSnapshot(sender=sender, version=max(version, -1), layout_hash=layout_hash(), checksum="", data=b"")
             if version not in encoded:
                 snap = snapshot()
                 data, manifest, now = memoryview(snap.payload), proof(), time.time_ns()
                 n = max(1, -(-len(data) // step))
                 encoded.clear()
                 encoded[version] = [encode(WeightSnapshot(
-                    sender=sender, version=snap.version, layout_hash=layout_hash, checksum=snap.checksum,
+                    sender=sender, version=snap.version, layout_hash=layout_hash(), checksum=snap.checksum,
                     data=bytes(data[i * step:(i + 1) * step]), manifest=manifest, index=i, n_chunks=n, created_ns=now,
                 )) for i in range(n)]
             return list(encoded[version])
@@ -336,11 +389,14 @@ class WeightPublisher:
     sends it to the children and answers their snapshot queries with the newest version."""
 
     def __init__(
-        self, fabric: Fabric, sender: str, layout: ParamLayout, replication: ReplicationConfig, start_version: int = 0
+        self, fabric: Fabric, sender: str, layout: ParamLayout, replication: ReplicationConfig, start_version: int = 0,
+        base_hash: str = "",
     ) -> None:
         self.fabric = fabric
         self.sender = sender
         self.layout = layout
+        #: content hash of the policy's frozen base ("" when it replicates whole)
+        self.base_hash = base_hash
         self.replication = replication
         self.encoder = WeightEncoder.from_config(layout, replication, start_version=start_version)
         self._lock = threading.Lock()  # a snapshot being served never sees a half-encoded version
@@ -350,7 +406,7 @@ class WeightPublisher:
 
     def serve(self) -> None:
         """Declare the ``snapshot`` queryable: children's catch-up with the newest version."""
-        serve_snapshots(self.fabric, self.sender, self.layout.hash, self._lock,
+        serve_snapshots(self.fabric, self.sender, lambda: self.layout.hash, self._lock,
                         lambda: self.encoder.latest, lambda: self.encoder.snapshot(), lambda: self._manifest,
                         self.replication.chunk_bytes)
 
@@ -365,7 +421,8 @@ class WeightPublisher:
         with self._lock:
             enc = self.encoder.encode(flat)
             digest = hashlib.sha256(memoryview(self.encoder.published).cast("B")).hexdigest()
-            manifest = WeightManifest(sender=self.sender, digest=digest, **enc.to_dict())
+            manifest = WeightManifest(sender=self.sender, digest=digest, numel=self.layout.numel,
+                                      base_hash=self.base_hash, **enc.to_dict())
             # not signed for the key it travels on: relays forward it unchanged
             self._manifest = self.fabric.seal(self.fabric.keys.weights_signed(), manifest)
             return enc

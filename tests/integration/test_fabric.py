@@ -343,7 +343,7 @@ def test_garbage_and_oversized_data_payloads_are_rejected_and_counted(pair: Pair
         "truncated": good[: len(good) // 2],
         "trailing": good + b"\x00",
         # msgpack whose one string is 2 MiB (> Limits.max_str_len): refused before any copy
-        "oversized-string": msgpack.packb({"v": 1, "t": "traj", "b": {"rollout": "x" * (2 << 20)}}),
+        "oversized-string": msgpack.packb({"v": 2, "t": "traj", "b": {"rollout": "x" * (2 << 20)}}),
         # a bin header that claims 300 MiB (> Limits.max_message_bytes/max_array_bytes)
         "oversized-claim": b"\x83\xa1v\x01\xa1t\xa4traj\xa1b\x81\xa4data\xc6" + (300 << 20).to_bytes(4, "big"),
         "wrong-type": encode(Command(target="all", verb="stop")),
@@ -602,7 +602,7 @@ def test_a_snapshot_comes_in_chunks_bound_to_one_query(pair: Pair) -> None:
     manifest = actor.seal(actor.keys.weights_signed(), WeightManifest(
         sender=actor.name, version=3, base_version=-1, encoding="full", layout_hash="ab", n_chunks=1,
         total_bytes=len(data), checksum="c", digest=hashlib.sha256(data).hexdigest()))
-    serve_snapshots(actor, actor.name, "ab", threading.Lock(), lambda: 3, lambda: Snapshot(3, data, "c"),
+    serve_snapshots(actor, actor.name, lambda: "ab", threading.Lock(), lambda: 3, lambda: Snapshot(3, data, "c"),
                     lambda: manifest, chunk_bytes=1000)
     wait_route(actor.ctrl, rollout.ctrl)
     replies = rollout.query(actor.keys.snapshot(actor.name), SnapshotRequest(requester=rollout.name, have_version=-1),

@@ -172,7 +172,7 @@ def reasons_only(fn, *args, **kwargs) -> str | None:
 # Golden vectors: the same bytes are shown in docs/wire-format.md.
 GOLDEN_ARRAY_MSG = Command(target="all", verb="pause", args={"x": np.array([1.0, 2.0], np.float32)}, issued_ns=1)
 GOLDEN_ARRAY_HEX = (
-    "83a17601a174a3636d64a16284a6746172676574a3616c6ca476657262a57061757365a46172677381a178c71a0107666c"
+    "83a17602a174a3636d64a16284a6746172676574a3616c6ca476657262a57061757365a46172677381a178c71a0107666c"
     "6f61743332010200000004000000000000803f00000040a96973737565645f6e7301"
 )
 GOLDEN_TRAJ = TrajectoryChunk(
@@ -184,16 +184,16 @@ GOLDEN_TRAJ = TrajectoryChunk(
     final_obs={"state": np.array([[[0.5, -1.0]]], np.float32)}, created_ns=1_700_000_000_000_000_000,
 )
 GOLDEN_TRAJ_HEX = (
-    "83a17601a174a47472616aa1628ea7726f6c6c6f7574a27230a373657100ae706f6c6963795f76657273696f6e01a9656e"
+    "83a17602a174a47472616aa1628fa7726f6c6c6f7574a27230a373657100ae706f6c6963795f76657273696f6e01a9656e"
     "765f737465707301a36f627381a57374617465c7210107666c6f6174333203010000000100000002000000030000000000"
-    "003f000080bfa7616374696f6e73c7210107666c6f617433320301000000010000000100000007000000000000000000803e"
-    "a86c6f6770726f6273c71c0107666c6f6174333202010000000100000006000000000000000000bfa772657761726473c7"
-    "1d0107666c6f6174333202010000000100000007000000000000000000803faa7465726d696e61746564c7170104626f6f"
-    "6c020100000001000000070000000000000001a97472756e6361746564c7130104626f6f6c020100000001000000030000"
-    "0000a773756363657373c7150104626f6f6c02010000000100000005000000000001a86e6578745f6f627381a573746174"
-    "65c71c0107666c6f617433320201000000020000000200000000000000000000a966696e616c5f6f627381a57374617465"
-    "c7240107666c6f6174333203010000000100000002000000060000000000000000003f000080bfaa637265617465645f6e"
-    "73cf17979cfe362a0000"
+    "003f000080bfa7616374696f6e73c7210107666c6f61743332030100000001000000010000000700000000000000000080"
+    "3ea86c6f6770726f6273c71c0107666c6f6174333202010000000100000006000000000000000000bfa772657761726473"
+    "c71d0107666c6f6174333202010000000100000007000000000000000000803faa7465726d696e61746564c7170104626f"
+    "6f6c020100000001000000070000000000000001a97472756e6361746564c7130104626f6f6c0201000000010000000300"
+    "000000a773756363657373c7150104626f6f6c02010000000100000005000000000001a86e6578745f6f627381a5737461"
+    "7465c71c0107666c6f617433320201000000020000000200000000000000000000a966696e616c5f6f627381a573746174"
+    "65c7240107666c6f6174333203010000000100000002000000060000000000000000003f000080bfa665787472617380aa"
+    "637265617465645f6e73cf17979cfe362a0000"
 )
 
 
@@ -312,7 +312,7 @@ def test_codec_reads_stock_msgpack_output():
 def test_golden_bytes():
     # Pinned wire bytes (also shown in docs/wire-format.md); a change here is a wire break.
     buf = encode(SnapshotRequest(requester="r0", have_version=3))
-    assert buf.hex() == ("83a17601a174ac736e617073686f742e726571a16282a9726571756573746572a27230"
+    assert buf.hex() == ("83a17602a174ac736e617073686f742e726571a16282a9726571756573746572a27230"
                          "ac686176655f76657273696f6e03")
     assert encode(GOLDEN_ARRAY_MSG).hex() == GOLDEN_ARRAY_HEX
     assert encode(GOLDEN_TRAJ).hex() == GOLDEN_TRAJ_HEX
@@ -324,7 +324,8 @@ def test_golden_bytes():
 def test_wrong_schema_version_and_unknown_tag():
     body = {"requester": "r", "have_version": 1}
     assert decode(wire(body)) == SnapshotRequest(requester="r", have_version=1)
-    assert reasons_only(decode, wire(body, v=2)) == "schema"
+    assert reasons_only(decode, wire(body, v=1)) == "schema"  # the previous schema
+    assert reasons_only(decode, wire(body, v=3)) == "schema"
     assert reasons_only(decode, wire(body, v=True)) == "schema"
     assert reasons_only(decode, wire(body, v="1")) == "schema"
     assert reasons_only(decode, wire(body, tag="nope")) == "schema"
@@ -354,9 +355,9 @@ def test_nested_field_types_are_checked():
 
 def test_top_level_shape_errors():
     assert reasons_only(decode, msgpack.packb([1, "traj", {}])) == "schema"
-    assert reasons_only(decode, msgpack.packb({"v": 1, "t": "cmd"})) == "schema"
-    assert reasons_only(decode, msgpack.packb({"v": 1, "t": "cmd", "b": {}, "x": 1})) == "schema"
-    assert reasons_only(decode, msgpack.packb({"v": 1, "t": "cmd", "b": [1]})) == "schema"
+    assert reasons_only(decode, msgpack.packb({"v": 2, "t": "cmd"})) == "schema"
+    assert reasons_only(decode, msgpack.packb({"v": 2, "t": "cmd", "b": {}, "x": 1})) == "schema"
+    assert reasons_only(decode, msgpack.packb({"v": 2, "t": "cmd", "b": [1]})) == "schema"
     assert reasons_only(decode, msgpack.packb({1: 1})) == "schema"
     assert reasons_only(decode, encode(control_messages()[0]) + b"\x00") == "malformed"
     assert reasons_only(decode, b"") == "malformed"
@@ -482,7 +483,7 @@ def test_limits_are_enforced_on_decode_and_encode():
 
 def test_deep_nesting_is_refused_without_recursion_error():
     body = {"target": "all", "verb": "stop", "issued_ns": 1}
-    prefix = msgpack.packb({"v": 1, "t": "cmd", "b": body})[:-1]
+    prefix = msgpack.packb({"v": 2, "t": "cmd", "b": body})[:-1]
     # rewrite the body map header to 4 entries and append args = [[[[...]]]] 100000 deep
     bomb = bytearray(prefix)
     bomb[bomb.index(b"\xa1b") + 2] = 0x84
@@ -617,7 +618,7 @@ msgpack_values = (msgpack_scalars | st.lists(msgpack_scalars, max_size=3)
 
 @settings(FUZZ, max_examples=60)
 @given(st.sampled_from(sorted(MESSAGE_TYPES)), st.dictionaries(st.text(max_size=12), msgpack_values, max_size=6),
-       st.sampled_from([SCHEMA_VERSION, 0, 2, "1", None]))
+       st.sampled_from([SCHEMA_VERSION, 0, 1, 3, "2", None]))
 def test_fuzz_wrong_types(tag, body, version):
     reasons_only(decode, wire(body, tag=tag, v=version))
 

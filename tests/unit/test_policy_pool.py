@@ -1,4 +1,5 @@
-"""The rollout's dual-pool weights: a swap never waits for a staging write."""
+"""The rollout's dual-pool weights: one policy module plus a staging copy of its replicated
+tensors; installing never waits for a staging write."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from dvla.roles.rollout import PolicyPool
 
 
 def make_pool() -> PolicyPool:
-    return PolicyPool(lambda: torch.nn.Linear(3, 2))
+    return PolicyPool(torch.nn.Linear(3, 2))
 
 
 def test_stage_then_swap_installs_the_staged_weights():
@@ -63,31 +64,31 @@ def test_sample_is_act_without_the_value():
     torch.manual_seed(3)
     a_act, lp_act, _ = policy.act(obs)
     torch.manual_seed(3)
-    a_s, lp_s = sample_actions(policy, obs)
-    assert torch.equal(a_act, a_s) and torch.equal(lp_act, lp_s)
+    a_s, lp_s, extras = sample_actions(policy, obs)
+    assert torch.equal(a_act, a_s) and torch.equal(lp_act, lp_s) and extras == {}
     assert torch.equal(sample_actions(policy, obs, deterministic=True)[0], policy.act(obs, deterministic=True)[0])
 
     class ActOnly(torch.nn.Module):  # a plug-in policy without `sample`
         def act(self, obs, deterministic=False):
             return obs[:, :2] * 2, obs[:, 0], obs[:, 1]
 
-    a, lp = sample_actions(ActOnly(), obs)
-    assert torch.equal(a, obs[:, :2] * 2) and torch.equal(lp, obs[:, 0])
+    a, lp, extras = sample_actions(ActOnly(), obs)
+    assert torch.equal(a, obs[:, :2] * 2) and torch.equal(lp, obs[:, 0]) and extras == {}
 
 
-def test_staging_is_one_flat_copy_and_the_modules_still_work():
-    """Both modules' weights live in one flat tensor each: a staged version reaches every
-    parameter and buffer, the module computes with it, and its state_dict reads it back."""
+def test_staging_is_one_flat_copy_and_the_module_still_works():
+    """The module's weights live in one flat tensor: an installed version reaches every parameter
+    and buffer in one copy, the module computes with it, and its state_dict reads it back."""
     from dvla.learn.policies import MLPPolicy
 
-    pool = PolicyPool(lambda: MLPPolicy(5, 2, hidden=(8, 8), obs_norm=True))
-    assert all(f is not None for f in pool._flat.values())
-    active_flat = pool._flat[id(pool.active)]
-    lo, hi = active_flat.data_ptr(), active_flat.data_ptr() + 4 * active_flat.numel()
+    pool = PolicyPool(MLPPolicy(5, 2, hidden=(8, 8), obs_norm=True))
+    assert pool._bound is not None
+    lo, hi = pool._bound.data_ptr(), pool._bound.data_ptr() + 4 * pool._bound.numel()
     tensors = list(pool.active.parameters()) + list(pool.active.buffers())
     assert all(lo <= t.data_ptr() < hi for t in tensors if t.is_floating_point())  # all inside it
     flat = np.random.default_rng(0).standard_normal(pool.layout.numel).astype(np.float32)
     pool.stage(1, flat)
+    np.testing.assert_array_equal(flatten(pool.active, pool.layout)[:3] != flat[:3], [True] * 3)  # not yet
     assert pool.maybe_swap()
     np.testing.assert_array_equal(flatten(pool.active.state_dict(), pool.layout), flat)
     reference = MLPPolicy(5, 2, hidden=(8, 8), obs_norm=True)
@@ -100,6 +101,33 @@ def test_staging_is_one_flat_copy_and_the_modules_still_work():
     assert isinstance(pool.active.actor[0].weight, torch.nn.Parameter)
 
 
+def test_frozen_parameters_are_neither_staged_nor_replicated():
+    """A frozen base (requires_grad False) stays out of the layout and the staging copy: the
+    pool holds the model once plus the trainable tensors."""
+    from dvla.replication import ParamLayout
+
+    model = torch.nn.Sequential(torch.nn.Linear(64, 64), torch.nn.Linear(64, 2))
+    model[0].requires_grad_(False)
+    base = model[0].weight.clone()
+    pool = PolicyPool(model)
+    assert pool.layout.names == ("1.weight", "1.bias") and pool.staging.numel() == 64 * 2 + 2
+    assert ParamLayout.from_state_dict(model).hash == pool.layout.hash
+    pool.stage(2, np.ones(pool.layout.numel, np.float32))
+    assert pool.maybe_swap()
+    assert torch.equal(model[1].weight, torch.ones(2, 64)) and torch.equal(model[0].weight, base)
+
+
+def test_a_bf16_policy_installs_through_one_flat_bf16_tensor():
+    from dvla.replication import bind_flat, ParamLayout
+
+    pool = PolicyPool(torch.nn.Linear(4, 3).to(torch.bfloat16))
+    assert pool._bound is not None and pool._bound.dtype == torch.bfloat16
+    flat = (np.arange(pool.layout.numel, dtype=np.float32) / 4).astype(np.float32)  # exact in bf16
+    pool.stage(1, flat)
+    assert pool.maybe_swap()
+    np.testing.assert_array_equal(flatten(pool.active, pool.layout), flat)
+
+
 def test_bind_flat_refuses_mixed_dtypes_and_leaves_the_module_alone():
     from dvla.replication import ParamLayout, bind_flat
 
@@ -107,7 +135,7 @@ def test_bind_flat_refuses_mixed_dtypes_and_leaves_the_module_alone():
     before = [p.data_ptr() for p in m.parameters()]
     assert bind_flat(m, ParamLayout.from_state_dict(m)) is None
     assert [p.data_ptr() for p in m.parameters()] == before
-    pool = PolicyPool(lambda: torch.nn.Sequential(torch.nn.Linear(3, 2), torch.nn.Linear(2, 2).to(torch.bfloat16)))
+    pool = PolicyPool(torch.nn.Sequential(torch.nn.Linear(3, 2), torch.nn.Linear(2, 2).to(torch.bfloat16)))
     flat = np.arange(pool.layout.numel, dtype=np.float32)
     pool.stage(3, flat)  # the per-tensor path
     assert pool.maybe_swap()

@@ -7,15 +7,25 @@ Python version (FNV-1a is fixed, unlike ``hash()``), and any word has an id. The
 words may share a bucket: with the default 4096 buckets, a 50-word instruction vocabulary has a
 collision with probability about 0.26 (birthday bound), harmless for telling a few tasks apart.
 Sequences longer than ``length`` are truncated (keeping the start).
+
+A policy loaded from a Hugging Face checkpoint (``policy_kwargs.checkpoint``, docs/policies.md)
+needs its own tokenizer's ids instead: :func:`instruction_tokenizer` gives the env that one,
+loaded from the checkpoint directory with ``local_files_only`` (nothing is downloaded), ids
+right-padded with the tokenizer's pad id (0 when it has none).
 """
 
 from __future__ import annotations
 
+import functools
+import os
 import re
+from dataclasses import dataclass
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
-__all__ = ["PAD_ID", "BOS_ID", "FIRST_WORD_ID", "DEFAULT_VOCAB_SIZE", "words", "word_id", "tokenize"]
+__all__ = ["PAD_ID", "BOS_ID", "FIRST_WORD_ID", "DEFAULT_VOCAB_SIZE", "words", "word_id", "tokenize",
+           "InstructionTokenizer", "instruction_tokenizer", "checkpoint_tokenizer_dir"]
 
 PAD_ID = 0
 """Fills the sequence after the last word; models mask it out."""
@@ -59,3 +69,64 @@ def tokenize(text: str, length: int, vocab_size: int = DEFAULT_VOCAB_SIZE) -> np
     ids = ids[:length]
     out[: len(ids)] = ids
     return out
+
+
+#: files that make a directory a Hugging Face tokenizer (any one of them)
+_TOKENIZER_FILES = ("tokenizer.json", "tokenizer_config.json", "tokenizer.model")
+
+
+@dataclass(frozen=True)
+class InstructionTokenizer:
+    """What an env tokenises instructions with: ``encode(text)`` -> int32 [length] ids in
+    [0, vocab), right-padded with ``pad_id``."""
+
+    #: ids per instruction (padded or truncated)
+    length: int
+    #: ids lie in [0, vocab)
+    vocab: int
+    #: the id that fills the sequence after the instruction
+    pad_id: int
+    #: "hashed" or the checkpoint directory whose tokenizer this is
+    source: str
+    _encode: Callable[[str], list[int]]
+
+    def encode(self, text: str) -> np.ndarray:
+        if self.source == "hashed":
+            return tokenize(text, self.length, self.vocab)
+        ids = self._encode(text)[: self.length]
+        out = np.full(self.length, self.pad_id, dtype=np.int32)
+        out[: len(ids)] = ids
+        return out
+
+
+def checkpoint_tokenizer_dir(policy_kwargs: Mapping[str, Any]) -> str | None:
+    """The checkpoint directory whose tokenizer the instructions use: ``policy_kwargs.checkpoint``
+    when it holds tokenizer files, else None (the hashed tokenizer)."""
+    path = policy_kwargs.get("checkpoint")
+    if not isinstance(path, str) or not any(os.path.isfile(os.path.join(path, f)) for f in _TOKENIZER_FILES):
+        return None
+    return path
+
+
+def instruction_tokenizer(policy_kwargs: Mapping[str, Any], length: int) -> InstructionTokenizer:
+    """The hashed tokenizer, or the checkpoint's own (see :func:`checkpoint_tokenizer_dir`)."""
+    path = checkpoint_tokenizer_dir(policy_kwargs)
+    if path is None:
+        return InstructionTokenizer(length, DEFAULT_VOCAB_SIZE, PAD_ID, "hashed", lambda text: [])
+    return _hf_tokenizer(os.path.abspath(path), length)
+
+
+@functools.lru_cache(maxsize=4)
+def _hf_tokenizer(path: str, length: int) -> InstructionTokenizer:
+    from transformers import AutoTokenizer  # only runs that point at a checkpoint pay for it
+
+    try:
+        tok = AutoTokenizer.from_pretrained(path, local_files_only=True)
+    except (OSError, ValueError) as err:
+        raise ValueError(f"{path}: cannot load its tokenizer ({str(err).splitlines()[0]})") from err
+    pad = tok.pad_token_id if tok.pad_token_id is not None else 0
+
+    def encode(text: str) -> list[int]:
+        return list(tok(text, add_special_tokens=True, truncation=True, max_length=length)["input_ids"])
+
+    return InstructionTokenizer(length, len(tok), int(pad), path, encode)
