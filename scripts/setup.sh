@@ -124,6 +124,19 @@ python_packages() {
   # keeps the `dvla` script pointing at this clone rather than at an older one.
   log "installing dvla (editable) and its dependencies"
   $PY -m pip install -q -e ".[test]"
+  drop_broken_torchvision
+}
+
+drop_broken_torchvision() {
+  # A torchvision wheel built for another torch (robomimic, a LIBERO dependency, pulls the stock
+  # one) fails on import, and transformers imports it whenever it is installed: the Hugging Face
+  # policies (docs/policies.md) would not load. dvla uses no torchvision; remove a broken one.
+  if $PY -c 'import importlib.util as u, sys; sys.exit(0 if u.find_spec("torchvision") else 1)' 2>/dev/null \
+     && ! $PY -c 'import torchvision' >/dev/null 2>&1; then
+    log "torchvision does not load with this torch (it would break transformers): uninstalling it"
+    $PY -m pip uninstall -y -q torchvision
+  fi
+  return 0
 }
 
 libero_packages() {
@@ -138,6 +151,7 @@ libero_packages() {
   log "installing the libero extra (hf-libero, robosuite, mujoco) with $(tr '\n' ' ' < "$pins")held"
   $PY -m pip install -q -c "$pins" -e ".[libero]" || log "could not install the libero extra: LIBERO's tests will skip"
   rm -f "$pins"
+  drop_broken_torchvision
 }
 
 case "${1:-all}" in

@@ -197,16 +197,20 @@ def content_hash(path: str | Path) -> str:
 # --- random checkpoints -------------------------------------------------------------------------
 
 _SIZES: dict[str, dict[str, Any]] = {
-    # unit tests: 16 patches of a 32 px image, a 64-wide 2-layer LM, a 32-wide 2-layer expert
+    # unit tests: 16 patches of a 32 px image; 64-wide 2-layer LMs with their families' MLP ratios
+    # (Llama ~2.7x, Gemma 8x); a 32-wide 2-layer expert (pi0's expert is narrower than its VLM)
     "test": dict(vision=dict(image_size=32, patch_size=8, hidden_size=32, intermediate_size=64,
                              num_hidden_layers=2, num_attention_heads=2),
-                 text=dict(hidden_size=64, num_hidden_layers=2, num_attention_heads=4, intermediate_size=128),
-                 vocab=0, expert=dict(width=32, layers=2, heads=4, mlp=64)),
-    # GPU benchmarks: SigLIP-B/16 at 224 px (86 M) + a 24-layer 1024-wide LM (~0.37 B) + expert
+                 llama=dict(hidden_size=64, num_hidden_layers=2, num_attention_heads=4, intermediate_size=128),
+                 gemma=dict(hidden_size=64, num_hidden_layers=2, num_attention_heads=4, intermediate_size=512),
+                 vocab=0, expert=dict(width=32, layers=2, heads=4, mlp=128)),
+    # GPU benchmarks, ~0.5e9 parameters: SigLIP-B/16 at 224 px (86 M) + a 1024-wide LM (Llama:
+    # 24 layers, 0.37 B; Gemma: 18 layers, 0.3 B) + for flow a 512-wide 18-layer expert (76 M)
     "0.5b": dict(vision=dict(image_size=224, patch_size=16, hidden_size=768, intermediate_size=3072,
                              num_hidden_layers=12, num_attention_heads=12),
-                 text=dict(hidden_size=1024, num_hidden_layers=24, num_attention_heads=16, intermediate_size=2816),
-                 vocab=32000, expert=dict(width=512, layers=12, heads=8, mlp=2048)),
+                 llama=dict(hidden_size=1024, num_hidden_layers=24, num_attention_heads=16, intermediate_size=2816),
+                 gemma=dict(hidden_size=1024, num_hidden_layers=18, num_attention_heads=8, intermediate_size=4096),
+                 vocab=32000, expert=dict(width=512, layers=18, heads=8, mlp=2048)),
 }
 _LIBERO_WORDS = ("put open close turn on off the a in into of top bowl plate drawer cabinet stove "
                  "basket mug black white wine bottle rack cream cheese ketchup alphabet soup tomato "
@@ -221,20 +225,23 @@ def vlm_config(family: str, size: str, tokenizer_size: int, n_bins: int = 256, i
     if size not in _SIZES:
         raise ValueError(f"size {size!r}: expected one of {', '.join(_SIZES)}")
     s = _SIZES[size]
-    vision = SiglipVisionConfig(**s["vision"], attention_dropout=0.0)
-    heads = s["text"]["num_attention_heads"]
+    # no attention-pooling head: neither family reads SigLIP's pooled output
+    vision = SiglipVisionConfig(**s["vision"], attention_dropout=0.0, vision_use_head=False)
     if family == "tokens":
         vocab = max(s["vocab"], tokenizer_size + n_bins)
-        text = LlamaConfig(**s["text"], vocab_size=vocab, num_key_value_heads=heads, max_position_embeddings=4096,
-                           attention_dropout=0.0, pad_token_id=0, bos_token_id=2, eos_token_id=None)
+        text = LlamaConfig(**s["llama"], vocab_size=vocab, num_key_value_heads=s["llama"]["num_attention_heads"],
+                           max_position_embeddings=4096, attention_dropout=0.0, pad_token_id=0, bos_token_id=2,
+                           eos_token_id=None)
         # SigLIP has no CLS token: keep every patch ("full"), read the last layer (-1)
         return LlavaConfig(vision_config=vision, text_config=text, image_token_index=image_token_id,
                            vision_feature_select_strategy="full", vision_feature_layer=-1,
                            image_seq_length=(vision.image_size // vision.patch_size) ** 2)
     if family == "flow":
         vocab = max(s["vocab"], tokenizer_size)
-        hidden = s["text"]["hidden_size"]
-        text = GemmaConfig(**s["text"], vocab_size=vocab, num_key_value_heads=1, head_dim=hidden // heads,
+        hidden = s["gemma"]["hidden_size"]
+        # multi-query attention (one key/value head) as Gemma-2B, pi0's LM
+        text = GemmaConfig(**s["gemma"], vocab_size=vocab, num_key_value_heads=1,
+                           head_dim=hidden // s["gemma"]["num_attention_heads"],
                            max_position_embeddings=4096, attention_dropout=0.0, pad_token_id=0, bos_token_id=2,
                            eos_token_id=None)
         return PaliGemmaConfig(vision_config=vision, text_config=text, image_token_index=image_token_id,
@@ -275,6 +282,9 @@ def save_random_checkpoint(path: str | Path, family: str, *, action_dim: int, ma
     import torch
     from safetensors.torch import save_file
     from transformers import AutoModelForImageTextToText
+    from transformers.utils import logging as hf_logging
+
+    hf_logging.disable_progress_bar()
 
     if family not in FAMILIES:
         raise ValueError(f"family {family!r}: expected one of {', '.join(FAMILIES)}")

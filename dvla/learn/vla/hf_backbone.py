@@ -17,7 +17,8 @@ its language model on embeddings:
   model (PaliGemma, whose ``forward`` takes ``token_type_ids``) attends bidirectionally over the
   whole sequence, as pi0's prefix does.
 
-Dropout is zeroed in the config before loading (``evaluate`` must be a pure function). ``dtype``
+Vision parameters that no forward reads are frozen (:func:`_never_read`). Dropout is zeroed in
+the config before loading (``evaluate`` must be a pure function). ``dtype``
 is the parameters' dtype; with ``"bfloat16"`` forwards run under ``torch.autocast(bfloat16)`` and
 callers cast every output to float32 before a log-prob or value. The image statistics are
 non-persistent buffers: they follow ``.to(device)`` but never enter the state dict.
@@ -118,6 +119,15 @@ def _load_vlm(info: CheckpointInfo, dtype: torch.dtype) -> nn.Module:
     return vlm.eval()
 
 
+def _never_read(name: str, config: Any) -> bool:
+    """Vision parameters no forward here reads: SigLIP's attention-pooling head, and the final
+    norm when the model (Llava) takes a hidden state from before it. They are frozen (never
+    trained, never shipped), so every trainable parameter gets a gradient (DDP needs that)."""
+    if "vision_tower." not in name:
+        return False
+    return ".head." in name or (hasattr(config, "vision_feature_layer") and ".post_layernorm." in name)
+
+
 def apply_lora(module: nn.Module, lora: Mapping[str, Any], where: str,
                default_targets: Sequence[str] = LORA_TARGETS) -> None:
     """Inject LoRA adapters into ``module`` in place: ``lora`` keys ``r`` (default 8),
@@ -179,6 +189,9 @@ class HFBackbone(nn.Module):
                              f"{rows}; tokenise the instruction with the checkpoint's tokenizer")
         self.width = int(self.vlm.config.get_text_config().hidden_size)
         self._prefix_lm = "token_type_ids" in inspect.signature(self.vlm.model.forward).parameters
+        for name, p in self.vlm.named_parameters():
+            if _never_read(name, self.vlm.config):
+                p.requires_grad_(False)
 
     @staticmethod
     def _image_stats(info: CheckpointInfo) -> tuple[list[float], list[float]]:
