@@ -388,7 +388,7 @@ class SimulateConfig:
     #: env steps per second one learner rank consumes, communication excluded (this machine,
     #: the default MLP: ~2,900)
     learner_steps_per_s: float = 2900.0
-    #: memory per node, GiB (None: not checked); a rollout holds two copies of the trained weights
+    #: memory per node, GiB (None: not checked); a rollout holds the policy once plus a second copy of what replicates
     node_memory_gib: float | None = None
     #: one-way latency of one link, seconds
     hop_latency_s: float = 50e-6

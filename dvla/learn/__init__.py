@@ -1,23 +1,25 @@
 """Learning: task environments (``envs``), policies (``policies``) and the PPO/GRPO learner (``ppo``).
 
-The simulator is imported lazily, so importing this package is cheap.
+Names are imported on first use (PEP 562), so importing a light submodule (``spec``,
+``vla.checkpoint``, ``vla.tokenizer``) does not import torch or the simulator: the CLI checks
+topologies and checkpoints without either.
 """
 
-from dvla.learn.envs import EnvGroup, StepResult, make_env, run_eval_episodes
-from dvla.learn.policies import MLPPolicy, Policy, make_policy, register_policy
-from dvla.learn.ppo import PPOLearner, Trajectories, compute_gae, gae_batch
+from __future__ import annotations
 
-__all__ = [
-    "EnvGroup",
-    "StepResult",
-    "make_env",
-    "run_eval_episodes",
-    "MLPPolicy",
-    "Policy",
-    "make_policy",
-    "register_policy",
-    "PPOLearner",
-    "Trajectories",
-    "compute_gae",
-    "gae_batch",
-]
+import importlib
+from typing import Any
+
+_HOME = {
+    "EnvGroup": "envs", "StepResult": "envs", "make_env": "envs", "run_eval_episodes": "envs",
+    "MLPPolicy": "policies", "Policy": "policies", "make_policy": "policies", "register_policy": "policies",
+    "PPOLearner": "ppo", "Trajectories": "ppo", "compute_gae": "ppo", "gae_batch": "ppo",
+}
+
+__all__ = list(_HOME)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _HOME:
+        raise AttributeError(f"module 'dvla.learn' has no attribute {name!r}")
+    return getattr(importlib.import_module(f"dvla.learn.{_HOME[name]}"), name)

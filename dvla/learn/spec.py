@@ -7,12 +7,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["ArraySpec", "ObsSpec", "EnvSetupError"]
+__all__ = ["ArraySpec", "ObsSpec", "EnvSetupError", "PolicySetupError"]
 
 
 class EnvSetupError(RuntimeError):
     """An env cannot be made as configured (e.g. LIBERO's assets or renderer): the message is one
     line naming the setting and its fix, and a role reports it as such, without a traceback."""
+
+
+class PolicySetupError(ValueError):
+    """A policy cannot be built as configured (e.g. its checkpoint directory is missing, incomplete
+    or of another family): one line naming the path and what is wrong; a role reports it as
+    such, without a traceback, and ``dvla plan``/``dvla up`` report it before starting anything."""
 
 
 @dataclass(frozen=True)

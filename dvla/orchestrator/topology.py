@@ -761,6 +761,33 @@ def _check_eval_shards(p: _Partial, ctx: _Context) -> None:
                                      "(each evaluator plays a block of every evaluation's episodes: place at most that many)")
 
 
+def _check_policy_checkpoint(p: _Partial, ctx: _Context) -> None:
+    """A Hugging Face policy's checkpoint directory is checked here (files, dvla_policy.json,
+    family; nothing is loaded), so a bad one is one line before anything starts. A path missing
+    on this machine is left to the roles when some node is remote (it may exist only there)."""
+    task = p.get("task")
+    if not isinstance(task, _Partial):
+        return
+    policy, kwargs = task.get("policy"), task.get("policy_kwargs")
+    family = _CHECKPOINT_FAMILY.get(policy) if isinstance(policy, str) else None
+    if family is None:
+        return
+    where = task.where("policy_kwargs")
+    path = kwargs.get("checkpoint") if isinstance(kwargs, (dict, _Partial)) else None
+    if not isinstance(path, str) or not path:
+        ctx.report(where, f"policy {policy!r} needs policy_kwargs.checkpoint: a local checkpoint directory (docs/policies.md)")
+        return
+    from dvla.learn.vla.checkpoint import CheckpointError, check_checkpoint  # no torch: file checks only
+
+    remote = any(isinstance(n.get("host"), str) and n.get("host") not in LOCAL_HOSTS for n in _placed_nodes(p)[0])
+    if remote and not os.path.exists(path):
+        return
+    try:
+        check_checkpoint(path, family)
+    except CheckpointError as err:
+        ctx.report(f"{where}.checkpoint", str(err))
+
+
 def _check_netns_hosts(p: _Partial, ctx: _Context) -> None:
     if p.get("emulate") != "netns":
         return
@@ -777,7 +804,9 @@ def _check_netns_hosts(p: _Partial, ctx: _Context) -> None:
 # --- vision-language observations and GRPO ---------------------------------------------------
 
 #: registered policies and the observations they read (user "module:Class" policies: any)
-_POLICY_OBS = {"mlp": "state", "tiny-vla": "rgb"}
+_POLICY_OBS = {"mlp": "state", "tiny-vla": "rgb", "vla-tokens": "rgb", "vla-flow": "rgb"}
+#: policies loaded from a Hugging Face checkpoint directory -> the family dvla_policy.json names
+_CHECKPOINT_FAMILY = {"vla-tokens": "tokens", "vla-flow": "flow"}
 
 
 def _check_obs_and_policy(p: _Partial, ctx: _Context) -> None:
@@ -1095,7 +1124,7 @@ def _check_learners(p: _Partial, ctx: _Context) -> None:
 _CHECKS: dict[type, list[Callable[[_Partial, _Context], None]]] = {
     Topology: [
         _check_run_id, _check_has_racks, _check_names, _check_required_roles, _check_netns_hosts, _check_remote_addresses,
-        _check_learners, _check_eval_shards,
+        _check_learners, _check_eval_shards, _check_policy_checkpoint,
     ],
     SshConfig: [_check_ssh],
     TlsConfig: [_check_tls],

@@ -3,7 +3,8 @@
 This module owns the replication wire format of policy weights (see docs/replication.md):
 
 * :class:`WeightEncoder` (actor side) turns successive flat parameter vectors into versions
-  encoded as ``full``, ``delta-bf16`` or ``delta-topk``. It keeps ``published``, the exact
+  encoded as ``full``, ``delta-bf16`` or ``delta-topk`` (a full version of a bfloat16 model
+  goes as ``full-bf16``: its values are exact in two bytes). It keeps ``published``, the exact
   float32 vector every replica holds after applying the versions so far; each delta is measured
   against ``published`` (error feedback), so quantisation and sparsification errors never
   accumulate.
@@ -155,6 +156,15 @@ def split_chunks(payload: BytesLike, chunk_bytes: int) -> list[memoryview]:
     view = memoryview(payload).cast("B")
     n = chunk_count(view.nbytes, chunk_bytes)
     return [view[slice(*chunk_span(i, n, view.nbytes))] for i in range(n)]
+
+
+#: wire encodings of a full version: float32 values, or their upper halves when every value is
+#: exactly a bfloat16 (what a bf16 model's weights are); chosen by the encoder, not configured
+FULL_ENCODINGS = ("full", "full-bf16")
+
+
+def _is_full(encoding: str) -> bool:
+    return encoding in FULL_ENCODINGS
 
 
 # --------------------------------------------------------------------------------------------
@@ -427,6 +437,10 @@ class WeightEncoder:
         self._bf16 = np.zeros(n if encoding == "delta-bf16" else 0, dtype=_U16)
         self._k = topk_count(n, topk_fraction)
         self._topk = np.zeros(2 * self._k if encoding == "delta-topk" else 0, dtype=_U32)
+        # A bf16 model's full versions travel as bf16 (half the bytes, exact): its weights are
+        # bf16 values, checked at each full version (one pass) before relying on it.
+        self._bf16_model = bool(layout.dtypes) and all(d == "bfloat16" for d in layout.dtypes)
+        self._full16 = np.zeros(n if self._bf16_model else 0, dtype=_U16)
 
     @classmethod
     def from_config(cls, layout: ParamLayout, cfg: ReplicationConfig, *, start_version: int = 0) -> "WeightEncoder":
@@ -481,8 +495,13 @@ class WeightEncoder:
             encoding = "full"
             np.copyto(self._pub, true_flat)
             payload = memoryview(self._pub).cast("B")
-        base = -1 if encoding == "full" else version - 1
-        if encoding != "full" and self.compression == ZSTD:
+            if self._bf16_model:
+                bits = self._pub.view(_U32)
+                if not np.any(bits & 0xFFFF):
+                    np.right_shift(bits, 16, out=self._full16, casting="unsafe")
+                    encoding, payload = "full-bf16", memoryview(self._full16).cast("B")
+        base = -1 if _is_full(encoding) else version - 1
+        if not _is_full(encoding) and self.compression == ZSTD:
             z = deflate_delta(encoding, payload)
             if len(z) < payload.nbytes:
                 self._z, payload, encoding = z, memoryview(z), f"{encoding}+{ZSTD}"
@@ -621,7 +640,7 @@ class WeightDecoder:
         self.swap()  # promote a pending result: it is the base of this version
         if m.version <= self.version:
             raise StaleVersion(f"version {m.version} is not newer than held version {self.version}")
-        if m.encoding != "full" and (not self.ready or m.base_version != self.version):
+        if not _is_full(m.encoding) and (not self.ready or m.base_version != self.version):
             raise NeedSnapshot(have=self.version, base=m.base_version, version=m.version)
         staging = self.staging
         self._decode_into(m, view, staging)
@@ -649,11 +668,11 @@ class WeightDecoder:
         if m.layout_hash != self.layout.hash:
             raise LayoutMismatch(f"sender layout {m.layout_hash} != local layout {self.layout.hash}")
         base, comp = split_encoding(m.encoding)
-        if base not in ENCODINGS or comp not in ("", ZSTD) or (comp and base == "full"):
+        if (base not in ENCODINGS and base not in FULL_ENCODINGS) or comp not in ("", ZSTD) or (comp and _is_full(base)):
             raise CorruptPayload(f"unknown encoding {m.encoding!r}")
         if m.version < 1:
             raise CorruptPayload(f"version must be >= 1, got {m.version}")
-        want_base = -1 if base == "full" else m.version - 1
+        want_base = -1 if _is_full(base) else m.version - 1
         if m.base_version != want_base:
             raise CorruptPayload(f"{m.encoding} version {m.version} must have base {want_base}, got {m.base_version}")
         if nbytes != m.total_bytes or not _spans_valid(m.n_chunks, m.total_bytes):
@@ -666,7 +685,7 @@ class WeightDecoder:
 
     def _check_size(self, m: Manifest, nbytes: int) -> None:
         n = self.layout.numel
-        want = {"full": 4 * n, "delta-bf16": 2 * n}.get(m.encoding, nbytes)
+        want = {"full": 4 * n, "full-bf16": 2 * n, "delta-bf16": 2 * n}.get(m.encoding, nbytes)
         if nbytes != want:
             raise CorruptPayload(f"{m.encoding} payload must be {want} bytes, got {nbytes}")
         if m.encoding == "delta-topk" and (nbytes % 8 or nbytes > 4 * n):
@@ -677,6 +696,8 @@ class WeightDecoder:
         n = self.layout.numel
         if m.encoding == "full":
             np.copyto(staging, np.frombuffer(view, dtype=_F32, count=n))
+        elif m.encoding == "full-bf16":
+            bf16_to_float32(np.frombuffer(view, dtype=_U16, count=n), out=staging)
         elif m.encoding == "delta-bf16":
             _apply_bf16(self.active, np.frombuffer(view, dtype=_U16, count=n), out=staging)
         else:

@@ -304,7 +304,7 @@ class Actor:
             raise RuntimeError(f"publisher numbered v{enc.version} for learned v{item.version}")
         sent = self.publisher.send(enc)
         self.bytes_published += sent
-        kind = "full" if enc.encoding == "full" else "delta"
+        kind = "full" if enc.base_version < 0 else "delta"
         self.publish_bytes[f"{kind}_versions"] += 1
         self.publish_bytes[f"{kind}_bytes"] += sent
         self._ledger.write(f"{enc.version},{enc.checksum},{enc.encoding},{item.env_steps},{time.time():.3f},{os.getpid()}\n")

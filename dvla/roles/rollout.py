@@ -82,8 +82,9 @@ class _Group:
 
 
 class PolicyPool:
-    """Dual-pool weights: `active` (the policy module) serves inference, `staging` (a flat float32
-    tensor of the *replicated* tensors only, on the policy's device) receives the next version.
+    """Dual-pool weights: `active` (the policy module) serves inference, `staging` (a flat tensor of
+    the *replicated* tensors only, on the policy's device, in its dtype: bf16 for a bf16 model)
+    receives the next version.
 
     The sync lane writes `staging` under a lock; the infer lane installs it into `active` between
     batches (one copy of the replicated tensors: a single flat copy where they are views of one
@@ -99,7 +100,8 @@ class PolicyPool:
         device = next((t.device for t in policy.state_dict().values()), torch.device("cpu"))
         #: the replicated tensors of `active` as views of one flat tensor (None: per-tensor copies)
         self._bound = bind_flat(policy, self.layout)
-        self.staging = torch.zeros(self.layout.numel, dtype=torch.float32, device=device)
+        dtype = self._bound.dtype if self._bound is not None else torch.float32
+        self.staging = torch.zeros(self.layout.numel, dtype=dtype, device=device)
         self._pending: int | None = None
         self._lock = threading.Lock()
         self.swaps = 0
@@ -127,7 +129,7 @@ class PolicyPool:
     @torch.no_grad()
     def _install(self) -> None:
         if self._bound is not None:
-            self._bound.copy_(self.staging)  # converts to the policy's dtype (bf16) on the way
+            self._bound.copy_(self.staging)
             return
         tensors = replicated_tensors(self.active)
         for i, name in enumerate(self.layout.names):

@@ -25,7 +25,7 @@ from ..fabric import Fabric, load_secret, plane_config
 from ..fabric.zconfig import plane_max_message_size, traj_chunk_bytes
 from ..fabric.identity import IDENTITY_ENV, Identity, IdentityError
 from ..fabric.messages import Command, RoleStatus
-from ..learn.spec import EnvSetupError
+from ..learn.spec import EnvSetupError, PolicySetupError
 from .swimlane import Swimlane, pin_cpus, set_torch_threads
 
 log = logging.getLogger("dvla.role")
@@ -239,7 +239,7 @@ def main(role_factory: Any, argv: list[str] | None = None) -> int:
         code = host.run()
         role.failed = code != ExitStatus.OK  # what its close() may record (e.g. counter files)
         return int(code)
-    except EnvSetupError as err:  # a setting to fix, not a bug: its one line, no traceback
+    except (EnvSetupError, PolicySetupError) as err:  # a setting to fix, not a bug: its one line, no traceback
         log.error("%s cannot start: %s", cfg.name, err)
         return ExitStatus.CONFIG
     except Exception:

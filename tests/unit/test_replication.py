@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -546,3 +547,32 @@ def test_zstd_frame_declaring_a_huge_size_is_refused_without_allocating(encoding
             inflate_delta(encoding, memoryview(data), numel)
     good = zstandard.ZstdCompressor().compress(bytes(2 * numel))
     assert inflate_delta(encoding, memoryview(good), numel).nbytes == 2 * numel
+
+
+def test_a_bf16_models_full_versions_travel_as_bf16_exactly() -> None:
+    """A model whose tensors are all bfloat16 sends its full versions as `full-bf16`: half the
+    bytes, decoded bit for bit; a vector that is not bf16-exact (never from such a model) falls
+    back to float32 `full`, and a float32 model never uses it."""
+    model = torch.nn.Sequential(torch.nn.Linear(8, 8), torch.nn.Linear(8, 3)).to(torch.bfloat16)
+    layout = ParamLayout.from_state_dict(model)
+    flat = flatten(model, layout)
+    enc, dec = WeightEncoder(layout, "delta-bf16", snapshot_every=2), WeightDecoder(layout)
+    v1 = enc.encode(flat)
+    assert v1.encoding == "full-bf16" and v1.total_bytes == 2 * layout.numel and v1.base_version == -1
+    np.testing.assert_array_equal(dec.apply(v1, v1.payload, swap=True), flat)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.01)
+    v2 = enc.encode(flatten(model, layout))
+    assert v2.encoding == "delta-bf16"
+    dec.apply(v2, v2.payload, swap=True)
+    np.testing.assert_array_equal(dec.active, enc.published)
+    # not bf16-exact: float32 full version
+    v3 = WeightEncoder(layout).encode(flat + np.float32(1e-4))
+    assert v3.encoding == "full" and v3.total_bytes == 4 * layout.numel
+    f32 = ParamLayout.from_state_dict(torch.nn.Linear(8, 3))
+    assert WeightEncoder(f32).encode(np.zeros(f32.numel, np.float32)).encoding == "full"
+    # a full-bf16 payload of the wrong size is refused
+    bad = dataclasses.replace(v1.manifest(), total_bytes=4 * layout.numel)
+    with pytest.raises(CorruptPayload):
+        WeightDecoder(layout).apply(bad, bytes(4 * layout.numel))

@@ -27,12 +27,15 @@ sigma_k = sigma_min + (sigma_max - sigma_min) * sigmoid(.) per action element.
 **Per step shipped.** ``extras["chain"]``: x_0 .. x_K, float32 ``[K + 1, act_dim]``
 (4 (K + 1) act_dim bytes per env step), plus for ``sde`` ``extras["denoise_index"]`` int32 [1].
 ``evaluate`` recomputes every step's (mu, sigma) from the chain in one batched expert pass
-(B * K rows; ``sde``: B rows), so it needs the chain; its ``action`` argument is x_K mapped.
+(B * K rows; ``sde``: B rows), so it needs the chain; its ``action`` argument (x_K mapped) is
+not read.
 
 **Value and training.** Value: small float32 MLP on the mean prefix hidden state.
 ``lora=None`` trains everything; ``lora={...}`` puts peft LoRA on the LM and on the expert's
 attention (both name their projections q/k/v/o_proj), freezes both; the noise head, the
-proprio projection and the value head train.
+proprio projection and the value head train. As in ``vla-tokens``, new tensors are seeded and
+float32; ``dtype="bfloat16"`` holds the VLM and the expert in bf16 and runs them under autocast,
+while the chain, the means, the sigmas and every log-prob are float32.
 """
 
 from __future__ import annotations
@@ -151,11 +154,11 @@ class FlowVLA(nn.Module):
         self.expert = self._load_expert(info)
         self.register_buffer("low", torch.tensor(info.action_low).repeat(self.chunk), persistent=False)
         self.register_buffer("high", torch.tensor(info.action_high).repeat(self.chunk), persistent=False)
-        ew, model_dtype = self.expert.width, self.backbone.dtype
+        ew = self.expert.width
         self.n_proprio = int(obs["proprio"].shape[0]) if "proprio" in obs else 0
-        with seeded():
+        with seeded():  # new tensors: float32 (trained), the same on every host
             if self.n_proprio:
-                self.proprio_in = nn.Linear(self.n_proprio, ew, dtype=model_dtype)
+                self.proprio_in = nn.Linear(self.n_proprio, ew)
             self.noise_head = nn.Linear(ew, self.action_dim)
             nn.init.normal_(self.noise_head.weight, std=0.01)
             nn.init.zeros_(self.noise_head.bias)
@@ -163,12 +166,13 @@ class FlowVLA(nn.Module):
                                             nn.Linear(value_hidden, 1))
         if lora is not None:
             apply_lora(self.backbone.language_model, lora, str(info.path))
-            apply_lora(self.expert, lora, str(info.path / EXPERT_FILE))
+            # the expert is adapted where the targets name its layers too (the default q/k/v/o_proj)
+            apply_lora(self.expert, lora, str(info.path / EXPERT_FILE), required=False)
             freeze_all_but_lora(self.backbone, self.expert)
         self.base_hash = content_hash(info.path) if any(not p.requires_grad for p in self.parameters()) else ""
         self.extras_spec = {"chain": ArraySpec((self.steps + 1, self.act_dim), "float32")}
         if method == "sde":
-            self.extras_spec["denoise_index"] = ArraySpec((1,), "int32")
+            self.extras_spec["denoise_index"] = ArraySpec((1,), "int32", vocab=self.steps)
         self.checkpoint = str(info.path)
         if device is not None:
             self.to(device)
@@ -179,10 +183,11 @@ class FlowVLA(nn.Module):
         sizes = info.settings["expert"]
         file = info.path / EXPERT_FILE
         try:
-            expert = ActionExpert(self.backbone.width, info.action_dim, info.max_chunk,
-                                  **{k: int(sizes[k]) for k in ("width", "layers", "heads", "mlp")})
-            expert.load_state_dict(load_file(file))
-        except (KeyError, TypeError, ValueError, RuntimeError, OSError) as err:
+            with torch.device("meta"):  # no random init to overwrite (nor draws from the caller's RNG)
+                expert = ActionExpert(self.backbone.width, info.action_dim, info.max_chunk,
+                                      **{k: int(sizes[k]) for k in ("width", "layers", "heads", "mlp")})
+            expert.load_state_dict(load_file(file), assign=True)
+        except Exception as err:  # missing / extra / misshapen tensors, unreadable file: one line
             text = " ".join(str(err).split())[:300]
             raise CheckpointError(f"{file}: does not match dvla_policy.json's expert {sizes}: "
                                   f"{type(err).__name__}: {text}") from None
@@ -198,7 +203,7 @@ class FlowVLA(nn.Module):
             x, mask = bb.prefix(obs)
             hidden = bb.run(x, mask)
             context = self.expert.context(hidden.to(bb.dtype))
-            extra = self.proprio_in(obs["proprio"].to(bb.dtype)).unsqueeze(1) if self.n_proprio else None
+            extra = self.proprio_in(obs["proprio"].float()).to(bb.dtype).unsqueeze(1) if self.n_proprio else None
         with float32_head(device):
             value = self.value_head(pooled(hidden, mask)).squeeze(-1)
         return context, mask, extra, value

@@ -17,14 +17,15 @@ its language model on embeddings:
   model (PaliGemma, whose ``forward`` takes ``token_type_ids``) attends bidirectionally over the
   whole sequence, as pi0's prefix does.
 
-Vision parameters that no forward reads are frozen (:func:`_never_read`). Dropout is zeroed in
-the config before loading (``evaluate`` must be a pure function). ``dtype``
-is the parameters' dtype; with ``"bfloat16"`` forwards run under ``torch.autocast(bfloat16)`` and
-callers cast every output to float32 before a log-prob or value. The image statistics are
-non-persistent buffers: they follow ``.to(device)`` but never enter the state dict.
+Dropout is zeroed in the config before loading (``evaluate`` must be a pure function); vision
+parameters no forward reads are frozen (:func:`_never_read`). ``dtype`` is the parameters' dtype;
+with ``"bfloat16"`` forwards run under ``torch.autocast(bfloat16)`` and callers cast every output
+to float32 before a log-prob or value. The image statistics are non-persistent buffers: they
+follow ``.to(device)`` but never enter the state dict.
 
-:func:`apply_lora` injects peft LoRA adapters (``lora_dropout=0``) into a module in place, with a
-fixed seed so every host builds the same initial adapters.
+:func:`apply_lora` injects peft LoRA adapters (``lora_dropout=0``) into a module in place, from a
+fixed seed so every host builds the same initial adapters, and keeps them float32 whatever the
+base's dtype (so do the policies' own heads): only the frozen base is held in bf16.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from __future__ import annotations
 import contextlib
 import inspect
 import json
+import re
 from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
@@ -129,9 +131,11 @@ def _never_read(name: str, config: Any) -> bool:
 
 
 def apply_lora(module: nn.Module, lora: Mapping[str, Any], where: str,
-               default_targets: Sequence[str] = LORA_TARGETS) -> None:
+               default_targets: Sequence[str] = LORA_TARGETS, required: bool = True) -> bool:
     """Inject LoRA adapters into ``module`` in place: ``lora`` keys ``r`` (default 8),
-    ``lora_alpha`` (default 2 r), ``target_modules`` (default :data:`LORA_TARGETS`)."""
+    ``lora_alpha`` (default 2 r), ``target_modules`` (module name suffixes, or one regex string
+    matched against whole names, as peft reads it; default :data:`LORA_TARGETS`).
+    ``required=False``: a module none of whose names match is left alone (returns False)."""
     from peft import LoraConfig, inject_adapter_in_model
 
     unknown = sorted(set(lora) - {"r", "lora_alpha", "target_modules"})
@@ -139,13 +143,26 @@ def apply_lora(module: nn.Module, lora: Mapping[str, Any], where: str,
         raise ValueError(f"policy_kwargs.lora: unknown key {', '.join(unknown)} (expected r, lora_alpha, "
                          "target_modules)")
     r = int(lora.get("r", 8))
+    targets = lora.get("target_modules", default_targets)
+    targets = targets if isinstance(targets, str) else list(targets)  # a string is peft's regex
+    names = [name for name, _ in module.named_modules()]
+    hit = (any(re.fullmatch(targets, n) for n in names) if isinstance(targets, str)
+           else any(n.rsplit(".", 1)[-1] in targets for n in names))
+    if not required and not hit:
+        return False
     config = LoraConfig(r=r, lora_alpha=float(lora.get("lora_alpha", 2 * r)), lora_dropout=0.0, bias="none",
-                        target_modules=list(lora.get("target_modules", default_targets)))
+                        target_modules=targets)
     try:
         with seeded():
             inject_adapter_in_model(config, module)
     except ValueError as err:  # e.g. no module matches the targets
         raise ValueError(f"policy_kwargs.lora on {where}: {_one_line(err)}") from None
+    for name, p in module.named_parameters():
+        if "lora_" in name and p.is_floating_point():
+            # float32 adapters on a bf16 base: an Adam step of 1e-5 is below bf16's resolution
+            # for most weights (autocast still runs their matmuls in bf16)
+            p.data = p.data.float()
+    return True
 
 
 def freeze_all_but_lora(*modules: nn.Module) -> None:
@@ -169,13 +186,12 @@ class HFBackbone(nn.Module):
         super().__init__()
         self.dtype = torch_dtype(dtype, info.path)
         self.vlm = _load_vlm(info, self.dtype)
-        h, w, c = (int(x) for x in obs["rgb"].shape)
+        c = int(obs["rgb"].shape[-1])
         if c % 3:
             raise ValueError(f"{info.path}: the rgb observation has {c} channels, not 3 per camera")
         self.cams = c // 3
         vision = self.vlm.config.vision_config
         self.image_size = int(vision.image_size)
-        self.patches = (self.image_size // int(vision.patch_size)) ** 2
         mean, std = self._image_stats(info)
         self.register_buffer("pixel_mean", torch.tensor(mean).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("pixel_std", torch.tensor(std).view(1, 3, 1, 1), persistent=False)

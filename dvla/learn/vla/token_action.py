@@ -28,7 +28,9 @@ words, proprio: never the ``[ACT]`` positions, so the value depends on the obser
 
 **Training.** ``lora=None``: everything trains, ``base_hash == ""``. ``lora={...}``: peft LoRA on
 the LM (:func:`~.hf_backbone.apply_lora`), the VLM frozen; the ``[ACT]`` embedding, the proprio
-projection and the value head train. New tensors start from a fixed seed on every host.
+projection and the value head train. New tensors start from a fixed seed on every host and are
+float32 whatever ``dtype`` (which sets the checkpoint's weights: ``"bfloat16"`` runs the forward
+under autocast; log-probs, entropies and values are float32 either way).
 """
 
 from __future__ import annotations
@@ -56,7 +58,8 @@ class TokenActionVLA(nn.Module):
                  value_hidden: int = 16) -> None:
         super().__init__()
         if not isinstance(obs, Mapping) or "rgb" not in obs:
-            raise TypeError(f"vla-tokens needs structured observations with an 'rgb' image (obs_mode: rgb), got {obs!r}")
+            raise TypeError(f"vla-tokens needs structured observations with an 'rgb' image (obs_mode: rgb), "
+                            f"got {obs!r}")
         info = check_checkpoint(checkpoint, "tokens")
         self.chunk = executed_chunk(info, act_dim)
         self.act_dim = int(act_dim)
@@ -71,24 +74,26 @@ class TokenActionVLA(nn.Module):
         order = info.settings.get("bin_order", "ascending")
         if order not in ("ascending", "descending"):
             raise ValueError(f"{info.path}: bin_order {order!r} is not 'ascending' or 'descending'")
-        ids = torch.arange(vocab - self.n_bins, vocab) if order == "ascending" else torch.arange(vocab - 1, vocab - 1 - self.n_bins, -1)
+        ids = torch.arange(vocab - self.n_bins, vocab)
+        if order == "descending":
+            ids = ids.flip(0)
         self.register_buffer("bin_ids", ids, persistent=False)
         self.register_buffer("centres", -1.0 + (2 * torch.arange(self.n_bins) + 1.0) / self.n_bins, persistent=False)
         self.register_buffer("low", torch.tensor(info.action_low).repeat(self.chunk), persistent=False)
         self.register_buffer("high", torch.tensor(info.action_high).repeat(self.chunk), persistent=False)
-        width, model_dtype = self.backbone.width, self.backbone.dtype
+        width = self.backbone.width
         self.n_proprio = int(obs["proprio"].shape[0]) if "proprio" in obs else 0
-        with seeded():
-            self.action_query = nn.Parameter((torch.randn(width) * 0.02).to(model_dtype))
+        with seeded():  # new tensors: float32 (trained), the same on every host
+            self.action_query = nn.Parameter(torch.randn(width) * 0.02)
             if self.n_proprio:
-                self.proprio_in = nn.Linear(self.n_proprio, width, dtype=model_dtype)
+                self.proprio_in = nn.Linear(self.n_proprio, width)
             self.value_head = nn.Sequential(nn.Linear(width, value_hidden), nn.Tanh(), nn.Linear(value_hidden, 1))
         if lora is not None:
             apply_lora(self.backbone.language_model, lora, str(info.path))
             freeze_all_but_lora(self.backbone)
         frozen = any(not p.requires_grad for p in self.parameters())
         self.base_hash = content_hash(info.path) if frozen else ""
-        self.extras_spec = {"action_tokens": ArraySpec((self.act_dim,), "int32")}
+        self.extras_spec = {"action_tokens": ArraySpec((self.act_dim,), "int32", vocab=self.n_bins)}
         self.checkpoint = str(info.path)
         if device is not None:
             self.to(device)
@@ -104,7 +109,7 @@ class TokenActionVLA(nn.Module):
             b = x.shape[0]
             parts = [x]
             if self.n_proprio:
-                parts.append(self.proprio_in(obs["proprio"].to(bb.dtype)).to(x.dtype).unsqueeze(1))
+                parts.append(self.proprio_in(obs["proprio"].float()).to(x.dtype).unsqueeze(1))
             n_obs = sum(p.shape[1] for p in parts)
             parts.append(self.action_query.to(x.dtype).expand(b, self.act_dim, -1))
             full = torch.cat([mask, mask.new_ones(b, n_obs - mask.shape[1] + self.act_dim)], 1)
