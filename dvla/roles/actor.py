@@ -67,6 +67,7 @@ class Actor:
         self.extras_spec = extras_spec(self.policy)
         self.learner = PPOLearner(self.policy, task.ppo, self.device, seed=cfg.seed, group=self.group)
         self.layout = ParamLayout.from_state_dict(self.policy)
+        self._n_parameters = sum(p.numel() for p in self.policy.parameters())
         self.ckpt_dir = Path(cfg.run_dir) / "checkpoints"
         # Rank 0 resumes from the last checkpoint and numbers versions above every one that may
         # have been published before (the persisted high-water mark); the others get its state.
@@ -347,6 +348,10 @@ class Actor:
             "resumed_from": None if self.resumed is None else {"version": self.resumed.version, "checksum": self.resumed.checksum},
             "publish_bytes": dict(self.publish_bytes),
             "published_checksum": published[1],
+            # what a version carries: all parameters vs the replicated ones (LoRA: adapters, heads)
+            "parameters": self._n_parameters,
+            "replicated_values": self.layout.numel,
+            "base_hash": policy_base_hash(self.policy),
             "learn": self.learn_stats,
         }
 

@@ -53,7 +53,7 @@ def test_killed_roles_restart_and_versions_stay_monotonic(tmp_path: Path) -> Non
     run_dir = runs / "tiny"
     up = subprocess.Popen(
         [sys.executable, "-m", "dvla", "up", "topologies/tiny.yaml", "--runs", str(runs),
-         "--base-port", str(free_port_block()), "--max-env-steps", "14000", "--quiet"],
+         "--base-port", str(free_port_block()), "--max-env-steps", "30000", "--quiet"],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )
     try:

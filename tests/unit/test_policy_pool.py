@@ -118,7 +118,6 @@ def test_frozen_parameters_are_neither_staged_nor_replicated():
 
 
 def test_a_bf16_policy_installs_through_one_flat_bf16_tensor():
-
     pool = PolicyPool(torch.nn.Linear(4, 3).to(torch.bfloat16))
     assert pool._bound is not None and pool._bound.dtype == torch.bfloat16
     flat = (np.arange(pool.layout.numel, dtype=np.float32) / 4).astype(np.float32)  # exact in bf16
