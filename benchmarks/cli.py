@@ -192,17 +192,43 @@ def scale(
 def vla(
     json_path: Annotated[Path, typer.Option("--json", help="write the results (JSON) here")],
     quick: Annotated[bool, typer.Option("--quick", help="tiny counts: checks the machinery, not the speed")] = False,
+    family: Annotated[Optional[list[str]], typer.Option(help="Hugging Face family (repeatable): tokens, flow (default: both)")] = None,
+    size: Annotated[str, typer.Option(help="families' checkpoint size: test (CPU) or 0.5b (a GPU)")] = "test",
+    device: Annotated[str, typer.Option(help="families' policy and learner device: cpu or cuda")] = "cpu",
+    dtype: Annotated[str, typer.Option(help="families' weights: float32 or bfloat16")] = "float32",
+    lora_r: Annotated[int, typer.Option("--lora-r", help="LoRA rank of the families (0: full fine-tuning)")] = 4,
+    families_only: Annotated[bool, typer.Option("--families-only", help="skip tiny-vla and the data-plane rounds")] = False,
 ) -> None:
-    """The rgb + language path: rollout env steps/s and inference p50/p99 of tiny-vla at three sizes
-    on rendered ManiSkill3 envs, and image-trajectory bytes/s on the data plane with Zenoh shared
-    memory on and off."""
-    from benchmarks.vla import format_table, run_bench
+    """The rgb + language path. The Hugging Face families (vla-tokens, vla-flow) on a random
+    checkpoint of real transformers classes: act latency p50/p99, env steps/s, wire bytes per env
+    step, what a LoRA version carries, learner update time and peak memory with and without
+    micro-batching. Then tiny-vla at three sizes on rendered ManiSkill3 envs, and image-trajectory
+    bytes/s on the data plane with Zenoh shared memory on and off."""
+    import dataclasses
 
+    from benchmarks.vla import format_table, run_bench
+    from benchmarks.vla_families import FAMILIES, FamilyBenchConfig
+
+    fams = tuple(family or FAMILIES)
+    if any(f not in FAMILIES for f in fams) or size not in ("test", "0.5b") or device not in ("cpu", "cuda") \
+            or dtype not in ("float32", "bfloat16") or lora_r < 0:
+        raise fail(f"--family must be among {', '.join(FAMILIES)}, --size test|0.5b, --device cpu|cuda, "
+                   f"--dtype float32|bfloat16, --lora-r >= 0 (got {list(fams)}, {size!r}, {device!r}, {dtype!r}, {lora_r})")
+    if device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise fail("bench vla: --device cuda but torch sees no CUDA device here")
+    base = FamilyBenchConfig.quick() if quick else FamilyBenchConfig()
+    families = dataclasses.replace(base, families=fams, size=size, device=device, dtype=dtype, lora_r=lora_r)
+    t0 = time.monotonic()
     try:
-        doc = run_bench(quick=quick, progress=lambda m: typer.echo(f"[bench] {m}", err=True))
-    except (RuntimeError, TimeoutError, OSError) as err:
+        doc = run_bench(quick=quick, progress=lambda m: typer.echo(f"[bench] {m}", err=True), families=families,
+                        tiny=not families_only)
+    except (RuntimeError, TimeoutError, OSError, ValueError) as err:
         raise fail(f"bench vla: {err}", code=1)
-    doc["command"] = "dvla bench vla --json " + str(json_path) + (" --quick" if quick else "")
+    doc["command"] = "dvla " + " ".join(sys.argv[1:])
+    doc["elapsed_s"] = time.monotonic() - t0
     _save(doc, json_path, format_table)
 
 

@@ -1,6 +1,7 @@
 """`dvla bench vla`: what the rgb + language path costs on this machine.
 
-Two measurements, both on real parts:
+The Hugging Face families (``vla-tokens``, ``vla-flow``: :mod:`benchmarks.vla_families`), and two
+measurements of the built-in ``tiny-vla`` path, all on real parts:
 
 * **rollout**: one process, one :class:`~dvla.learn.envs.EnvGroup` of rendered ManiSkill3 envs
   (``obs_mode="rgb"``), acting with ``tiny-vla`` at three sizes in turn, exactly as a rollout's
@@ -231,13 +232,23 @@ def measure_data_plane(cfg: VLABenchConfig, chunk_obs: dict[str, np.ndarray], pr
 
 
 def run_bench(cfg: VLABenchConfig | None = None, *, quick: bool = False,
-              progress: Callable[[str], None] = lambda m: None) -> dict[str, Any]:
+              progress: Callable[[str], None] = lambda m: None, families: Any = None,
+              tiny: bool = True) -> dict[str, Any]:
+    """``families``: a :class:`~benchmarks.vla_families.FamilyBenchConfig` (None: the default, or
+    its quick form); ``tiny``: also measure tiny-vla and the data plane."""
+    from .vla_families import FamilyBenchConfig, measure_families
+
     cfg = cfg or (VLABenchConfig.quick() if quick else VLABenchConfig())
+    families = families or (FamilyBenchConfig.quick() if quick else FamilyBenchConfig())
     started = time.monotonic()
-    rollout, chunk_obs = measure_rollout(cfg, progress)
-    data = measure_data_plane(cfg, chunk_obs, progress)
+    fam = measure_families(families, progress) if families.families else None
+    rollout, data = None, None
+    if tiny:
+        rollout, chunk_obs = measure_rollout(cfg, progress)
+        data = measure_data_plane(cfg, chunk_obs, progress)
     return {
         "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg.__dict__.items()},
+        "hf_families": fam,
         "rollout": rollout,
         "data_plane": data,
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
@@ -246,8 +257,13 @@ def run_bench(cfg: VLABenchConfig | None = None, *, quick: bool = False,
 
 
 def format_table(doc: dict[str, Any]) -> str:
+    from .vla_families import format_families
+
+    lines = format_families(doc["hf_families"]) if doc.get("hf_families") else []
     r, d = doc["rollout"], doc["data_plane"]
-    lines = [
+    if r is None:
+        return "\n".join(lines)
+    lines += [
         f"rollout, {r['envs']} rgb envs at {r['image_size']}x{r['image_size']} (one process):",
         f"  sim only (random actions)   {r['sim_only_steps_per_s']:8.1f} env steps/s",
     ]

@@ -269,3 +269,26 @@ def test_half_billion_sizes_on_the_meta_device():
         expert = ActionExpert(1024, 7, 8, width=512, layers=18, heads=8, mlp=2048)
     count = lambda m: sum(p.numel() for p in m.parameters())  # noqa: E731
     assert 0.4e9 < count(tokens) < 0.6e9 and 0.4e9 < count(flow) + count(expert) < 0.6e9
+
+
+def test_envs_tokenise_instructions_with_the_checkpoints_tokenizer(ckpt):
+    """With policy_kwargs.checkpoint set, instructions become that tokenizer's ids (the hashed
+    tokenizer otherwise): the ids the policy's embedding reads, per episode's instruction."""
+    from transformers import AutoTokenizer
+
+    from dvla.learn.vla.tokenizer import DEFAULT_VOCAB_SIZE, instruction_tokenizer, tokenize
+
+    tok = AutoTokenizer.from_pretrained(str(ckpt["flow"]), local_files_only=True)
+    it = instruction_tokenizer({"checkpoint": str(ckpt["flow"])}, 10)
+    assert it.vocab == len(tok) and it.pad_id == tok.pad_token_id and it.source.endswith("flow")
+    for text in ("push the cube to the red and white target", "put the black bowl on the plate"):
+        ids = it.encode(text)
+        want = tok(text)["input_ids"]
+        assert ids.dtype == np.int32 and ids.shape == (10,)
+        assert list(ids[: len(want)]) == want and set(ids[len(want):].tolist()) <= {it.pad_id}
+    assert it.encode("pick up the cube").tolist() != it.encode("open the drawer").tolist()
+    hashed = instruction_tokenizer({}, 10)
+    assert hashed.source == "hashed" and hashed.vocab == DEFAULT_VOCAB_SIZE
+    np.testing.assert_array_equal(hashed.encode("push the cube"), tokenize("push the cube", 10))
+    # a directory without tokenizer files (e.g. a tiny-vla kwarg named checkpoint) keeps the hashed one
+    assert instruction_tokenizer({"checkpoint": "/nonexistent"}, 10).source == "hashed"

@@ -134,3 +134,27 @@ def save_random_checkpoint(path: str | Path, family: str, *, action_dim: int, ma
                                                                   "width": config.vision_config.image_size}}, indent=1))
     (path / POLICY_FILE).write_text(json.dumps(settings, indent=1) + "\n")
     return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m dvla.learn.vla.build DIR --family tokens``: write a random checkpoint (to try
+    the pipeline, e.g. topologies/local-hf-vla.yaml, before pointing it at real weights)."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m dvla.learn.vla.build", description=main.__doc__)
+    ap.add_argument("path")
+    ap.add_argument("--family", choices=sorted(FAMILIES), default="tokens")
+    ap.add_argument("--action-dim", type=int, default=8, help="the robot's action size (PushCube pd_joint_delta_pos: 8)")
+    ap.add_argument("--max-chunk", type=int, default=4)
+    ap.add_argument("--size", choices=sorted(SIZES), default="test")
+    ap.add_argument("--dtype", choices=("float32", "bfloat16"), default="float32")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+    path = save_random_checkpoint(args.path, args.family, action_dim=args.action_dim, max_chunk=args.max_chunk,
+                                  size=args.size, dtype=args.dtype, seed=args.seed)
+    print(f"wrote a random {args.size} {args.family} checkpoint to {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

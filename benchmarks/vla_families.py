@@ -1,0 +1,277 @@
+"""`dvla bench vla`, the Hugging Face families: what ``vla-tokens`` and ``vla-flow`` cost.
+
+Per family, on a random-initialised checkpoint of real transformers classes written to a temporary
+directory (``dvla.learn.vla.build``), with LoRA adapters:
+
+* **rollout**: one process steps an env group of rendered ManiSkill3 envs, acting with the
+  policy exactly as a rollout's infer + sim lanes do one after the other (``sample_actions``,
+  numpy actions, ``EnvGroup.step``): env steps/s and act latency p50/p99. On CUDA the env
+  steps stay on the CPU simulator; ``--size 0.5b`` on a GPU machine is the realistic setting.
+* **data plane**: the bytes a trajectory chunk of the recorded steps takes on the wire per env
+  step, with and without the policy's extras (the action bins, the denoising chain).
+* **learner**: the time of one PPO update (``PPOLearner.update``, one epoch of two minibatches)
+  on a batch built from the recorded observations, and the process's peak memory, with and
+  without micro-batching; each setting runs in a fresh process so the peaks are its own (CPU:
+  the growth of the peak RSS, ``ru_maxrss``, over the RSS once the model is built: what the
+  updates add; CUDA: ``torch.cuda.max_memory_allocated``). The two settings alternate over
+  ``rounds`` and the medians are reported. On CPU every process runs torch on one thread, as
+  dvla's roles do.
+* **replication**: values a version carries (adapters and heads) against the model's
+  parameters, and bytes per full version.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import resource
+import statistics
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from .stats import percentile
+
+__all__ = ["FamilyBenchConfig", "measure_families", "format_families"]
+
+FAMILIES = {"tokens": "vla-tokens", "flow": "vla-flow"}
+
+
+@dataclass(frozen=True)
+class FamilyBenchConfig:
+    """What the families part of ``dvla bench vla`` measures."""
+
+    #: families measured (``tokens``, ``flow``)
+    families: tuple[str, ...] = ("tokens", "flow")
+    #: checkpoint size (``test``: CPU; ``0.5b``: ~0.46e9 parameters, for a GPU)
+    size: str = "test"
+    #: torch device of the policy and the learner (``cpu``, ``cuda``)
+    device: str = "cpu"
+    #: the checkpoint's weights (``float32``, ``bfloat16``)
+    dtype: str = "float32"
+    #: LoRA rank (0: full fine-tuning)
+    lora_r: int = 4
+    env: str = "PushCube-v1"
+    image_size: int = 64
+    envs: int = 2
+    #: timed env-group steps (after ``warmup_steps``)
+    steps: int = 60
+    warmup_steps: int = 3
+    #: trajectory chunk length for the bytes figure
+    chunk_steps: int = 10
+    #: transitions per learner batch, and per micro-batch in the micro-batched setting
+    batch: int = 256
+    micro_batch: int = 16
+    #: timed updates per learner process; processes per setting (alternating)
+    updates: int = 2
+    rounds: int = 2
+
+    @staticmethod
+    def quick() -> "FamilyBenchConfig":
+        return FamilyBenchConfig(steps=6, warmup_steps=1, batch=32, micro_batch=8, updates=1, rounds=1, image_size=32)
+
+
+def _task(cfg: FamilyBenchConfig, family: str, checkpoint: str) -> Any:
+    from dvla.config import TaskConfig
+
+    kwargs: dict[str, Any] = {"checkpoint": checkpoint, "dtype": cfg.dtype}
+    if cfg.lora_r:
+        kwargs["lora"] = {"r": cfg.lora_r}
+    return TaskConfig(env=cfg.env, obs_mode="rgb", image_size=cfg.image_size, max_episode_steps=50,
+                      policy=FAMILIES[family], policy_kwargs=kwargs, rollout_device=cfg.device,
+                      eval_device=cfg.device, device=cfg.device)
+
+
+def _policy(task: Any, obs_spec: Any, act_dim: int, device: str) -> Any:
+    from dvla.learn.policies import make_policy
+
+    return make_policy(task.policy, obs_spec, act_dim, **task.policy_kwargs).to(device)
+
+
+def _rollout(cfg: FamilyBenchConfig, task: Any, progress: Callable[[str], None]) -> tuple[dict[str, Any], dict]:
+    """Act + step as a rollout does; returns the figures and the recorded steps."""
+    import torch
+
+    from dvla.learn.envs import EnvGroup, obs_as_dict, obs_to_torch
+    from dvla.learn.policies import extras_spec, sample_actions
+    from dvla.replication import ParamLayout
+
+    if cfg.device == "cpu":
+        torch.set_num_threads(1)  # as in a rollout process
+    group = EnvGroup(task, cfg.envs, seed=0)
+    try:
+        policy = _policy(task, group.obs_spec, group.act_dim, cfg.device).eval()
+        layout = ParamLayout.from_state_dict(policy)
+        params = sum(p.numel() for p in policy.parameters())
+        gen = torch.Generator(device=cfg.device).manual_seed(0)
+        obs = group.reset()
+        rec: dict[str, list] = {"obs": [], "actions": [], "logprobs": [], "extras": []}
+        act_ms: list[float] = []
+        t0 = time.perf_counter()
+        for i in range(cfg.warmup_steps + cfg.steps):
+            if i == cfg.warmup_steps:
+                act_ms, t0 = [], time.perf_counter()
+            t = time.perf_counter()
+            with torch.no_grad():
+                action, logprob, extras = sample_actions(policy, obs_to_torch(obs, cfg.device), generator=gen)
+                action, logprob = action.float().cpu().numpy(), logprob.float().cpu().numpy()
+                extras = {k: v.cpu().numpy() for k, v in extras.items()}
+            act_ms.append((time.perf_counter() - t) * 1e3)
+            rec["obs"].append(obs_as_dict(obs))
+            rec["actions"].append(action)
+            rec["logprobs"].append(logprob)
+            rec["extras"].append(extras)
+            obs = group.step(action).next_obs
+        wall = time.perf_counter() - t0
+        out = {
+            "parameters": params,
+            "replicated_values": layout.numel,
+            "replicated_fraction": layout.numel / params,
+            "bytes_per_full_version": layout.nbytes,
+            "env_steps_per_s": cfg.envs * cfg.steps / wall,
+            "act_ms_p50": percentile(act_ms, 50),
+            "act_ms_p99": percentile(act_ms, 99),
+        }
+        rec.update(obs_spec=group.obs_spec, act_dim=group.act_dim, extras_spec=extras_spec(policy))
+        return out, rec
+    finally:
+        group.close()
+
+
+def _bytes_per_step(cfg: FamilyBenchConfig, rec: dict) -> dict[str, float]:
+    """Wire bytes of one chunk of the recorded steps, per env step, with and without extras."""
+    import dataclasses
+
+    from dvla.fabric.codec import encode
+    from dvla.roles.chunkpool import chunk_template
+
+    T, n = min(cfg.chunk_steps, len(rec["actions"])), cfg.envs
+    c = chunk_template("bench", T, n, rec["obs_spec"], rec["act_dim"], rec["extras_spec"])
+    for t in range(T):
+        for k, v in rec["obs"][t].items():
+            c.obs[k][t] = v
+        c.actions[t], c.logprobs[t] = rec["actions"][t], rec["logprobs"][t]
+        for k, v in rec["extras"][t].items():
+            c.extras[k][t] = v
+    with_extras = len(encode(c)) / (T * n)
+    without = len(encode(dataclasses.replace(c, extras={}))) / (T * n)
+    return {"bytes_per_env_step": with_extras, "extras_bytes_per_env_step": with_extras - without}
+
+
+def _learner_process(cfg: FamilyBenchConfig, task: Any, rec: dict, micro: int | None, out: Any) -> None:
+    """One learner setting in a fresh process: the update time and the peak memory."""
+    import torch
+
+    from dvla.config import PPOConfig
+    from dvla.learn.ppo import PPOLearner
+
+    torch.manual_seed(0)
+    if cfg.device == "cpu":
+        torch.set_num_threads(1)
+    policy = _policy(task, rec["obs_spec"], rec["act_dim"], cfg.device)
+    n, steps = cfg.batch, len(rec["actions"])
+    rows = [(i % steps, i % cfg.envs) for i in range(n)]
+
+    def stack(key: str) -> Any:
+        return {k: torch.as_tensor(np.stack([rec[key][t][k][e] for t, e in rows])) for k in rec[key][0]}
+
+    batch = {
+        "obs": stack("obs"), "extras": stack("extras"),
+        "actions": torch.as_tensor(np.stack([rec["actions"][t][e] for t, e in rows])),
+        "logprobs": torch.as_tensor(np.stack([rec["logprobs"][t][e] for t, e in rows])),
+        "advantages": torch.randn(n), "returns": torch.randn(n), "values": torch.zeros(n),
+    }
+    ppo = PPOConfig(batch_steps=n, minibatches=2, update_epochs=1, target_kl=None, micro_batch=micro)
+    learner = PPOLearner(policy, ppo, cfg.device, seed=0)
+    cuda = cfg.device.startswith("cuda")
+    rss_built = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # model, batch, libraries
+    learner.update(batch)  # warm-up: allocator, autograd graph
+    if cuda:
+        torch.cuda.synchronize()
+        torch.cuda.reset_peak_memory_stats()
+    times = []
+    for _ in range(cfg.updates):
+        t0 = time.perf_counter()
+        learner.update(batch)
+        if cuda:
+            torch.cuda.synchronize()
+        times.append(time.perf_counter() - t0)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    out.put({
+        "update_s": statistics.median(times),
+        "peak_rss_mb": peak,
+        "rss_built_mb": rss_built,
+        "update_rss_mb": peak - rss_built,
+        "peak_gpu_mb": torch.cuda.max_memory_allocated() / 2**20 if cuda else None,
+    })
+
+
+def _learner(cfg: FamilyBenchConfig, task: Any, rec: dict, progress: Callable[[str], None]) -> dict[str, Any]:
+    ctx = mp.get_context("spawn")
+    runs: dict[str, list[dict]] = {"whole": [], "micro": []}
+    rec = {k: v for k, v in rec.items()}
+    for r in range(cfg.rounds):
+        for name in (("whole", "micro") if r % 2 == 0 else ("micro", "whole")):
+            q = ctx.Queue()
+            p = ctx.Process(target=_learner_process, args=(cfg, task, rec, cfg.micro_batch if name == "micro" else None, q))
+            p.start()
+            try:
+                res = q.get(timeout=900)
+            finally:
+                p.join(60)
+                if p.is_alive():
+                    p.terminate()
+            runs[name].append(res)
+            progress(f"learner {task.policy} {name}: {res['update_s'] * 1e3:.0f} ms, updates add {res['update_rss_mb']:.0f} MB RSS")
+    out: dict[str, Any] = {"batch": cfg.batch, "minibatch": cfg.batch // 2, "micro_batch": cfg.micro_batch}
+    for name, values in runs.items():
+        out[name] = {k: (statistics.median(v[k] for v in values) if values[0][k] is not None else None)
+                     for k in values[0]}
+    return out
+
+
+def measure_families(cfg: FamilyBenchConfig, progress: Callable[[str], None]) -> dict[str, Any]:
+    from dvla.learn.vla.build import save_random_checkpoint
+
+    out: dict[str, Any] = {"size": cfg.size, "device": cfg.device, "dtype": cfg.dtype, "lora_r": cfg.lora_r,
+                           "envs": cfg.envs, "image_size": cfg.image_size, "families": {}}
+    with tempfile.TemporaryDirectory(prefix="dvla-bench-vla-") as tmp:
+        for family in cfg.families:
+            from dvla.learn.envs import probe_spec
+            from dvla.config import TaskConfig
+
+            _, act_dim = probe_spec(TaskConfig(env=cfg.env, obs_mode="rgb", image_size=cfg.image_size))
+            ckpt = save_random_checkpoint(Path(tmp) / family, family, action_dim=act_dim, max_chunk=4, size=cfg.size,
+                                          dtype=cfg.dtype)
+            task = _task(cfg, family, str(ckpt))
+            rollout, rec = _rollout(cfg, task, progress)
+            progress(f"{FAMILIES[family]} rollout: {rollout['env_steps_per_s']:.1f} env steps/s, "
+                     f"act p50 {rollout['act_ms_p50']:.1f} ms")
+            out["families"][family] = {
+                "policy": FAMILIES[family], **rollout, **_bytes_per_step(cfg, rec),
+                "learner": _learner(cfg, task, rec, progress),
+            }
+    return out
+
+
+def format_families(doc: dict[str, Any]) -> list[str]:
+    lines = [f"Hugging Face families ({doc['size']}, {doc['dtype']}, LoRA r={doc['lora_r']}, {doc['device']}; "
+             f"{doc['envs']} rgb envs at {doc['image_size']} px):"]
+    for f in doc["families"].values():
+        lr = f["learner"]
+        lines += [
+            f"  {f['policy']:<10} {f['parameters'] / 1e6:6.2f} M params, versions carry {f['replicated_fraction']:.3f} "
+            f"({f['bytes_per_full_version'] / 1e3:.0f} kB)",
+            f"    rollout {f['env_steps_per_s']:7.1f} env steps/s   act p50 {f['act_ms_p50']:6.2f} ms  p99 {f['act_ms_p99']:6.2f} ms"
+            f"   wire {f['bytes_per_env_step']:.0f} B/env step ({f['extras_bytes_per_env_step']:.0f} B extras)",
+        ]
+        for name in ("whole", "micro"):
+            m = lr[name]
+            gpu = f"  peak GPU {m['peak_gpu_mb']:.0f} MB" if m.get("peak_gpu_mb") is not None else ""
+            what = f"micro-batches of {lr['micro_batch']}" if name == "micro" else f"minibatches of {lr['minibatch']}"
+            lines.append(f"    learner {what:<22} update {m['update_s'] * 1e3:7.0f} ms   RSS +{m['update_rss_mb']:5.0f} MB "
+                         f"(peak {m['peak_rss_mb']:.0f} MB){gpu}")
+    return lines
