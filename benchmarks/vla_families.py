@@ -12,8 +12,10 @@ directory (``dvla.learn.vla.build``), with LoRA adapters:
 * **learner**: the time of one PPO update (``PPOLearner.update``, one epoch of two minibatches)
   on a batch built from the recorded observations, and the process's peak memory, with and
   without micro-batching; each setting runs in a fresh process so the peaks are its own (CPU:
-  the growth of the peak RSS, ``ru_maxrss``, over the RSS once the model is built: what the
-  updates add; CUDA: ``torch.cuda.max_memory_allocated``). The two settings alternate over
+  how far the RSS rises during the updates above the RSS just before the first, sampled every
+  millisecond by a thread: the activations and gradients an update holds at once, and Adam's
+  moments; CUDA:
+  ``torch.cuda.max_memory_allocated``). The two settings alternate over
   ``rounds`` and the medians are reported. On CPU every process runs torch on one thread, as
   dvla's roles do.
 * **replication**: values a version carries (adapters and heads) against the model's
@@ -26,6 +28,7 @@ import multiprocessing as mp
 import resource
 import statistics
 import tempfile
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -187,8 +190,11 @@ def _learner_process(cfg: FamilyBenchConfig, task: Any, rec: dict, micro: int | 
     ppo = PPOConfig(batch_steps=n, minibatches=2, update_epochs=1, target_kl=None, micro_batch=micro)
     learner = PPOLearner(policy, ppo, cfg.device, seed=0)
     cuda = cfg.device.startswith("cuda")
-    rss_built = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # model, batch, libraries
-    learner.update(batch)  # warm-up: allocator, autograd graph
+    # The sampler starts before the first update: freed activations stay resident in the
+    # allocator, so the rise shows up once, in the first update (with Adam's moments, small
+    # for LoRA); the timed updates then reuse that memory.
+    sampler = _RssPeak()
+    learner.update(batch)  # warm-up: allocator, autograd graph, Adam's moments
     if cuda:
         torch.cuda.synchronize()
         torch.cuda.reset_peak_memory_stats()
@@ -199,14 +205,36 @@ def _learner_process(cfg: FamilyBenchConfig, task: Any, rec: dict, micro: int | 
         if cuda:
             torch.cuda.synchronize()
         times.append(time.perf_counter() - t0)
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    base, peak = sampler.stop()
     out.put({
         "update_s": statistics.median(times),
-        "peak_rss_mb": peak,
-        "rss_built_mb": rss_built,
-        "update_rss_mb": peak - rss_built,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "rss_before_mb": base,
+        "update_rss_mb": peak - base,
         "peak_gpu_mb": torch.cuda.max_memory_allocated() / 2**20 if cuda else None,
     })
+
+
+class _RssPeak:
+    """The process's RSS now and its highest value until :meth:`stop`, sampled every ms."""
+
+    def __init__(self) -> None:
+        import psutil
+
+        self._proc = psutil.Process()
+        self.base = self.peak = self._proc.memory_info().rss
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="rss-peak", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._done.wait(0.001):
+            self.peak = max(self.peak, self._proc.memory_info().rss)
+
+    def stop(self) -> tuple[float, float]:
+        self._done.set()
+        self._thread.join()
+        return self.base / 2**20, self.peak / 2**20
 
 
 def _learner(cfg: FamilyBenchConfig, task: Any, rec: dict, progress: Callable[[str], None]) -> dict[str, Any]:
