@@ -34,6 +34,11 @@ def die_with_parent() -> None:
         pass
 
 
+
+#: a role's exit code for a setting it cannot run with (``roles.runtime.ExitStatus.CONFIG``: an
+#: env or a policy checkpoint that cannot be set up): restarting would fail the same way
+CONFIG_EXIT = 2
+
 class Launcher:
     """Owns every child process of a run."""
 
@@ -153,6 +158,10 @@ class Launcher:
             if stopping or code == 0:
                 sup.finished = True
                 events.append(f"{sup.name} exited ({code})")
+                continue
+            if code == CONFIG_EXIT:  # a setting to fix (its log's last line says which): same every time
+                sup.failed = True
+                events.append(f"{sup.name} cannot start with this configuration (exit {code}; see its log): not restarted")
                 continue
             if sup.restarts >= self.max_restarts:
                 sup.failed = True

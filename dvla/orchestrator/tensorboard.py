@@ -9,7 +9,8 @@ Namespaces, as the field uses them:
 - ``env/``: the training episodes: success rate, mean return and length over the rollouts'
   recent episodes (weighted by their episode counts);
 - ``eval/``: evaluation results (``success_once`` and its 95 % interval ``success_low`` /
-  ``success_high``, ``success_at_end``, ``return_mean``, version);
+  ``success_high``, ``success_at_end``, ``return_mean``, version), and per task for envs that
+  name their tasks (LIBERO): ``eval/task/<task>/success`` and ``.../episodes``;
 - ``time/``: per role kind and lane, the busy and wait fractions and items/s of the lanes (mean
   over the processes of that kind);
 - ``fabric/``: per plane, sent/received bytes and rejected/dropped message counts summed over
@@ -79,6 +80,9 @@ def eval_scalars(ev: EvalResult) -> dict[str, float]:
     out = {f"eval/{name}": float(getattr(ev, name))
            for name in ("success_once", "success_at_end", "return_mean", "success_low", "success_high")}
     out["eval/version"] = float(ev.policy_version)
+    for task, n in ev.task_episodes.items():  # e.g. libero_spatial/3 (the label keeps its slash)
+        out[f"eval/task/{task}/success"] = ev.task_successes.get(task, 0) / max(n, 1)
+        out[f"eval/task/{task}/episodes"] = float(n)
     return out
 
 

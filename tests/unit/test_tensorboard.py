@@ -57,3 +57,17 @@ def test_event_files_read_back_at_env_steps(tmp_path: Path):
     assert [(e.step, e.value) for e in acc.Scalars("weights/bytes_per_version")] == [(200, 300.0)]
     assert [(e.step, round(e.value, 3)) for e in acc.Scalars("eval/success_once")] == [(200, 0.9)]
     assert [(e.step, round(e.value, 3)) for e in acc.Scalars("eval/success_low")] == [(200, 0.79)]
+
+
+def test_per_task_evaluations_get_scalars_of_their_own():
+    from dvla.orchestrator.tensorboard import eval_scalars
+
+    ev = EvalResult(sender="e", policy_version=4, episodes=6, success_once=0.5, success_at_end=0.5, return_mean=1.0,
+                    success_low=0.2, success_high=0.8, task_episodes={"libero_spatial/0": 4, "libero_spatial/3": 2},
+                    task_successes={"libero_spatial/0": 3, "libero_spatial/3": 0}, time_ns=1)
+    out = eval_scalars(ev)
+    assert out["eval/task/libero_spatial/0/success"] == 0.75 and out["eval/task/libero_spatial/0/episodes"] == 4.0
+    assert out["eval/task/libero_spatial/3/success"] == 0.0
+    plain = eval_scalars(EvalResult(sender="e", policy_version=4, episodes=6, success_once=0.5, success_at_end=0.5,
+                                    return_mean=1.0, success_low=0.2, success_high=0.8, time_ns=1))
+    assert not any(k.startswith("eval/task/") for k in plain)

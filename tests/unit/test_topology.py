@@ -398,3 +398,28 @@ def test_topology_to_dict_is_plain() -> None:
     assert "source" not in d
     assert isinstance(d["racks"], list) and isinstance(d["racks"][0]["nodes"][0]["roles"], list)
     assert set(d) == {f.name for f in dataclasses.fields(Topology)} - {"source"}
+
+
+def test_a_hf_policys_checkpoint_is_checked_before_anything_starts(tmp_path: Path) -> None:
+    """vla-tokens / vla-flow: no checkpoint, a missing or incomplete directory, or one of the
+    other family is one problem line naming the key and the path (the CLI prints it, no traceback)."""
+    from dvla.learn.vla.build import save_random_checkpoint
+
+    flow = save_random_checkpoint(tmp_path / "flow", "flow", action_dim=8, max_chunk=2)
+    base = MINIMAL + "task:\n  obs_mode: rgb\n  policy: vla-tokens\n"
+    (msg,) = [p.message for p in _problems(base)]
+    assert "needs policy_kwargs.checkpoint" in msg
+    cases = {
+        str(tmp_path / "nope"): "does not exist",
+        str(flow): "'flow' checkpoint",
+    }
+    (tmp_path / "half").mkdir()
+    (tmp_path / "half" / "config.json").write_text("{}")
+    cases[str(tmp_path / "half")] = "safetensors"
+    for path, what in cases.items():
+        problems = _problems(base + f"  policy_kwargs: {{checkpoint: {path}}}\n")
+        assert len(problems) == 1 and problems[0].path == "task.policy_kwargs.checkpoint", problems
+        assert path in problems[0].message and what in problems[0].message and "\n" not in problems[0].message
+    # the right family loads
+    ok = MINIMAL + f"task:\n  obs_mode: rgb\n  policy: vla-flow\n  policy_kwargs: {{checkpoint: {flow}}}\n"
+    assert parse_topology(ok, "t.yaml").task.policy == "vla-flow"
