@@ -37,10 +37,11 @@ def e2e(
         raise fail(f"--modes: expected a comma-separated list of async and sync, got {modes!r}")
     doc = run_seeds(topology, seed_list, base_port, [], mode_list)
     for r in doc["runs"]:
-        typer.echo(f"seed {r['seed']} {r['mode']}: {r['reason']}  env_steps={r['env_steps']}  train_s={_f(r['train_s'])}  "
+        typer.echo(f"seed {r['seed']} {r['mode']}: {r['reason']}  env_steps={r['env_steps']}  "
+                   f"policy_env_steps={r['policy_env_steps']}  train_s={_f(r['train_s'])}  "
                    f"startup_s={_f(r['startup_s'])}  steps/s={_f(r['train_steps_per_s'])}")
     for mode, m in doc["modes"].items():
-        spread = {k: m[k] for k in ("env_steps", "train_s", "train_steps_per_s")}
+        spread = {k: m[k] for k in ("env_steps", "policy_env_steps", "train_s", "train_steps_per_s")}
         typer.echo(f"{mode}: {m['successes']}/{m['runs']} reached the target; " + "  ".join(
             f"{k} median {_f(v['median'])} [{_f(v['min'])}, {_f(v['max'])}]" for k, v in spread.items() if v))
     if json_path is not None:

@@ -1,7 +1,9 @@
 """End-to-end learning benchmark: `dvla up TOPOLOGY` once per seed and mode, each to its success
 target. Modes run interleaved (seed 1 async, seed 1 sync, seed 2 async, ...) so both see the
 same machine. Per run: env steps and wall time from the first env step to the stop rule's last
-qualifying eval, start-up time, training env steps/s (from result.json) and the learning curve
+qualifying eval, start-up time, training env steps/s (from result.json), the env steps the last
+qualifying version had been trained on (``policy_env_steps``, from versions.csv: the run's own
+figure also counts what was learned while that evaluation was played) and the learning curve
 (every evaluation's success rate by env steps and by seconds of training, from evals.csv). Per
 mode: median and spread across seeds, and the curve's median and quartiles across seeds on a grid
 of env steps."""
@@ -46,6 +48,8 @@ def _one_run(topology: Path, seed: int, mode: str, tmp: Path, base_port: int, ex
     result_files = list(tmp.glob("*/result.json"))
     res = json.loads(result_files[0].read_text()) if result_files else {}
     curve = _curve(result_files[0].parent / "evals.csv", res.get("startup_s")) if result_files else []
+    trained = _version_steps(result_files[0].parent / "versions.csv") if result_files else {}
+    qualifying = curve[-1]["version"] if curve and res.get("success_reached") else None
     for f in result_files:
         f.unlink()
     return {
@@ -55,6 +59,7 @@ def _one_run(topology: Path, seed: int, mode: str, tmp: Path, base_port: int, ex
         "reason": res.get("reason"),
         "success": bool(res.get("success_reached")),
         "env_steps": res.get("env_steps"),
+        "policy_env_steps": trained.get(qualifying) if qualifying is not None else None,
         "train_s": res.get("train_s"),
         "startup_s": res.get("startup_s"),
         "train_steps_per_s": res.get("train_steps_per_s"),
@@ -65,15 +70,26 @@ def _one_run(topology: Path, seed: int, mode: str, tmp: Path, base_port: int, ex
 
 
 def _curve(evals_csv: Path, startup_s: float | None) -> list[dict[str, float]]:
-    """(env steps, seconds of training, success_once) of every evaluation of a run."""
+    """(env steps, seconds of training, version, success_once) of every evaluation of a run (its
+    whole-evaluation rows; per-task rows are left out)."""
     try:
         with open(evals_csv) as f:
-            rows = list(csv.DictReader(f))
+            rows = [r for r in csv.DictReader(f) if r.get("task", "all") in ("all", "", None)]
     except OSError:
         return []
     t0 = startup_s or 0.0
     return [{"env_steps": int(r["env_steps"]), "train_s": round(float(r["time_s"]) - t0, 2),
-             "success_once": float(r["success_once"])} for r in rows]
+             "version": int(r["version"]), "success_once": float(r["success_once"])} for r in rows]
+
+
+def _version_steps(versions_csv: Path) -> dict[int, int]:
+    """version -> env steps learned when the actor published it (versions.csv: version, checksum,
+    encoding, env_steps, time, pid)."""
+    try:
+        with open(versions_csv) as f:
+            return {int(row[0]): int(row[3]) for row in csv.reader(f) if len(row) >= 4 and row[0].isdigit()}
+    except (OSError, ValueError):
+        return {}
 
 
 def _spread(values: list[float]) -> dict[str, float] | None:
@@ -89,6 +105,7 @@ def _summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "successes": len(ok),
         "train_s_median": statistics.median(r["train_s"] for r in ok) if ok else None,
         "env_steps_median": statistics.median(r["env_steps"] for r in ok) if ok else None,
+        "policy_env_steps": _spread([r["policy_env_steps"] for r in ok if r["policy_env_steps"] is not None]),
         "train_steps_per_s_median": statistics.median(r["train_steps_per_s"] for r in ok) if ok else None,
         "env_steps": _spread([r["env_steps"] for r in ok]),
         "train_s": _spread([r["train_s"] for r in ok]),

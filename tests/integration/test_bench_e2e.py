@@ -26,6 +26,18 @@ def test_curve_quantiles_hold_the_last_value_of_stopped_runs():
     assert all(p["p25"] <= p["median"] <= p["p75"] for p in curve)
 
 
+def test_the_qualifying_versions_env_steps_come_from_versions_csv(tmp_path: Path) -> None:
+    from benchmarks.e2e import _curve, _version_steps
+
+    (tmp_path / "versions.csv").write_text("1,abc,full,1600,1.0,7\n2,def,full,3200,2.0,7\n")
+    assert _version_steps(tmp_path / "versions.csv") == {1: 1600, 2: 3200}
+    assert _version_steps(tmp_path / "missing.csv") == {}
+    (tmp_path / "evals.csv").write_text(
+        "time_s,version,env_steps,success_once,success_at_end,return_mean,episodes,success_low,success_high,task\n"
+        "10.0,2,4000,0.5,0.5,1.0,4,0.1,0.9,all\n10.0,2,4000,1.0,,,2,0.3,1.0,libero_spatial/0\n")
+    assert _curve(tmp_path / "evals.csv", 4.0) == [{"env_steps": 4000, "train_s": 6.0, "version": 2, "success_once": 0.5}]
+
+
 def test_bench_e2e_rejects_unknown_modes():
     proc = subprocess.run([sys.executable, "-m", "dvla", "bench", "e2e", "topologies/tiny.yaml", "--modes", "lockstep"],
                           cwd=ROOT, capture_output=True, text=True, timeout=60)
