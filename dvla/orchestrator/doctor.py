@@ -80,6 +80,8 @@ class Needs:
     remote_nodes: tuple[str, ...] = ()
     #: a topology was given
     topology: bool = False
+    #: the policy loads a Hugging Face checkpoint here (transformers and peft must import)
+    hf: bool = False
 
 
 def needs_of(topo: Topology | None) -> Needs:
@@ -97,6 +99,7 @@ def needs_of(topo: Topology | None) -> Needs:
         endpoints=tuple((p.config.name, ep) for p in local for ep in (*p.config.ctrl.listen, *p.config.data.listen)),
         remote_nodes=tuple(n.name for _r, n in topo.nodes() if not is_local_host(n.host)),
         topology=True,
+        hf=task.policy in ("vla-tokens", "vla-flow") and bool(kinds & {"actor", "rollout", "evaluator"}),
     )
 
 
@@ -202,6 +205,19 @@ def check_maniskill(needs: Needs) -> CheckResult:
     rc, out, err = _python_probe("import mani_skill; print(mani_skill.__version__)")
     detail = f"mani_skill {last_line(out)}" if rc == 0 else f"import failed: {last_line(err)}"
     return outcome("maniskill", rc == 0, detail, fix=SETUP_PYTHON, required=needs.simulator)
+
+
+def check_transformers(needs: Needs) -> CheckResult:
+    """transformers and peft import (the Hugging Face policies). The usual failure: a torchvision
+    built for another torch (robomimic's), which transformers imports whenever it is installed."""
+    rc, out, err = _python_probe("import transformers, peft; print(transformers.__version__, peft.__version__)")
+    if rc == 0:
+        v = last_line(out).split()
+        return outcome("transformers", True, f"transformers {v[0]}, peft {v[-1]}", required=needs.hf)
+    why = last_line(err)
+    fix = ("pip uninstall torchvision (dvla does not use it; this one does not load with your torch)"
+           if "torchvision" in err else SETUP_PYTHON)
+    return outcome("transformers", False, f"import failed: {why}", fix=fix, required=needs.hf)
 
 
 LIBERO_INSTALL = ("pip install -e '.[libero]' -c <a constraints file pinning your torch and numpy> "
@@ -384,6 +400,7 @@ CHECKS: dict[str, Callable[[Topology | None, Needs], CheckResult | list[CheckRes
     "zenoh": lambda topo, needs: check_zenoh(),
     "vulkan": lambda topo, needs: check_vulkan(needs),
     "maniskill": lambda topo, needs: check_maniskill(needs),
+    "transformers": lambda topo, needs: check_transformers(needs),
     "libero": check_libero,
     "ports": lambda topo, needs: check_ports(needs),
     "cpus": lambda topo, needs: check_cpus(topo),

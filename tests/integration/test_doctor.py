@@ -13,7 +13,7 @@ from pathlib import Path
 
 from .test_up_e2e import ROOT, free_port_block
 
-CHECKS = ["python", "torch", "cuda", "zenoh", "vulkan", "maniskill", "libero", "ports", "cpus", "netns", "ssh", "clock"]
+CHECKS = ["python", "torch", "cuda", "zenoh", "vulkan", "maniskill", "transformers", "libero", "ports", "cpus", "netns", "ssh", "clock"]
 
 
 def _doctor(*args: str) -> subprocess.CompletedProcess:
@@ -42,7 +42,7 @@ def test_doctor_json_with_a_topology_whose_port_is_taken(tmp_path: Path) -> None
     ports = by_name["ports"]
     assert ports["status"] == "fail" and f"{port} (actor-node0-0" in ports["detail"] and ports["fix"]
     # what this test suite itself relies on must be found healthy
-    for name in ("python", "torch", "zenoh", "maniskill"):
+    for name in ("python", "torch", "zenoh", "maniskill", "transformers"):
         assert by_name[name]["status"] == "ok", by_name[name]
     assert by_name["ssh"]["status"] == "skip"  # tiny has no remote node
     if _netns_usable():
