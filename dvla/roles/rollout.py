@@ -266,11 +266,13 @@ class Rollout:
             ctx.count()
 
     def _act(self, gid: int) -> Actions:
-        """Swap in pending weights, then the actions of group ``gid`` for its observations."""
+        """Install pending weights, then the actions of group ``gid`` for its observations. The
+        latency recorded includes the install (a copy of the replicated tensors): what a new
+        version costs the batch that first uses it."""
         seq0 = self.pool.stage_seq
+        t0 = time.perf_counter()
         swapped = self.pool.maybe_swap()
         g = self.groups[gid]
-        t0 = time.perf_counter()
         # Sampling noise is a function of (process seed, group, step): the same seed replays the
         # same actions whatever the threads' timing (an action recomputed for new weights included).
         # (A generator of the infer lane's own: simulators may draw from torch's global one.)
