@@ -189,7 +189,8 @@ class TaskConfig:
     control_mode: str = "pd_joint_delta_pos"
     #: episode length (steps) before truncation
     max_episode_steps: int = 50
-    #: "physx_cpu", "physx_cuda" or "auto" (cuda when present)
+    #: "physx_cpu", "physx_cuda" or "auto" (ManiSkill's own rule: physx_cuda for a scene of more
+    #: than one env on a CUDA machine, else physx_cpu; dvla's env groups hold one env per scene)
     sim_backend: str = "auto"
     #: policy registry name ("mlp", "tiny-vla") or "module:Class" of a user policy (docs/policies.md)
     policy: str = "mlp"

@@ -89,11 +89,15 @@ def make_env(task: TaskConfig, seed: int) -> Any:
     import torch
 
     cuda = torch.cuda.is_available()
+    num_envs = 1
+    # "auto" as ManiSkill decides it: a GPU scene pays off for many envs, a single env steps
+    # faster on the CPU (and its observations need no device -> host copy)
+    auto = "physx_cuda" if cuda and num_envs > 1 else "physx_cpu"
     kwargs: dict[str, Any] = dict(
         obs_mode=task.obs_mode,
         control_mode=task.control_mode,
-        sim_backend=task.sim_backend if task.sim_backend != "auto" else "physx_cuda" if cuda else "physx_cpu",
-        num_envs=1,
+        sim_backend=task.sim_backend if task.sim_backend != "auto" else auto,
+        num_envs=num_envs,
         max_episode_steps=task.max_episode_steps,
     )
     if task.obs_mode != "state":
