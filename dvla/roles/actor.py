@@ -28,7 +28,7 @@ from ..config import RoleConfig, env_group_sizes, resolve_device
 from ..fabric import Fabric
 from ..fabric.accounting import OTHER_PEER
 from ..fabric.fabric import DATA
-from ..fabric.messages import RoleStatus, TrajectoryChunk
+from ..fabric.messages import TrajectoryChunk
 from ..learn import PPOLearner, Trajectories, gae_batch, make_policy
 from ..learn.group import LearnerGroup
 from ..learn.envs import probe_spec
@@ -396,39 +396,41 @@ def chunk_problem(chunk: TrajectoryChunk, obs_spec: Mapping[str, Any], act_dim: 
         return "negative_version", f"policy_version {v} < 0"
     if v > newest_version:
         return "future_version", f"policy_version {v} is newer than the newest released, {newest_version}"
-    if chunk.obs.keys() != obs_spec.keys():
-        return "shape", f"observation keys {sorted(chunk.obs)} != the run's {sorted(obs_spec)}"
-    for key, spec in obs_spec.items():
-        arr = chunk.obs[key]
-        if arr.shape[2:] != tuple(spec.shape) or arr.dtype != np.dtype(spec.dtype):
-            return "shape", f"obs[{key!r}] {arr.dtype}{list(arr.shape[2:])} != the run's {spec.dtype}{list(spec.shape)}"
+    obs = {part: getattr(chunk, part) for part in ("obs", "next_obs", "final_obs")}
+    problem = _spec_problem(chunk.obs, obs_spec, "obs", "observation keys", "the run's")
+    if problem:
+        return problem
     if chunk.actions.shape[2:] != (act_dim,):
         return "shape", f"actions {list(chunk.actions.shape)}, expected {act_dim} per step"
-    if chunk.extras.keys() != extras_spec.keys():
-        return "shape", f"extras {sorted(chunk.extras)} != the policy's {sorted(extras_spec)}"
-    for key, spec in extras_spec.items():
-        arr = chunk.extras[key]
-        if arr.shape[2:] != tuple(spec.shape) or arr.dtype != np.dtype(spec.dtype):
-            return "shape", f"extras[{key!r}] {arr.dtype}{list(arr.shape[2:])} != the policy's {spec.dtype}{list(spec.shape)}"
+    problem = _spec_problem(chunk.extras, extras_spec, "extras", "extras", "the policy's")
+    if problem:
+        return problem
     floats = {"rewards": chunk.rewards, "logprobs": chunk.logprobs, "actions": chunk.actions}
-    floats.update({f"extras[{k!r}]": a for k, a in chunk.extras.items() if a.dtype.kind == "f"})
-    for part in ("obs", "next_obs", "final_obs"):
-        floats.update({f"{part}[{k!r}]": a for k, a in getattr(chunk, part).items() if a.dtype.kind == "f"})
+    for part, arrays in {**obs, "extras": chunk.extras}.items():
+        floats.update({f"{part}[{k!r}]": a for k, a in arrays.items() if a.dtype.kind == "f"})
     for name, arr in floats.items():
         if not np.isfinite(arr).all():
             return "nonfinite", f"{name} holds NaN or inf"
-    for key, spec in obs_spec.items():
-        vocab = getattr(spec, "vocab", None)
-        if vocab is None:
-            continue
-        for part in ("obs", "next_obs", "final_obs"):
-            arr = getattr(chunk, part)[key]
-            if arr.size and (arr.min() < 0 or arr.max() >= vocab):
-                return "out_of_range", f"{part}[{key!r}] holds token ids outside [0, {vocab})"
-    for key, spec in extras_spec.items():
-        vocab, arr = getattr(spec, "vocab", None), chunk.extras[key]
-        if vocab is not None and arr.size and (arr.min() < 0 or arr.max() >= vocab):
-            return "out_of_range", f"extras[{key!r}] holds ids outside [0, {vocab})"
+    for spec, parts in ((obs_spec, obs), (extras_spec, {"extras": chunk.extras})):
+        for key, s in spec.items():
+            vocab = getattr(s, "vocab", None)
+            for part, arrays in parts.items():
+                arr = arrays[key]
+                if vocab is not None and arr.size and (arr.min() < 0 or arr.max() >= vocab):
+                    return "out_of_range", f"{part}[{key!r}] holds ids outside [0, {vocab})"
+    return None
+
+
+def _spec_problem(arrays: Mapping[str, np.ndarray], spec: Mapping[str, Any], part: str, what: str,
+                  whose: str) -> tuple[str, str] | None:
+    """A ``shape`` problem when ``arrays`` ([T, N, ...] each) have other keys, per-step shapes or
+    dtypes than ``spec`` declares."""
+    if arrays.keys() != spec.keys():
+        return "shape", f"{what} {sorted(arrays)} != {whose} {sorted(spec)}"
+    for key, s in spec.items():
+        arr = arrays[key]
+        if arr.shape[2:] != tuple(s.shape) or arr.dtype != np.dtype(s.dtype):
+            return "shape", f"{part}[{key!r}] {arr.dtype}{list(arr.shape[2:])} != {whose} {s.dtype}{list(s.shape)}"
     return None
 
 

@@ -35,7 +35,7 @@ from ..learn import EnvGroup, make_policy
 from ..learn.policies import extras_spec, policy_base_hash, sample_actions
 from ..learn.envs import obs_as_dict, obs_to_torch
 from ..learn.grpo import grpo_envs
-from ..replication import ParamLayout, bind_flat, replicated_tensors
+from ..replication import ParamLayout, bind_flat, unflatten_into
 from ..counters import INCARNATION_SHIFT, CounterFile
 from .chunkpool import ChunkPool, Shipment, chunk_template
 from .runtime import main
@@ -130,11 +130,8 @@ class PolicyPool:
     def _install(self) -> None:
         if self._bound is not None:
             self._bound.copy_(self.staging)
-            return
-        tensors = replicated_tensors(self.active)
-        for i, name in enumerate(self.layout.names):
-            start, stop = self.layout.span(i)
-            tensors[name].copy_(self.staging[start:stop].view(self.layout.shapes[i]))
+        else:
+            unflatten_into(self.staging, self.active, self.layout)
 
     def maybe_swap(self) -> bool:
         """Called between batches; never waits: during a staging write it retries next batch."""

@@ -50,7 +50,7 @@ from torch import Tensor, nn
 from ..policies import register_policy
 from ..spec import ArraySpec
 from .checkpoint import EXPERT_FILE, CheckpointError, check_checkpoint, content_hash, executed_chunk
-from .hf_backbone import HFBackbone, apply_lora, float32_head, freeze_all_but_lora, pooled, seeded
+from .hf_backbone import HFBackbone, SampleAndAct, apply_lora, float32_head, freeze_all_but_lora, pooled, seeded
 
 __all__ = ["ActionExpert", "FlowVLA", "METHODS"]
 
@@ -129,7 +129,7 @@ def _gaussian_logpdf(x: Tensor, mu: Tensor, sigma: Tensor) -> Tensor:
 
 
 @register_policy("vla-flow")
-class FlowVLA(nn.Module):
+class FlowVLA(SampleAndAct, nn.Module):
     """Flow-matching action chunks with Flow-Noise or Flow-SDE log-probs (see the module docstring)."""
 
     def __init__(self, obs: Mapping[str, Any], act_dim: int, *, checkpoint: str, lora: Mapping[str, Any] | None = None,
@@ -223,18 +223,6 @@ class FlowVLA(nn.Module):
         return self.low + (x.reshape(x.shape[0], -1) + 1.0) * 0.5 * (self.high - self.low)
 
     # --- the policy protocol ------------------------------------------------------------------
-
-    @torch.no_grad()
-    def sample(self, obs: Mapping[str, Tensor], deterministic: bool = False,
-               generator: torch.Generator | None = None) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
-        action, logprob, extras, _ = self._sample(obs, deterministic, generator)
-        return action, logprob, extras
-
-    @torch.no_grad()
-    def act(self, obs: Mapping[str, Tensor], deterministic: bool = False,
-            generator: torch.Generator | None = None) -> tuple[Tensor, Tensor, Tensor]:
-        action, logprob, _, value = self._sample(obs, deterministic, generator)
-        return action, logprob, value
 
     def _sample(self, obs: Mapping[str, Tensor], deterministic: bool,
                 generator: torch.Generator | None) -> tuple[Tensor, Tensor, dict[str, Tensor], Tensor]:

@@ -36,14 +36,14 @@ import json
 import re
 from typing import Any, Iterator, Mapping, Sequence
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .checkpoint import CheckpointError, CheckpointInfo
+from .tokenizer import pad_id_of, tokenize_instruction
 
-__all__ = ["HFBackbone", "apply_lora", "load_tokenizer", "tokenize_instruction", "torch_dtype", "float32_head",
+__all__ = ["HFBackbone", "SampleAndAct", "apply_lora", "load_tokenizer", "tokenize_instruction", "torch_dtype", "float32_head",
            "seeded", "pooled", "freeze_all_but_lora", "DTYPES", "LORA_TARGETS"]
 
 DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
@@ -79,21 +79,6 @@ def load_tokenizer(info: CheckpointInfo) -> Any:
         return AutoTokenizer.from_pretrained(str(info.path), local_files_only=True)
     except Exception as err:  # any loader failure becomes one line naming the path
         raise CheckpointError(f"{info.path}: cannot load the tokenizer: {_one_line(err)}") from None
-
-
-def pad_id_of(tokenizer: Any) -> int:
-    return int(tokenizer.pad_token_id) if tokenizer.pad_token_id is not None else 0
-
-
-def tokenize_instruction(tokenizer: Any, text: str, length: int) -> np.ndarray:
-    """``text`` as ``length`` int32 ids of the checkpoint's tokenizer, right-padded with its pad id
-    (what the ``tokens`` observation must hold for these policies; the first id is always real)."""
-    ids = list(tokenizer(text)["input_ids"])[:length]
-    if not ids:
-        ids = [tokenizer.bos_token_id if tokenizer.bos_token_id is not None else tokenizer.unk_token_id]
-    out = np.full(length, pad_id_of(tokenizer), dtype=np.int32)
-    out[: len(ids)] = ids
-    return out
 
 
 def _zero_dropout(config: Any) -> None:
@@ -269,3 +254,21 @@ def pooled(hidden: Tensor, mask: Tensor) -> Tensor:
     """Float32 mean of ``hidden`` [B, S, W] over the real positions of ``mask`` [B, S]."""
     m = mask.unsqueeze(-1).float()
     return (hidden.float() * m).sum(1) / m.sum(1).clamp(min=1.0)
+
+
+class SampleAndAct:
+    """``sample`` and ``act`` of the policy protocol from one ``_sample(obs, deterministic,
+    generator) -> (action, logprob, extras, value)`` (both families compute the value with the
+    same prefix pass, so ``act`` costs no second forward)."""
+
+    @torch.no_grad()
+    def sample(self, obs: Mapping[str, Tensor], deterministic: bool = False,
+               generator: torch.Generator | None = None) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
+        action, logprob, extras, _ = self._sample(obs, deterministic, generator)  # type: ignore[attr-defined]
+        return action, logprob, extras
+
+    @torch.no_grad()
+    def act(self, obs: Mapping[str, Tensor], deterministic: bool = False,
+            generator: torch.Generator | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        action, logprob, _, value = self._sample(obs, deterministic, generator)  # type: ignore[attr-defined]
+        return action, logprob, value

@@ -44,13 +44,13 @@ from torch import Tensor, nn
 from ..policies import register_policy
 from ..spec import ArraySpec
 from .checkpoint import check_checkpoint, content_hash, executed_chunk
-from .hf_backbone import HFBackbone, apply_lora, float32_head, freeze_all_but_lora, pooled, seeded
+from .hf_backbone import HFBackbone, SampleAndAct, apply_lora, float32_head, freeze_all_but_lora, pooled, seeded
 
 __all__ = ["TokenActionVLA"]
 
 
 @register_policy("vla-tokens")
-class TokenActionVLA(nn.Module):
+class TokenActionVLA(SampleAndAct, nn.Module):
     """Parallel-decoded action bins from a Llava-style checkpoint (see the module docstring)."""
 
     def __init__(self, obs: Mapping[str, Any], act_dim: int, *, checkpoint: str, lora: Mapping[str, Any] | None = None,
@@ -135,18 +135,6 @@ class TokenActionVLA(nn.Module):
         return (u * self.n_bins).floor().long().clamp(0, self.n_bins - 1)
 
     # --- the policy protocol ------------------------------------------------------------------
-
-    @torch.no_grad()
-    def sample(self, obs: Mapping[str, Tensor], deterministic: bool = False,
-               generator: torch.Generator | None = None) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
-        action, logprob, extras, _ = self._sample(obs, deterministic, generator)
-        return action, logprob, extras
-
-    @torch.no_grad()
-    def act(self, obs: Mapping[str, Tensor], deterministic: bool = False,
-            generator: torch.Generator | None = None) -> tuple[Tensor, Tensor, Tensor]:
-        action, logprob, _, value = self._sample(obs, deterministic, generator)
-        return action, logprob, value
 
     def _sample(self, obs: Mapping[str, Tensor], deterministic: bool,
                 generator: torch.Generator | None) -> tuple[Tensor, Tensor, dict[str, Tensor], Tensor]:

@@ -25,7 +25,8 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 __all__ = ["PAD_ID", "BOS_ID", "FIRST_WORD_ID", "DEFAULT_VOCAB_SIZE", "words", "word_id", "tokenize",
-           "InstructionTokenizer", "instruction_tokenizer", "checkpoint_tokenizer_dir"]
+           "InstructionTokenizer", "instruction_tokenizer", "checkpoint_tokenizer_dir", "pad_id_of",
+           "tokenize_instruction"]
 
 PAD_ID = 0
 """Fills the sequence after the last word; models mask it out."""
@@ -71,6 +72,23 @@ def tokenize(text: str, length: int, vocab_size: int = DEFAULT_VOCAB_SIZE) -> np
     return out
 
 
+def pad_id_of(tokenizer: Any) -> int:
+    """A Hugging Face tokenizer's pad id (0 when it has none)."""
+    return int(tokenizer.pad_token_id) if tokenizer.pad_token_id is not None else 0
+
+
+def tokenize_instruction(tokenizer: Any, text: str, length: int) -> np.ndarray:
+    """``text`` as ``length`` int32 ids of a checkpoint's tokenizer, right-padded with its pad id:
+    what the ``tokens`` observation holds for the Hugging Face policies (the envs and the policies'
+    tests both call this). The first id is always real (BOS, else UNK, for an empty text)."""
+    ids = list(tokenizer(text)["input_ids"])[:length]
+    if not ids:
+        ids = [tokenizer.bos_token_id if tokenizer.bos_token_id is not None else tokenizer.unk_token_id]
+    out = np.full(length, pad_id_of(tokenizer), dtype=np.int32)
+    out[: len(ids)] = ids
+    return out
+
+
 #: files that make a directory a Hugging Face tokenizer (any one of them)
 _TOKENIZER_FILES = ("tokenizer.json", "tokenizer_config.json", "tokenizer.model")
 
@@ -88,15 +106,10 @@ class InstructionTokenizer:
     pad_id: int
     #: "hashed" or the checkpoint directory whose tokenizer this is
     source: str
-    _encode: Callable[[str], list[int]]
+    _encode: Callable[[str], np.ndarray]
 
     def encode(self, text: str) -> np.ndarray:
-        if self.source == "hashed":
-            return tokenize(text, self.length, self.vocab)
-        ids = self._encode(text)[: self.length]
-        out = np.full(self.length, self.pad_id, dtype=np.int32)
-        out[: len(ids)] = ids
-        return out
+        return self._encode(text)
 
 
 def checkpoint_tokenizer_dir(policy_kwargs: Mapping[str, Any]) -> str | None:
@@ -112,7 +125,7 @@ def instruction_tokenizer(policy_kwargs: Mapping[str, Any], length: int) -> Inst
     """The hashed tokenizer, or the checkpoint's own (see :func:`checkpoint_tokenizer_dir`)."""
     path = checkpoint_tokenizer_dir(policy_kwargs)
     if path is None:
-        return InstructionTokenizer(length, DEFAULT_VOCAB_SIZE, PAD_ID, "hashed", lambda text: [])
+        return InstructionTokenizer(length, DEFAULT_VOCAB_SIZE, PAD_ID, "hashed", lambda text: tokenize(text, length))
     return _hf_tokenizer(os.path.abspath(path), length)
 
 
@@ -124,9 +137,4 @@ def _hf_tokenizer(path: str, length: int) -> InstructionTokenizer:
         tok = AutoTokenizer.from_pretrained(path, local_files_only=True)
     except (OSError, ValueError) as err:
         raise ValueError(f"{path}: cannot load its tokenizer ({str(err).splitlines()[0]})") from err
-    pad = tok.pad_token_id if tok.pad_token_id is not None else 0
-
-    def encode(text: str) -> list[int]:
-        return list(tok(text, add_special_tokens=True, truncation=True, max_length=length)["input_ids"])
-
-    return InstructionTokenizer(length, len(tok), int(pad), path, encode)
+    return InstructionTokenizer(length, len(tok), pad_id_of(tok), path, lambda text: tokenize_instruction(tok, text, length))
