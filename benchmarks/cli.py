@@ -236,7 +236,7 @@ def vla(
 @app.command("envs")
 def envs(
     json_path: Annotated[Path, typer.Option("--json", help="write the results (JSON) here")],
-    kind: Annotated[Optional[list[str]], typer.Option(help="env kind (repeatable): maniskill-cpu, libero (default: both)")] = None,
+    kind: Annotated[Optional[list[str]], typer.Option(help="env kind (repeatable): maniskill-cpu, maniskill-gpu, libero (default: all; a kind that cannot run here is skipped with the reason)")] = None,
     placement: Annotated[str, typer.Option(help="split (simulators alone on core 0), split-roles or file")] = "split",
     quick: Annotated[bool, typer.Option("--quick", help="tiny windows: checks the machinery, not the speed")] = False,
     runs: Annotated[Optional[Path], typer.Option(help="keep the runs' directories here (default: a temporary directory)")] = None,

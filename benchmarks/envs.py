@@ -12,9 +12,11 @@ in the same placement, and for LIBERO what one env costs.
   milliseconds per step with the cameras rendered and with the physics alone; their difference is
   the render time per step, next to the time of one camera image rendered on its own.
 
-Kinds: ``maniskill-cpu`` (``topologies/local.yaml``: PushCube-v1, state observations, physx_cpu)
-and ``libero`` (``topologies/local-libero.yaml``); a kind whose simulator is not installed is
-reported as skipped with the reason.
+Kinds: ``maniskill-cpu`` (``topologies/local.yaml``: PushCube-v1, state observations, physx_cpu),
+``maniskill-gpu`` (``topologies/gpu-maniskill.yaml``: 1024 envs in one physx_cuda scene per
+rollout, inference and learning on the GPU; only where CUDA is present, with the placement of
+the file) and ``libero`` (``topologies/local-libero.yaml``); a kind that cannot run here (no
+simulator, no CUDA device) is reported as skipped with the reason.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 KINDS: dict[str, Path] = {
     "maniskill-cpu": ROOT / "topologies" / "local.yaml",
+    "maniskill-gpu": ROOT / "topologies" / "gpu-maniskill.yaml",
     "libero": ROOT / "topologies" / "local-libero.yaml",
 }
 """Env kind -> the topology its pipeline runs use."""
@@ -55,8 +58,15 @@ QUICK = Profile(warmup_s=6.0, window_s=12.0, rss_window_s=12.0, quick=True)
 
 def unavailable(kind: str) -> str | None:
     """Why env kind ``kind`` cannot run here, or None."""
-    if kind == "maniskill-cpu":
-        return None if importlib.util.find_spec("mani_skill") else "mani_skill is not installed"
+    if kind in ("maniskill-cpu", "maniskill-gpu"):
+        if importlib.util.find_spec("mani_skill") is None:
+            return "mani_skill is not installed"
+        if kind == "maniskill-gpu":
+            import torch
+
+            if not torch.cuda.is_available():
+                return "no CUDA device here (one physx_cuda scene of 1024 envs needs one)"
+        return None
     if kind == "libero":
         if importlib.util.find_spec("libero") is None:
             return "hf-libero is not installed (bash scripts/setup.sh libero)"
@@ -180,8 +190,10 @@ def run_bench(profile: Profile, kinds: tuple[str, ...] = tuple(KINDS), placement
             if topo.task.env == LIBERO_ENV:
                 progress(f"{kind}: one env's reset, step and render times")
                 entry["env_costs"] = _libero_costs_in_child(topo.task, 12 if profile.quick else 60)
-            progress(f"{kind}: sim_only vs async, placement {placement}")
-            entry["pipeline"] = _default(topo, profile, runs_root, None, progress, placement)
+            # a GPU node's cores are many: its processes go where the file puts them
+            where = "file" if kind == "maniskill-gpu" else placement
+            progress(f"{kind}: sim_only vs async, placement {where}")
+            entry["pipeline"] = _default(topo, profile, runs_root, None, progress, where)
             entry.update({k: entry["pipeline"].get(k) for k in HEADLINE})
             doc["kinds"][kind] = entry
     finally:

@@ -190,8 +190,14 @@ class TaskConfig:
     #: episode length (steps) before truncation
     max_episode_steps: int = 50
     #: "physx_cpu", "physx_cuda" or "auto" (ManiSkill's own rule: physx_cuda for a scene of more
-    #: than one env on a CUDA machine, else physx_cpu; dvla's env groups hold one env per scene)
+    #: than one env on a CUDA machine, else physx_cpu)
     sim_backend: str = "auto"
+    #: how a rollout's ManiSkill envs share simulator scenes: "loop" (one env per scene, two
+    #: double-buffered groups stepped env by env: the CPU path), "scene" (all the rollout's envs
+    #: in one scene stepped as a batch, observations kept on the sim device: the GPU path; more
+    #: than one env needs physx_cuda) or "auto" (scene where the backend resolves to physx_cuda).
+    #: Evaluators follow "auto". See docs/envs.md
+    env_batching: Literal["auto", "scene", "loop"] = "auto"
     #: policy registry name ("mlp", "tiny-vla") or "module:Class" of a user policy (docs/policies.md)
     policy: str = "mlp"
     #: keyword arguments for the policy constructor
@@ -255,10 +261,22 @@ OBS_MODES = ("state", "rgb")
 """ManiSkill observation modes the env adapter understands (dvla/learn/envs.py)."""
 
 
-def env_group_sizes(envs_per_rollout: int) -> list[int]:
-    """Sizes of a rollout's two double-buffered env groups (one group below two envs)."""
+def env_group_sizes(envs_per_rollout: int, one_scene: bool = False) -> list[int]:
+    """Sizes of a rollout's two double-buffered env groups (one group below two envs, or when
+    all the envs share one simulator scene)."""
     n = envs_per_rollout
-    return [n // 2, n - n // 2] if n >= 2 else [n]
+    return [n // 2, n - n // 2] if n >= 2 and not one_scene else [n]
+
+
+def may_share_scene(task: Any) -> bool:
+    """Whether a rollout of ``task`` may put all its envs in one simulator scene on some node
+    (``dvla.learn.envs.sim_layout`` decides on the node, where it knows about CUDA)."""
+    if task.env == LIBERO_ENV or task.env_batching == "loop":
+        return False
+    if task.env_batching == "scene":
+        return True
+    # auto: ManiSkill ids on a CUDA node, unless the backend or the algorithm rules a scene out
+    return ":" not in task.env and task.sim_backend != "physx_cpu" and task.algorithm != "grpo"
 
 
 def grpo_layout_problems(task: Any) -> list[tuple[str, str]]:

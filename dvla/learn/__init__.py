@@ -12,6 +12,7 @@ from typing import Any
 
 _HOME = {
     "EnvGroup": "envs", "StepResult": "envs", "make_env": "envs", "run_eval_episodes": "envs",
+    "make_env_group": "envs", "VectorEnvGroup": "vector_env",
     "MLPPolicy": "policies", "Policy": "policies", "make_policy": "policies", "register_policy": "policies",
     "PPOLearner": "ppo", "Trajectories": "ppo", "compute_gae": "ppo", "gae_batch": "ppo",
 }

@@ -35,11 +35,11 @@ import numpy as np
 from dvla.config import LIBERO_ENV, TaskConfig
 
 from ..stats import wilson_interval
-from .spec import ArraySpec, EnvSetupError, ObsSpec
+from .spec import ArraySpec, EnvSetupError, ObsSpec, StepResult, structured_spec
 
 __all__ = [
     "make_env", "EnvSetupError", "ArraySpec", "ObsSpec", "EnvGroup", "StepResult", "run_eval_episodes",
-    "obs_as_dict", "obs_to_torch", "probe_spec",
+    "obs_as_dict", "obs_to_torch", "probe_spec", "make_env_group", "sim_layout", "is_maniskill",
 ]
 
 
@@ -70,12 +70,54 @@ def _load_factory(spec: str) -> Callable[[TaskConfig, int], Any]:
     return factory
 
 
-def make_env(task: TaskConfig, seed: int) -> Any:
+def is_maniskill(task: TaskConfig) -> bool:
+    """``task.env`` names a ManiSkill3 id (not LIBERO, not a user factory)."""
+    return ":" not in task.env and task.env != LIBERO_ENV
+
+
+def sim_layout(task: TaskConfig, n: int, cuda: bool | None = None, batching: str | None = None) -> tuple[str, bool]:
+    """``(sim backend, one scene?)`` for a group of ``n`` envs of ``task`` on this machine
+    (``cuda``: whether it has a CUDA device; ``batching``: ``task.env_batching`` unless given).
+
+    ManiSkill's own rule decides ``auto``: a scene of more than one env goes to ``physx_cuda`` on a
+    CUDA machine, a one-env scene stays on ``physx_cpu`` (it steps faster there and its
+    observations need no device -> host copy). With ``env_batching: auto`` the envs share one
+    scene exactly when the backend is ``physx_cuda``, except for GRPO (its groups share seeded
+    initial states, which one scene does not give). LIBERO always loops; a user factory
+    (``module:factory``) builds one batched env exactly when ``env_batching`` is ``scene``.
+    Raises EnvSetupError for a layout ManiSkill cannot build (several envs in one CPU scene).
+    """
+    batching = batching or task.env_batching
+    if not is_maniskill(task):
+        return "", batching == "scene" and task.env != LIBERO_ENV
+    if cuda is None:
+        import torch
+
+        cuda = torch.cuda.is_available()
+    if batching == "auto" and task.algorithm == "grpo":
+        batching = "loop"
+    if batching == "loop":
+        return (task.sim_backend if task.sim_backend != "auto" else "physx_cpu"), False
+    backend = task.sim_backend
+    if backend == "auto":
+        backend = "physx_cuda" if cuda and (n > 1 or batching == "scene") else "physx_cpu"
+    scene = batching == "scene" or backend == "physx_cuda"
+    if scene and backend == "physx_cpu" and n > 1:
+        raise EnvSetupError(
+            f"task.env_batching: scene puts {n} envs in one simulator scene, which ManiSkill runs only on "
+            f"physx_cuda (this {'machine has CUDA' if cuda else 'machine has no CUDA device'}, sim_backend is "
+            f"{task.sim_backend!r}): use env_batching: loop here, or run on a CUDA node"
+        )
+    return backend, scene
+
+
+def make_env(task: TaskConfig, seed: int, backend: str | None = None) -> Any:
     """One Gymnasium env for ``task``.
 
     ``task.env`` is a ManiSkill3 id (``"PushCube-v1"``), ``"libero"`` or ``"module:factory"``,
     where ``factory(task, seed)`` returns a Gymnasium env. ``seed`` is only forwarded to factories
     and LIBERO (it picks the env's first task); ManiSkill envs are seeded at reset by :class:`EnvGroup`.
+    ``backend`` overrides the ManiSkill sim backend :func:`sim_layout` picks for a one-env scene.
     """
     if ":" in task.env:
         return _load_factory(task.env)(task, seed)
@@ -89,15 +131,11 @@ def make_env(task: TaskConfig, seed: int) -> Any:
     import torch
 
     cuda = torch.cuda.is_available()
-    num_envs = 1
-    # "auto" as ManiSkill decides it: a GPU scene pays off for many envs, a single env steps
-    # faster on the CPU (and its observations need no device -> host copy)
-    auto = "physx_cuda" if cuda and num_envs > 1 else "physx_cpu"
     kwargs: dict[str, Any] = dict(
         obs_mode=task.obs_mode,
         control_mode=task.control_mode,
-        sim_backend=task.sim_backend if task.sim_backend != "auto" else auto,
-        num_envs=num_envs,
+        sim_backend=backend or sim_layout(task, 1, cuda, batching="loop")[0],
+        num_envs=1,
         max_episode_steps=task.max_episode_steps,
     )
     if task.obs_mode != "state":
@@ -107,6 +145,31 @@ def make_env(task: TaskConfig, seed: int) -> Any:
         # (SAPIEN through a software Vulkan driver). With CUDA the GPU renderer is kept.
         kwargs["render_backend"] = "cpu"
     return gym.make(task.env, **kwargs)
+
+
+def make_env_group(
+    task: TaskConfig, n: int, seed: int, *, ignore_terminations: bool = False, group_size: int = 1,
+    batching: str | None = None,
+) -> "EnvGroup | Any":
+    """An :class:`EnvGroup` of ``n`` one-env simulators, or a
+    :class:`~dvla.learn.vector_env.VectorEnvGroup` (one scene of ``n`` envs) where
+    :func:`sim_layout` says so. Both take the same calls; the second's outputs are torch tensors
+    on the sim device (``group.on_device``). With a user factory and ``env_batching: scene`` the
+    scene is ``factory(task, seed, num_envs=n)``, a batched env with ``ManiSkillVectorEnv``'s
+    calls (docs/envs.md)."""
+    backend, scene = sim_layout(task, n, batching=batching)
+    if not scene:
+        return EnvGroup(task, n, seed, ignore_terminations=ignore_terminations, group_size=group_size,
+                        backend=backend or None)
+    if group_size != 1:
+        raise EnvSetupError(
+            f"algorithm grpo needs {group_size} envs per seeded initial state, which one simulator scene does "
+            "not give: set task.env_batching: loop"
+        )
+    from .vector_env import VectorEnvGroup
+
+    venv = _load_factory(task.env)(task, seed, num_envs=n) if ":" in task.env else None
+    return VectorEnvGroup(task, n, seed, ignore_terminations=ignore_terminations, backend=backend, venv=venv)
 
 
 def _to_numpy(x: Any) -> np.ndarray:
@@ -154,27 +217,6 @@ def _single_space(env: Any, name: str) -> Any:
     return space if space is not None else getattr(env, name)
 
 
-@dataclass(frozen=True)
-class StepResult:
-    """What :meth:`EnvGroup.step` returns; every array has a leading env axis of length n."""
-
-    #: observations to act on next, float32 [n, D] (a dict of [n, ...] arrays when structured);
-    #: already reset where the episode ended
-    next_obs: Any
-    #: rewards, float32 [n]
-    reward: np.ndarray
-    #: the episode reached a terminal state (no bootstrap), bool [n]
-    terminated: np.ndarray
-    #: the episode hit its time limit (bootstrap from final_obs), bool [n]
-    truncated: np.ndarray
-    #: observation reached before the auto-reset, same form as next_obs; zeros where not episode_done
-    final_obs: Any
-    #: info["success"] of this step (False when the env reports none), bool [n]
-    success: np.ndarray
-    #: the episode ended at this step and the env was reset, bool [n]
-    episode_done: np.ndarray
-
-
 class EnvGroup:
     """``n`` envs of one task stepped one after another in this process.
 
@@ -197,8 +239,12 @@ class EnvGroup:
     "success"`` replaces the env's reward by 1 at the first successful step of an episode.
     """
 
+    #: observations, rewards and flags are numpy arrays (VectorEnvGroup: torch tensors on its device)
+    on_device = False
+
     def __init__(
-        self, task: TaskConfig, n: int, seed: int, *, ignore_terminations: bool = False, group_size: int = 1
+        self, task: TaskConfig, n: int, seed: int, *, ignore_terminations: bool = False, group_size: int = 1,
+        backend: str | None = None,
     ):
         if n < 1:
             raise ValueError(f"an EnvGroup needs at least one env, got n={n}")
@@ -213,7 +259,7 @@ class EnvGroup:
         self._envs: list[Any] = []
         try:
             for i in range(n):
-                self._envs.append(make_env(task, seed + i))
+                self._envs.append(make_env(task, seed + i, backend=backend))
         except BaseException:
             self.close()
             raise
@@ -240,7 +286,7 @@ class EnvGroup:
             self.tokenizer = instruction_tokenizer(task.policy_kwargs, task.instruction_tokens)
             self._tokens = [self._instruction_tokens(env, i) for i, env in enumerate(self._envs)]
             self.instruction = self.instructions[0]
-            self.obs_spec: ObsSpec | None = _structured_spec(obs_space, task.instruction_tokens, self.tokenizer.vocab)
+            self.obs_spec: ObsSpec | None = structured_spec(obs_space, task.instruction_tokens, self.tokenizer.vocab)
         else:
             self.instruction = None
             shape = getattr(obs_space, "shape", None)
@@ -391,33 +437,6 @@ class EnvGroup:
         self.close()
 
 
-def _structured_spec(space: Any, n_tokens: int, vocab: int) -> ObsSpec:
-    """The spec of :func:`_structured_obs`'s output, read from ManiSkill's Dict space (or from
-    one that already has rgb and proprio)."""
-    tokens = ArraySpec((n_tokens,), "int32", vocab=vocab)
-    if "rgb" in space.spaces and "proprio" in space.spaces:
-        return {"rgb": ArraySpec(tuple(space["rgb"].shape), "uint8"),
-                "proprio": ArraySpec(tuple(space["proprio"].shape), "float32"), "tokens": tokens}
-    try:
-        cameras = space["sensor_data"]
-        shapes = [tuple(cameras[name]["rgb"].shape) for name in sorted(cameras.spaces)]
-        agent = space["agent"]
-        n_proprio = int(np.prod(agent["qpos"].shape) + np.prod(agent["qvel"].shape))
-    except (KeyError, TypeError) as err:
-        raise TypeError(
-            f"observation space without sensor_data/<camera>/rgb and agent/qpos, agent/qvel "
-            f"(keys {sorted(space.spaces)}); only ManiSkill's obs_mode='rgb' is understood"
-        ) from err
-    if not shapes or len({s[:2] for s in shapes}) != 1:
-        raise TypeError(f"cameras must share one image size, got {shapes}")
-    h, w = shapes[0][:2]
-    return {
-        "rgb": ArraySpec((h, w, sum(s[2] for s in shapes)), "uint8"),
-        "proprio": ArraySpec((n_proprio,), "float32"),
-        "tokens": tokens,
-    }
-
-
 def probe_spec(task: TaskConfig) -> tuple[ObsSpec, int]:
     """(observation spec, act_dim) of ``task``'s env, for processes that build a policy without
     stepping envs (actor, replicator): one env is made, read and closed (LIBERO's sizes follow
@@ -426,7 +445,8 @@ def probe_spec(task: TaskConfig) -> tuple[ObsSpec, int]:
         from .libero import obs_spec
 
         return obs_spec(task)
-    group = EnvGroup(task, 1, 0)
+    # sizes are the same on every backend: probe on the CPU, whatever the node's GPU does
+    group = EnvGroup(task, 1, 0, backend="physx_cpu" if is_maniskill(task) else None)
     try:
         if group.obs_spec is None:
             group.reset()
@@ -444,7 +464,7 @@ def run_eval_episodes(
     n_episodes: int,
     seed: int,
     device: Any = "cpu",
-    group: EnvGroup | None = None,
+    group: Any = None,
     n_envs: int = 8,
     stop: Any = None,
 ) -> dict[str, Any] | None:
@@ -468,7 +488,7 @@ def run_eval_episodes(
         raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
     own = group is None
     if own:
-        group = EnvGroup(task, min(n_envs, n_episodes), seed, ignore_terminations=True)
+        group = make_env_group(task, min(n_envs, n_episodes), seed, ignore_terminations=True, batching="auto")
     try:
         return _play_eval(policy, group, n_episodes, seed, torch.device(device), stop)
     finally:
@@ -497,21 +517,22 @@ def _play_eval(policy: Any, group: EnvGroup, n_episodes: int, seed: int, device:
             action, _, _ = sample_actions(policy, obs_to_torch(obs, device), deterministic=True)
             action = action.float()
         labels = list(group.task_labels)  # the episodes in progress (a step may reset into another task)
-        res = group.step(action.cpu().numpy())
+        res = group.step(action if group.on_device else action.cpu().numpy())
+        reward, success, ended = _to_numpy(res.reward), _to_numpy(res.success), _to_numpy(res.episode_done)
         active = episode < n_episodes
         env_steps += int(active.sum())
-        ret += res.reward
-        once |= res.success
-        for i in np.flatnonzero(res.episode_done & active):
+        ret += reward
+        once |= success
+        for i in np.flatnonzero(ended & active):
             returns.append(ret[i])
             successes_once.append(once[i])
-            successes_end.append(res.success[i])
+            successes_end.append(success[i])
             if labels[i]:
                 done, ok = per_task.get(labels[i], (0, 0))
                 per_task[labels[i]] = (done + 1, ok + int(once[i]))
-        ret[res.episode_done] = 0.0
-        once[res.episode_done] = False
-        episode[res.episode_done] += n
+        ret[ended] = 0.0
+        once[ended] = False
+        episode[ended] += n
         obs = res.next_obs
     low, high = wilson_interval(int(np.sum(successes_once)), len(successes_once))
     out: dict[str, Any] = {

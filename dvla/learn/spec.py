@@ -1,13 +1,18 @@
 """What the env layer promises its callers, apart from any simulator: the shape and dtype of each
 observation array (:class:`ArraySpec`, :data:`ObsSpec`) and the error an env raises when it cannot
-be made as configured (:class:`EnvSetupError`). :mod:`dvla.learn.envs` re-exports all three; env
-adapters (:mod:`dvla.learn.libero`) import them from here."""
+be made as configured (:class:`EnvSetupError`), what one step of an env group gives
+(:class:`StepResult`) and how ManiSkill's rgb observation space maps to dvla's observation keys
+(:func:`structured_spec`). :mod:`dvla.learn.envs` re-exports them; env adapters
+(:mod:`dvla.learn.libero`, :mod:`dvla.learn.vector_env`) import them from here."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
-__all__ = ["ArraySpec", "ObsSpec", "EnvSetupError", "PolicySetupError"]
+import numpy as np
+
+__all__ = ["ArraySpec", "ObsSpec", "EnvSetupError", "PolicySetupError", "StepResult", "structured_spec"]
 
 
 class EnvSetupError(RuntimeError):
@@ -35,3 +40,52 @@ class ArraySpec:
 
 ObsSpec = dict[str, ArraySpec]
 """Observation name -> :class:`ArraySpec`; the names are the trajectory chunk's obs keys."""
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """What an env group's ``step`` returns; every array has a leading env axis of length n (numpy
+    arrays from an ``EnvGroup``, torch tensors on the sim device from a ``VectorEnvGroup``)."""
+
+    #: observations to act on next, float32 [n, D] (a dict of [n, ...] arrays when structured);
+    #: already reset where the episode ended
+    next_obs: Any
+    #: rewards, float32 [n]
+    reward: np.ndarray
+    #: the episode reached a terminal state (no bootstrap), bool [n]
+    terminated: np.ndarray
+    #: the episode hit its time limit (bootstrap from final_obs), bool [n]
+    truncated: np.ndarray
+    #: observation reached before the auto-reset, same form as next_obs; zeros where not episode_done
+    final_obs: Any
+    #: info["success"] of this step (False when the env reports none), bool [n]
+    success: np.ndarray
+    #: the episode ended at this step and the env was reset, bool [n]
+    episode_done: np.ndarray
+
+
+def structured_spec(space: Any, n_tokens: int, vocab: int) -> ObsSpec:
+    """The spec of :func:`_structured_obs`'s output, read from ManiSkill's Dict space (or from
+    one that already has rgb and proprio)."""
+    tokens = ArraySpec((n_tokens,), "int32", vocab=vocab)
+    if "rgb" in space.spaces and "proprio" in space.spaces:
+        return {"rgb": ArraySpec(tuple(space["rgb"].shape), "uint8"),
+                "proprio": ArraySpec(tuple(space["proprio"].shape), "float32"), "tokens": tokens}
+    try:
+        cameras = space["sensor_data"]
+        shapes = [tuple(cameras[name]["rgb"].shape) for name in sorted(cameras.spaces)]
+        agent = space["agent"]
+        n_proprio = int(np.prod(agent["qpos"].shape) + np.prod(agent["qvel"].shape))
+    except (KeyError, TypeError) as err:
+        raise TypeError(
+            f"observation space without sensor_data/<camera>/rgb and agent/qpos, agent/qvel "
+            f"(keys {sorted(space.spaces)}); only ManiSkill's obs_mode='rgb' is understood"
+        ) from err
+    if not shapes or len({s[:2] for s in shapes}) != 1:
+        raise TypeError(f"cameras must share one image size, got {shapes}")
+    h, w = shapes[0][:2]
+    return {
+        "rgb": ArraySpec((h, w, sum(s[2] for s in shapes)), "uint8"),
+        "proprio": ArraySpec((n_proprio,), "float32"),
+        "tokens": tokens,
+    }

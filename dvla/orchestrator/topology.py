@@ -860,6 +860,34 @@ def _check_grpo(p: _Partial, ctx: _Context) -> None:
         ctx.report(p.where(key), message)
 
 
+_SIM_BACKENDS = ("auto", "physx_cpu", "physx_cuda")
+
+
+def _check_env_batching(p: _Partial, ctx: _Context) -> None:
+    """``sim_backend`` is one ManiSkill knows; ``env_batching: scene`` only where one scene of the
+    rollout's envs can be built and played (dvla/learn/envs.py: sim_layout)."""
+    backend = p.get("sim_backend")
+    if isinstance(backend, str) and backend not in _SIM_BACKENDS:
+        ctx.report(p.where("sim_backend"), f"{_show(backend)} is not one of {', '.join(_SIM_BACKENDS)}")
+    if p.get("env_batching") != "scene":
+        return
+    env, n = p.get("env"), p.get("envs_per_rollout")
+    fix = "set env_batching: auto (or loop)"
+    if env == LIBERO_ENV:
+        ctx.report(p.where("env_batching"), f"scene: LIBERO's envs are separate MuJoCo simulators, one per env; {fix}")
+    elif backend == "physx_cpu" and type(n) is int and n > 1 and isinstance(env, str) and ":" not in env:
+        ctx.report(p.where("env_batching"),
+                   f"scene: ManiSkill puts {n} envs (envs_per_rollout) in one scene only on physx_cuda, and "
+                   f"sim_backend is physx_cpu; set sim_backend: physx_cuda (or auto on CUDA nodes), or {fix}")
+    if p.get("algorithm") == "grpo":
+        ctx.report(p.where("env_batching"),
+                   f"scene: algorithm grpo needs group_size envs per seeded initial state, which one scene does not give; {fix}")
+    chunk = p.get("action_chunk")
+    if type(chunk) is int and chunk > 1:
+        ctx.report(p.where("env_batching"),
+                   f"scene: one scene plays one simulator step per transition, and action_chunk is {chunk}; {fix}")
+
+
 # --- LIBERO -----------------------------------------------------------------------------------
 
 
@@ -1129,7 +1157,7 @@ _CHECKS: dict[type, list[Callable[[_Partial, _Context], None]]] = {
     SshConfig: [_check_ssh],
     TlsConfig: [_check_tls],
     WandbConfig: [_check_wandb],
-    TaskConfig: [_check_obs_and_policy, _check_grpo, _check_libero_task],
+    TaskConfig: [_check_obs_and_policy, _check_grpo, _check_libero_task, _check_env_batching],
     LiberoConfig: [_check_libero],
     BudgetConfig: [_check_stop_condition],
     RackConfig: [_check_rack_nodes, _check_key_name],

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..config import RoleConfig, env_group_sizes, resolve_device
+from ..config import RoleConfig, env_group_sizes, may_share_scene, resolve_device
 from ..fabric import Fabric
 from ..fabric.accounting import OTHER_PEER
 from ..fabric.fabric import DATA
@@ -87,8 +87,10 @@ class Actor:
         ) if self.is_root else None
         groups = env_group_sizes(task.envs_per_rollout)  # a chunk holds one env group's columns
         chunks_per_batch = -(-task.ppo.batch_steps // (task.chunk_steps * min(groups)))
+        # ... or all of a rollout's envs where they share one simulator scene (a GPU node's choice)
+        n_max = task.envs_per_rollout if may_share_scene(task) else max(groups)
         self.slots = SlotPool(
-            n_slots=3 * chunks_per_batch + 8, T=task.chunk_steps, n_max=max(groups),
+            n_slots=3 * chunks_per_batch + 8, T=task.chunk_steps, n_max=n_max,
             obs_spec=self.obs_spec, act_dim=self.act_dim, pin=self.device.type == "cuda", extras_spec=self.extras_spec,
         )
         #: newest version learned (the learn lane numbers the next one from here)

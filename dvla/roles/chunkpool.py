@@ -5,6 +5,10 @@ Each env group fills one chunk at a time, writing every step straight into the a
 ship lane as a :class:`Shipment`; the ship lane encodes and publishes it and gives it back, so
 the arrays are allocated once per pool, not once per chunk.
 
+A group whose envs share one simulator scene on a GPU (dvla/learn/vector_env.py) records its
+steps into a :class:`DeviceChunk` instead, tensors shaped like the chunk on the sim device, and
+copies them into the chunk taken from the pool once per chunk.
+
 A group never waits for a chunk when the pool holds ``ship_queue + 2`` of them: one being
 filled, at most ``ship_queue`` queued for the ship lane and one being published.
 """
@@ -15,6 +19,7 @@ import copy
 from typing import Any, NamedTuple
 
 import numpy as np
+import torch
 
 from ..fabric import TrajectoryChunk
 from .freelist import FreeList
@@ -54,3 +59,30 @@ class Shipment(NamedTuple):
 
     chunk: TrajectoryChunk
     pool: ChunkPool
+
+
+#: a chunk's per-step fields (array or name -> array), recorded on the device by a one-scene group
+_STEP_FIELDS = ("obs", "actions", "logprobs", "rewards", "terminated", "truncated", "success",
+                "next_obs", "final_obs", "extras")
+
+
+class DeviceChunk:
+    """Zero tensors on ``device`` shaped like ``template``'s arrays (same attribute names, dicts
+    for obs / next_obs / final_obs / extras), written step by step with tensors that are already
+    there; :meth:`copy_to` copies them into a host chunk's arrays, one copy per array."""
+
+    def __init__(self, template: TrajectoryChunk, device: torch.device | str) -> None:
+        def like(a: np.ndarray) -> torch.Tensor:
+            return torch.zeros(a.shape, dtype=torch.from_numpy(a[:0].reshape(-1)).dtype, device=device)
+
+        for name in _STEP_FIELDS:
+            value = getattr(template, name)
+            setattr(self, name, {k: like(v) for k, v in value.items()} if isinstance(value, dict) else like(value))
+
+    def copy_to(self, chunk: TrajectoryChunk) -> None:
+        """Copy every recorded tensor into ``chunk``'s arrays (in place)."""
+        for name in _STEP_FIELDS:
+            dev, host = getattr(self, name), getattr(chunk, name)
+            pairs = [(dev[k], host[k]) for k in dev] if isinstance(dev, dict) else [(dev, host)]
+            for d, h in pairs:
+                torch.from_numpy(h).copy_(d)

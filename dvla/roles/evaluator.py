@@ -26,7 +26,7 @@ import torch
 from ..config import RoleConfig, resolve_device
 from ..fabric import Fabric
 from ..fabric.messages import EvalResult
-from ..learn import EnvGroup, make_policy, run_eval_episodes
+from ..learn import make_env_group, make_policy, run_eval_episodes
 from ..learn.policies import policy_base_hash
 from ..replication import ParamLayout, unflatten_into
 from .runtime import main
@@ -45,7 +45,9 @@ class Evaluator:
         first, end = eval_block(task.eval.episodes, self.shard, self.shards)
         #: this evaluator's episodes: [first, first + n_episodes) of every evaluation
         self.first_episode, self.n_episodes = first, end - first
-        self.group = EnvGroup(task, min(task.eval.envs, self.n_episodes), cfg.eval_seed + first, ignore_terminations=True)
+        # one ManiSkill scene on a CUDA node (ManiSkill's rule), one-env simulators elsewhere
+        self.group = make_env_group(task, min(task.eval.envs, self.n_episodes), cfg.eval_seed + first,
+                                    ignore_terminations=True, batching="auto")
         self.device = torch.device(resolve_device(task.eval_device))
         policy = make_policy(task.policy, self.group.obs_spec, self.group.act_dim, **task.policy_kwargs)
         self.policy = policy.to(self.device).eval()

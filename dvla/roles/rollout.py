@@ -10,6 +10,10 @@ Lanes (and what flows between them):
              the pool.
 - ``sync``:  receives weight versions into the staging pool (see weightsync.py).
 
+Where all the rollout's envs share one simulator scene (ManiSkill on a GPU, docs/envs.md) there
+is one group: observations, actions and every recorded step stay tensors on the sim device
+(a ``DeviceChunk``), and a finished chunk is copied to the host once.
+
 In ``sync`` mode (the lock-step baseline) the sim lane stops after its share of one learner
 batch and waits for the next policy version before sampling again. In ``sim_only`` mode (a
 benchmark baseline) the sim lane steps both groups with uniform random actions and nothing is
@@ -31,13 +35,13 @@ import torch
 
 from ..config import RoleConfig, env_group_sizes, resolve_device
 from ..fabric import Fabric, TrajectoryChunk
-from ..learn import EnvGroup, make_policy
+from ..learn import make_env_group, make_policy
 from ..learn.policies import extras_spec, policy_base_hash, sample_actions
-from ..learn.envs import obs_as_dict, obs_to_torch
+from ..learn.envs import obs_as_dict, obs_to_torch, sim_layout
 from ..learn.grpo import grpo_envs
 from ..replication import ParamLayout, bind_flat, unflatten_into
 from ..counters import INCARNATION_SHIFT, CounterFile
-from .chunkpool import ChunkPool, Shipment, chunk_template
+from .chunkpool import ChunkPool, DeviceChunk, Shipment, chunk_template
 from .runtime import main
 from .swimlane import LaneContext, LatencyHistogram, Swimlane, sample_percentile
 from .weightsync import WeightSync
@@ -53,12 +57,13 @@ class Actions(NamedTuple):
     """infer -> sim: what the policy chose for one env group's observations."""
 
     gid: int
-    actions: np.ndarray
-    logprobs: np.ndarray
+    #: numpy arrays, or tensors on the sim device for a one-scene group
+    actions: Any
+    logprobs: Any
     #: the policy version that chose them
     version: int
     #: the policy's per-step extras for them (name -> [n, ...]; empty for Gaussian policies)
-    extras: dict[str, np.ndarray]
+    extras: dict[str, Any]
 
 
 @dataclass
@@ -66,8 +71,9 @@ class _Group:
     """One env group and the chunk being filled for it."""
 
     gid: int
-    envs: EnvGroup
-    obs: np.ndarray
+    #: an EnvGroup, or a VectorEnvGroup (one scene; its observations are tensors on its device)
+    envs: Any
+    obs: Any
     t: int = 0
     #: steps recorded since the process started (names the sampling noise of the next one)
     steps: int = 0
@@ -76,6 +82,9 @@ class _Group:
     chunks: ChunkPool | None = None
     #: the chunk being filled, one of `chunks`: each step is written into its arrays
     chunk: TrajectoryChunk | None = None
+    #: a one-scene group's steps are recorded here on the sim device, then copied into `chunk`
+    #: once per chunk (None: straight into `chunk`)
+    dev: DeviceChunk | None = None
     #: per env: undiscounted return and length of the episode in progress
     ep_return: np.ndarray | None = None
     ep_len: np.ndarray | None = None
@@ -167,8 +176,11 @@ class Rollout:
         self.groups: list[_Group] = []
         self._noise = torch.Generator(device=self.device)
         seed = cfg.seed * 10_000
-        for gid, size in enumerate(env_group_sizes(task.envs_per_rollout)):
-            envs = EnvGroup(task, size, seed + gid * 1000, **grpo_envs(task))
+        # one simulator scene of every env (ManiSkill on a GPU), or two double-buffered groups
+        _, one_scene = sim_layout(task, task.envs_per_rollout)
+        for gid, size in enumerate(env_group_sizes(task.envs_per_rollout, one_scene)):
+            envs = make_env_group(task, size, seed + gid * 1000, batching="scene" if one_scene else "loop",
+                                  **grpo_envs(task))
             self.groups.append(_Group(gid, envs, envs.reset()))
         g0 = self.groups[0].envs
         self.obs_spec, self.act_dim = g0.obs_spec, g0.act_dim  # flat: {"state"}; rgb: rgb/proprio/tokens
@@ -181,6 +193,8 @@ class Rollout:
             template = chunk_template(cfg.name, self.T, g.envs.n, self.obs_spec, self.act_dim, self.extras_spec)
             g.chunks = ChunkPool(template, SHIP_QUEUE + 2)
             g.chunk = g.chunks.take(threading.Event())
+            if g.envs.on_device:
+                g.dev = DeviceChunk(template, g.envs.device)
         # Counters that survive a kill -9 (counters.py); the incarnation goes in seq's high bits.
         self.counters = CounterFile(cfg.run_dir, cfg.name)
         self.seq = self.counters.incarnation << INCARNATION_SHIFT
@@ -275,10 +289,12 @@ class Rollout:
         # (A generator of the infer lane's own: simulators may draw from torch's global one.)
         self._noise.manual_seed((self.cfg.seed * 4 + gid) * 2**32 + g.steps)
         with torch.no_grad():
-            obs = obs_to_torch(g.obs, self.device)
+            obs = obs_to_torch(g.obs, self.device)  # no copy where the scene is on this device
             action, logprob, extras = sample_actions(self.pool.active, obs, generator=self._noise)
-            action, logprob = action.float().cpu().numpy(), logprob.float().cpu().numpy()
-            extras = {k: v.cpu().numpy() for k, v in extras.items()}
+            action, logprob = action.float(), logprob.float()
+            if not g.envs.on_device:
+                action, logprob = action.cpu().numpy(), logprob.cpu().numpy()
+                extras = {k: v.cpu().numpy() for k, v in extras.items()}
         ms = (time.perf_counter() - t0) * 1e3
         seq1 = self.pool.stage_seq
         self.infer_latency.record("swap" if swapped or seq0 % 2 == 1 else "no_swap", ms)
@@ -345,7 +361,7 @@ class Rollout:
 
     def _record_step(self, g: _Group, a: Actions) -> None:
         actions, logprobs, version = a.actions, a.logprobs, a.version
-        m, t = g.chunk, g.t
+        m, t = g.dev or g.chunk, g.t  # numpy into the chunk, or tensors on the sim device
         for k, v in obs_as_dict(g.obs).items():
             m.obs[k][t] = v
         step = self._step(g.envs, actions)
@@ -366,13 +382,15 @@ class Rollout:
         self.env_steps += g.envs.n
         if g.ep_return is None:
             g.ep_return, g.ep_len = np.zeros(g.envs.n, np.float64), np.zeros(g.envs.n, np.int64)
+            if g.envs.on_device:
+                g.ep_return, g.ep_len = torch.as_tensor(g.ep_return, device=g.envs.device), torch.as_tensor(g.ep_len, device=g.envs.device)
         g.ep_return += step.reward
         g.ep_len += 1
         done = int(step.episode_done.sum())
         if done:
             self.episodes += done
             self.successes += int((step.episode_done & step.success).sum())
-            ended = np.asarray(step.episode_done, bool)
+            ended = step.episode_done
             self.recent_returns.extend(g.ep_return[ended].tolist())
             self.recent_lengths.extend(g.ep_len[ended].tolist())
             g.ep_return[ended] = 0.0
@@ -380,7 +398,9 @@ class Rollout:
 
     def _finish_chunk(self, g: _Group, ctx: LaneContext) -> None:
         for k, v in obs_as_dict(g.obs).items():
-            g.chunk.next_obs[k][...] = v
+            (g.dev or g.chunk).next_obs[k][...] = v
+        if g.dev is not None:
+            g.dev.copy_to(g.chunk)  # the chunk's one device -> host copy
         # A new message object around the same arrays: the per-chunk fields are frozen.
         chunk = dataclasses.replace(g.chunk, seq=self.seq, policy_version=min(g.versions), created_ns=time.time_ns())
         self.seq += 1
@@ -449,6 +469,9 @@ class Rollout:
     def status_extra(self) -> dict[str, Any]:
         ms = self.infer_ms[-512:]
         return {
+            # envs per group; one_scene: they share one simulator scene stepped as a batch
+            "env_groups": [g.envs.n for g in self.groups],
+            "one_scene": bool(self.groups[0].envs.on_device),
             "chunks_produced": self.chunks_shipped,
             "bytes_produced": self.bytes_shipped,
             "episodes": self.episodes,

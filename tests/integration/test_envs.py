@@ -140,3 +140,31 @@ def test_eval_on_factory_env():
     assert out["episodes"] == 3 and out["env_steps"] == 15
     assert out["success_once"] == 1.0 and out["success_at_end"] == 0.0
     assert out["return_mean"] == 5.0
+
+
+@pytest.mark.timeout(180)
+def test_one_scene_group_plays_maniskill_like_the_loop_group():
+    """VectorEnvGroup on real ManiSkill (ManiSkillVectorEnv over physx_cpu, which allows one env
+    per scene): the same seed and actions give the loop group's first episode exactly, as
+    tensors; the episode then ends, is reset, and the group plays on."""
+    pytest.importorskip("mani_skill")
+    from dvla.learn.vector_env import VectorEnvGroup
+
+    task = TaskConfig(env="PushCube-v1", sim_backend="physx_cpu", max_episode_steps=10)
+    loop, scene = EnvGroup(task, 1, seed=7), VectorEnvGroup(task, 1, seed=7, backend="physx_cpu")
+    try:
+        assert scene.obs_spec == loop.obs_spec and scene.act_dim == loop.act_dim
+        a, b = loop.reset(), scene.reset()
+        assert isinstance(b, torch.Tensor) and np.array_equal(a, b.numpy())
+        rng = np.random.default_rng(1)
+        for t in range(10):
+            act = rng.uniform(-1, 1, (1, 8)).astype(np.float32)
+            x, y = loop.step(act), scene.step(torch.from_numpy(act))
+            for field in ("reward", "terminated", "truncated", "success", "episode_done", "final_obs"):
+                assert np.array_equal(getattr(x, field), getattr(y, field).numpy()), (t, field)
+        assert y.truncated.tolist() == [True] and not torch.equal(y.next_obs, y.final_obs)
+        y = scene.step(torch.zeros(1, 8))
+        assert y.next_obs.shape == (1, 35) and not y.episode_done.any()
+    finally:
+        loop.close()
+        scene.close()

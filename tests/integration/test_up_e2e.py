@@ -197,3 +197,31 @@ def test_up_with_the_simulators_pinned_apart(tmp_path: Path) -> None:
         assert placement["cpus"] == [1], (name, placement)
         want = {lane: [0] if lane == "sim" and name.startswith("rollout") else [1] for lane in s["lanes"]}
         assert placement["lanes"] == want, (name, placement)
+
+
+SCENES = {
+    # a batched torch env with ManiSkillVectorEnv's calls: four envs in one scene on this CPU
+    "batched-factory": ("  env: batched_reach:make\n  env_batching: scene\n  envs_per_rollout: 4\n", 4),
+    # real ManiSkill through ManiSkillVectorEnv: one env per scene is all physx_cpu allows
+    "maniskill-cpu": ("  env: PushCube-v1\n  env_batching: scene\n  envs_per_rollout: 1\n", 1),
+}
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("kind", sorted(SCENES))
+def test_up_with_one_scene_per_rollout(tmp_path: Path, kind: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`env_batching: scene` (the GPU path, dvla/learn/vector_env.py) on a CPU: each rollout
+    records its steps as tensors and ships chunks of all its envs, versions reach the rollouts and
+    the accounting closes."""
+    lines, n = SCENES[kind]
+    text = (ROOT / "topologies/tiny.yaml").read_text()
+    for old in ("  env: PushCube-v1\n", "  envs_per_rollout: 2\n"):
+        assert old in text
+        text = text.replace(old, "", 1)
+    text = text.replace("task:\n", "task:\n" + lines, 1)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(ROOT / "tests" / "plugin_env"), str(ROOT)]))
+    run_dir = up_tiny_variant(tmp_path, text, 1200)
+    for name in ("rollout-node0-0", "rollout-node0-1"):
+        s = json.loads((run_dir / "summaries" / f"{name}.json").read_text())
+        assert s["error"] is None and s["extra"]["one_scene"] is True and s["extra"]["env_groups"] == [n], s["extra"]
+        assert s["extra"]["chunks_produced"] > 0 and s["extra"]["episodes"] > 0 and s["policy_version"] >= 2

@@ -73,3 +73,25 @@ def test_eval_plays_rgb_episodes(group):
     policy = make_policy("tiny-vla", group.obs_spec, group.act_dim, patch_size=8)
     out = run_eval_episodes(policy, TASK, 2, seed=1000, group=group)
     assert out["episodes"] == 2 and out["env_steps"] == 8
+
+
+@pytest.mark.timeout(180)
+def test_one_scene_group_gives_the_same_rgb_observations():
+    """The one-scene group (dvla/learn/vector_env.py) reads ManiSkill's rgb observation as the
+    loop group does: the same images, proprioception and tokens, as tensors with the env axis."""
+    pytest.importorskip("mani_skill")
+    from dvla.learn.vector_env import VectorEnvGroup
+
+    loop, scene = EnvGroup(TASK, 1, seed=5), VectorEnvGroup(TASK, 1, seed=5, backend="physx_cpu")
+    try:
+        assert scene.obs_spec == loop.obs_spec
+        a, b = loop.reset(), scene.reset()
+        assert b["rgb"].dtype == torch.uint8 and b["tokens"].dtype == torch.int32
+        for k in ("rgb", "proprio", "tokens"):
+            assert np.array_equal(a[k], b[k].numpy()), k
+        x, y = loop.step(np.zeros((1, 8), np.float32)), scene.step(torch.zeros(1, 8))
+        for k in ("rgb", "proprio"):
+            assert np.array_equal(x.next_obs[k], y.next_obs[k].numpy()), k
+    finally:
+        loop.close()
+        scene.close()

@@ -11,7 +11,17 @@ from benchmarks.envs import KINDS, format_table, unavailable
 def test_unknown_kind_is_refused() -> None:
     with pytest.raises(ValueError, match="unknown env kind 'mujoco'"):
         unavailable("mujoco")
-    assert set(KINDS) == {"maniskill-cpu", "libero"}
+    assert set(KINDS) == {"maniskill-cpu", "maniskill-gpu", "libero"}
+
+
+def test_the_gpu_kind_says_why_it_cannot_run_on_a_cpu_machine() -> None:
+    import torch
+
+    pytest.importorskip("mani_skill")
+    if torch.cuda.is_available():
+        assert unavailable("maniskill-gpu") is None
+    else:
+        assert "no CUDA device" in unavailable("maniskill-gpu")
 
 
 def test_table_of_a_run_and_a_skipped_kind() -> None:
