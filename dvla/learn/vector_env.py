@@ -173,7 +173,7 @@ class VectorEnvGroup:
         initial states are a function of the group's seed and how many resets came before."""
         idx = torch.nonzero(done).reshape(-1)
         self._resets += 1
-        devices = [self.device] if self.device.type == "cuda" else []
+        devices = [self.device.index or 0] if self.device.type == "cuda" else []
         with torch.random.fork_rng(devices=devices):
             torch.manual_seed((self._base * 1_000_003 + self._resets) % 2**63)
             raw, _ = self._venv.reset(options={"env_idx": idx})

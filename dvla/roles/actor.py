@@ -87,8 +87,12 @@ class Actor:
         ) if self.is_root else None
         groups = env_group_sizes(task.envs_per_rollout)  # a chunk holds one env group's columns
         chunks_per_batch = -(-task.ppo.batch_steps // (task.chunk_steps * min(groups)))
-        # ... or all of a rollout's envs where they share one simulator scene (a GPU node's choice)
-        n_max = task.envs_per_rollout if may_share_scene(task) else max(groups)
+        # ... or all of a rollout's envs where they share one simulator scene: said in the file, or
+        # left to `auto`, which chooses it on CUDA nodes (taken to be the rollouts' nodes too when
+        # the actor learns on CUDA; docs/envs.md)
+        explicit = task.env_batching == "scene" or task.sim_backend == "physx_cuda"
+        scene = may_share_scene(task) and (explicit or self.device.type == "cuda")
+        n_max = task.envs_per_rollout if scene else max(groups)
         self.slots = SlotPool(
             n_slots=3 * chunks_per_batch + 8, T=task.chunk_steps, n_max=n_max,
             obs_spec=self.obs_spec, act_dim=self.act_dim, pin=self.device.type == "cuda", extras_spec=self.extras_spec,

@@ -87,7 +87,8 @@ class SlotPool:
             return f"observation keys {sorted(c.obs)} != the policy's {sorted(self.obs)}"
         T, n = c.rewards.shape
         if T != self.T or not 1 <= n <= self.n_max:
-            return f"chunk shape T={T}, N={n} does not fit slots of T={self.T}, N<={self.n_max}"
+            return (f"chunk shape T={T}, N={n} does not fit slots of T={self.T}, N<={self.n_max} (a rollout whose envs "
+                    f"share one scene on a CUDA node, with an actor on a CPU one? say task.env_batching: scene)")
         if c.actions.shape[2:] != self.actions.shape[3:]:
             return f"actions {c.actions.shape} do not match the policy"
         for k, arr in c.obs.items():
