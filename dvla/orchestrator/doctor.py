@@ -93,7 +93,7 @@ def needs_of(topo: Topology | None) -> Needs:
     task = topo.task
     return Needs(
         simulator=bool(kinds & {"rollout", "evaluator"}),
-        cuda=task.device == "cuda" or task.sim_backend == "physx_cuda",
+        cuda="cuda" in (task.device, task.rollout_device, task.eval_device) or task.sim_backend == "physx_cuda",
         libero=task.env == LIBERO_ENV and bool(kinds & {"rollout", "evaluator"}),
         netns=topo.emulate == "netns",
         endpoints=tuple((p.config.name, ep) for p in local for ep in (*p.config.ctrl.listen, *p.config.data.listen)),
@@ -159,7 +159,8 @@ def check_torch(needs: Needs) -> list[CheckResult]:
     elif needs.cuda:
         cuda = outcome("cuda", False, "no CUDA device, but the topology asks for cuda", required=True,
                        fix="install the NVIDIA driver and the CUDA build of torch (bash scripts/setup.sh python on a GPU host), "
-                           "or set task.device and task.sim_backend to cpu/physx_cpu")
+                           "or run on the CPU: task.device, rollout_device and eval_device auto or cpu, sim_backend "
+                           "auto or physx_cpu, env_batching auto or loop (docs/envs.md)")
     else:
         cuda = CheckResult(name="cuda", status="ok", detail="no CUDA device: torch runs on the CPU")
     return [torch_ok, cuda]
