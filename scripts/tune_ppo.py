@@ -47,6 +47,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--env", default="PushCube-v1")
     p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--lr-end", type=float, default=None, help="decay the lr linearly to this (default: constant)")
+    p.add_argument("--lr-decay-steps", type=int, default=100_000, help="env steps over which --lr-end is reached")
     p.add_argument("--envs", type=int, default=8, help="training envs (one EnvGroup)")
     p.add_argument("--chunk-steps", type=int, default=25)
     p.add_argument("--lag", type=int, default=1, help="versions the behaviour policy lags behind")
@@ -216,6 +218,10 @@ def train(a: argparse.Namespace) -> dict:
     result: dict = {"reached": False}
     try:
         while env_steps < a.max_steps and time.perf_counter() - started < a.max_wall:
+            if a.lr_end is not None:
+                frac = min(1.0, env_steps / a.lr_decay_steps)
+                for group in run.learner.optimizer.param_groups:
+                    group["lr"] = a.lr + frac * (a.lr_end - a.lr)
             stats = run.learn_one_version()
             env_steps += a.batch_steps
             version += 1
