@@ -206,7 +206,7 @@ class VectorEnvGroup:
         truncated = _batched(truncated, n, self.device, torch.bool)
         done = terminated | truncated
         # the observation reached, where an episode ended (zeros elsewhere, as EnvGroup's)
-        final_obs = self._map(obs, lambda v: v * done.reshape(n, *[1] * (v.dim() - 1)).to(v.dtype))
+        final_obs = self._map(obs, lambda v: torch.where(done.reshape(n, *[1] * (v.dim() - 1)), v, torch.zeros_like(v)))
         if bool(done.any()):
             # the scene's observation after a partial reset holds every env's: the reset envs'
             # first observation, the others' as they were

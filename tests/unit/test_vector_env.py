@@ -14,6 +14,7 @@ import torch
 from dvla.config import TaskConfig, may_share_scene
 from dvla.learn.envs import EnvSetupError, make_env_group, run_eval_episodes, sim_layout
 from dvla.learn.policies import make_policy
+from dvla.learn.spec import ArraySpec
 from dvla.learn.vector_env import VectorEnvGroup
 from dvla.roles.chunkpool import DeviceChunk, chunk_template
 
@@ -102,7 +103,7 @@ def test_a_seed_replays_the_run_and_the_global_rng_is_left_alone() -> None:
 
 
 def test_evaluation_runs_on_a_scene() -> None:
-    policy = make_policy("mlp", {"state": __import__("dvla.learn.spec", fromlist=["ArraySpec"]).ArraySpec((4,), "float32")}, 2)
+    policy = make_policy("mlp", {"state": ArraySpec((4,), "float32")}, 2)
     out = run_eval_episodes(policy, TASK, 6, seed=11, group=group(n=3, ignore_terminations=True))
     assert out["episodes"] == 6 and out["env_steps"] == 6 * 6
     assert 0.0 <= out["success_once"] <= 1.0
@@ -116,8 +117,6 @@ def test_action_chunks_are_refused() -> None:
 
 
 def test_device_chunk_copies_a_recorded_chunk_to_the_host() -> None:
-    from dvla.learn.spec import ArraySpec
-
     host = chunk_template("r", 2, 3, {"state": ArraySpec((4,), "float32")}, 2, {"chain": ArraySpec((2, 2), "float32")})
     dev = DeviceChunk(host, "cpu")
     dev.obs["state"][1] = torch.arange(12, dtype=torch.float32).reshape(3, 4)
