@@ -268,17 +268,6 @@ def env_group_sizes(envs_per_rollout: int, one_scene: bool = False) -> list[int]
     return [n // 2, n - n // 2] if n >= 2 and not one_scene else [n]
 
 
-def may_share_scene(task: Any) -> bool:
-    """Whether a rollout of ``task`` may put all its envs in one simulator scene on some node
-    (``dvla.learn.envs.sim_layout`` decides on the node, where it knows about CUDA)."""
-    if task.env == LIBERO_ENV or task.env_batching == "loop":
-        return False
-    if task.env_batching == "scene":
-        return True
-    # auto: ManiSkill ids on a CUDA node, unless the backend or the algorithm rules a scene out
-    return ":" not in task.env and task.sim_backend != "physx_cpu" and task.algorithm != "grpo"
-
-
 def grpo_layout_problems(task: Any) -> list[tuple[str, str]]:
     """``(task key, message)`` for each setting that breaks GRPO's layout (dvla/learn/grpo.py):
     one chunk = one whole episode, every env group made of whole groups. Empty unless

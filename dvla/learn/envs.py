@@ -40,6 +40,7 @@ from .spec import ArraySpec, EnvSetupError, ObsSpec, StepResult, structured_spec
 __all__ = [
     "make_env", "EnvSetupError", "ArraySpec", "ObsSpec", "EnvGroup", "StepResult", "run_eval_episodes",
     "obs_as_dict", "obs_to_torch", "probe_spec", "make_env_group", "sim_layout", "is_maniskill",
+    "may_share_scene",
 ]
 
 
@@ -109,6 +110,15 @@ def sim_layout(task: TaskConfig, n: int, cuda: bool | None = None, batching: str
             f"{task.sim_backend!r}): use env_batching: loop here, or run on a CUDA node"
         )
     return backend, scene
+
+
+def may_share_scene(task: TaskConfig) -> bool:
+    """Whether a rollout of ``task`` puts all its envs in one simulator scene on a CUDA node
+    (:func:`sim_layout` there, for its ``envs_per_rollout`` envs)."""
+    try:
+        return sim_layout(task, task.envs_per_rollout, cuda=True)[1]
+    except EnvSetupError:  # a layout the topology check refuses
+        return False
 
 
 def make_env(task: TaskConfig, seed: int, backend: str | None = None) -> Any:

@@ -24,14 +24,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..config import RoleConfig, env_group_sizes, may_share_scene, resolve_device
+from ..config import RoleConfig, env_group_sizes, resolve_device
 from ..fabric import Fabric
 from ..fabric.accounting import OTHER_PEER
 from ..fabric.fabric import DATA
 from ..fabric.messages import TrajectoryChunk
 from ..learn import PPOLearner, Trajectories, gae_batch, make_policy
 from ..learn.group import LearnerGroup
-from ..learn.envs import probe_spec
+from ..learn.envs import may_share_scene, probe_spec
 from ..learn.grpo import grpo_batch
 from ..learn.policies import extras_spec, policy_base_hash
 from ..replication import ParamLayout, checksum, flatten, replicated_tensors, unflatten_into

@@ -380,10 +380,10 @@ class Rollout:
         g.t += 1
         g.steps += 1
         self.env_steps += g.envs.n
-        if g.ep_return is None:
+        if g.ep_return is None:  # beside the rewards: numpy, or tensors on the sim device
             g.ep_return, g.ep_len = np.zeros(g.envs.n, np.float64), np.zeros(g.envs.n, np.int64)
             if g.envs.on_device:
-                g.ep_return, g.ep_len = torch.as_tensor(g.ep_return, device=g.envs.device), torch.as_tensor(g.ep_len, device=g.envs.device)
+                g.ep_return, g.ep_len = (torch.from_numpy(x).to(g.envs.device) for x in (g.ep_return, g.ep_len))
         g.ep_return += step.reward
         g.ep_len += 1
         done = int(step.episode_done.sum())

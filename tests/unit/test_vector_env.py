@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from dvla.config import TaskConfig, may_share_scene
-from dvla.learn.envs import EnvSetupError, make_env_group, run_eval_episodes, sim_layout
+from dvla.config import TaskConfig
+from dvla.learn.envs import EnvSetupError, make_env_group, may_share_scene, run_eval_episodes, sim_layout
 from dvla.learn.policies import make_policy
 from dvla.learn.spec import ArraySpec
 from dvla.learn.vector_env import VectorEnvGroup
