@@ -56,6 +56,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--minibatches", type=int, default=d.minibatches)
     p.add_argument("--epochs", type=int, default=d.update_epochs)
     p.add_argument("--lr", type=float, default=d.lr)
+    p.add_argument("--lr-schedule", choices=("constant", "adaptive"), default=d.lr_schedule)
+    p.add_argument("--desired-kl", type=float, default=d.desired_kl)
+    p.add_argument("--critic-lr", type=float, default=None, help="the critic's own learning rate (default: --lr)")
     p.add_argument("--gamma", type=float, default=d.gamma)
     p.add_argument("--lam", type=float, default=d.gae_lambda)
     p.add_argument("--clip", type=float, default=d.clip)
@@ -90,6 +93,8 @@ def ppo_config(a: argparse.Namespace) -> PPOConfig:
         gamma=a.gamma,
         gae_lambda=a.lam,
         lr=a.lr,
+        lr_schedule=a.lr_schedule,
+        desired_kl=a.desired_kl,
         clip=a.clip,
         update_epochs=a.epochs,
         minibatches=a.minibatches,
@@ -175,6 +180,12 @@ class Run:
         self.policy = make_policy("mlp", g.obs_dim, g.act_dim, obs_norm=a.obs_norm, init_log_std=a.init_log_std)
         self.behaviour = copy.deepcopy(self.policy)
         self.learner = PPOLearner(self.policy, self.cfg, "cpu", seed=a.seed, decoupled=not a.plain, is_clip=a.is_clip)
+        if a.critic_lr is not None:
+            critic = list(self.policy.critic.parameters())
+            ids = {id(p) for p in critic}
+            rest = [p for p in self.policy.parameters() if id(p) not in ids]
+            self.learner.optimizer = torch.optim.Adam(
+                [{"params": rest, "lr": a.lr}, {"params": critic, "lr": a.critic_lr}], eps=1e-5)
         # The behaviour policy is the oldest of the last lag+1 versions.
         self.history = collections.deque([copy.deepcopy(self.policy.state_dict())], maxlen=a.lag + 1)
         self.sampler = ChunkSampler(g, a.chunk_steps)
@@ -203,7 +214,7 @@ def report_row(version, env_steps, wall, eval_s, ev, stats, train_success) -> di
         success_once=ev["success_once"], success_at_end=ev["success_at_end"],
         eval_return=round(ev["return_mean"], 2), train_success=round(train_success, 2),
         kl=round(stats["approx_kl"], 4), bkl=round(stats["behaviour_kl"], 4),
-        epochs=stats["epochs_run"], ent=round(stats["entropy"], 2), v_loss=round(stats["v_loss"], 4),
+        epochs=stats["epochs_run"], lr=f'{stats["lr"]:.2e}', ent=round(stats["entropy"], 2), v_loss=round(stats["v_loss"], 4),
     )
 
 

@@ -3,7 +3,7 @@ collects anyway (every role's status, every eval result), indexed by the learner
 
 Namespaces, as the field uses them:
 
-- ``train/``: the actor's last learning statistics (losses, ``approx_kl``, clip fraction,
+- ``train/``: the actor's last learning statistics (losses, ``approx_kl``, clip fraction, ``lr``,
   entropy, ...; whatever its learner reports) and ``updates_refused_nonfinite``;
 - ``rollout/``: env steps/s (learner) and env steps produced, inference latency p50/p99;
 - ``env/``: the training episodes: success rate, mean return and length over the rollouts'

@@ -127,7 +127,7 @@ def _check_tensorboard(run_dir: Path, final_env_steps: int) -> None:
     tags = acc.Tags()["scalars"]
     for namespace in ("train/", "rollout/", "env/", "time/", "fabric/", "weights/"):
         assert any(t.startswith(namespace) for t in tags), (namespace, tags)
-    for tag in ("train/approx_kl", "env/episode_return_mean", "env/success_rate", "fabric/data/received_bytes",
+    for tag in ("train/approx_kl", "train/lr", "env/episode_return_mean", "env/success_rate", "fabric/data/received_bytes",
                 "weights/version", "time/actor.learn/busy"):
         assert tag in tags, (tag, tags)
     steps = [e.step for e in acc.Scalars("weights/version")]
