@@ -44,15 +44,8 @@ class PPOConfig:
     gamma: float = 0.8
     #: GAE lambda
     gae_lambda: float = 0.9
-    #: Adam learning rate (the starting one with ``lr_schedule: adaptive``)
+    #: Adam learning rate
     lr: float = 1e-3
-    #: "constant": ``lr`` throughout; "adaptive": after every minibatch the learning rate is
-    #: multiplied by 1.5 when the update's KL so far is below ``desired_kl`` / 2 and divided by 1.5
-    #: when it is above 2 x ``desired_kl``, within [1e-5, 1e-2] (fast while the policy barely
-    #: moves, careful once it does)
-    lr_schedule: Literal["constant", "adaptive"] = "constant"
-    #: the KL per update the adaptive schedule steers to
-    desired_kl: float = 0.01
     #: PPO ratio clip
     clip: float = 0.2
     #: passes over each batch

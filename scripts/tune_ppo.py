@@ -56,8 +56,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--minibatches", type=int, default=d.minibatches)
     p.add_argument("--epochs", type=int, default=d.update_epochs)
     p.add_argument("--lr", type=float, default=d.lr)
-    p.add_argument("--lr-schedule", choices=("constant", "adaptive"), default=d.lr_schedule)
-    p.add_argument("--desired-kl", type=float, default=d.desired_kl)
     p.add_argument("--critic-lr", type=float, default=None, help="the critic's own learning rate (default: --lr)")
     p.add_argument("--gamma", type=float, default=d.gamma)
     p.add_argument("--lam", type=float, default=d.gae_lambda)
@@ -93,8 +91,6 @@ def ppo_config(a: argparse.Namespace) -> PPOConfig:
         gamma=a.gamma,
         gae_lambda=a.lam,
         lr=a.lr,
-        lr_schedule=a.lr_schedule,
-        desired_kl=a.desired_kl,
         clip=a.clip,
         update_epochs=a.epochs,
         minibatches=a.minibatches,

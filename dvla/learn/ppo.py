@@ -32,9 +32,6 @@ __all__ = ["compute_gae", "Trajectories", "gae_batch", "PPOLearner"]
 
 log = logging.getLogger("dvla.ppo")
 
-#: bounds of the adaptive learning rate (``PPOConfig.lr_schedule``)
-LR_MIN, LR_MAX = 1e-5, 1e-2
-
 
 # --- advantages -------------------------------------------------------------------------------
 
@@ -282,8 +279,6 @@ class PPOLearner:
                     self.optimizer.zero_grad(set_to_none=True)
                     stopped = True
                     break
-                if cfg.lr_schedule == "adaptive":
-                    self._adapt_lr(kl)
                 grad_norm = float(nn.utils.clip_grad_norm_(self._trainable, cfg.max_grad_norm))
                 # The gradients were averaged across the group by DDP in backward(): a non-finite
                 # value on any rank reached every rank, so every rank computes this norm from the
@@ -319,17 +314,6 @@ class PPOLearner:
             update_s=time.perf_counter() - started,
         )
         return out
-
-    def _adapt_lr(self, kl: float) -> None:
-        """The adaptive schedule's step: the KL (summed over the group, so every rank agrees)
-        steers the learning rate of the step about to be taken."""
-        lr = self.optimizer.param_groups[0]["lr"]
-        if kl > 2.0 * self.cfg.desired_kl:
-            lr = max(LR_MIN, lr / 1.5)
-        elif kl < 0.5 * self.cfg.desired_kl:
-            lr = min(LR_MAX, lr * 1.5)
-        for g in self.optimizer.param_groups:
-            g["lr"] = lr
 
     def _no_sync(self, last: bool) -> Any:
         """DDP's ``no_sync`` for all but a minibatch's last micro-batch (one all-reduce of the

@@ -597,7 +597,6 @@ _RANGES: dict[type, dict[str, _Range]] = {
     PPOConfig: {
         "gae_lambda": _Range(low=0, high=1),
         "lr": _POSITIVE,
-        "desired_kl": _POSITIVE,
         "clip": _POSITIVE,
         "update_epochs": _AT_LEAST_1,
         "minibatches": _AT_LEAST_1,
