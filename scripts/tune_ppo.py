@@ -48,7 +48,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--env", default="PushCube-v1")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--lr-end", type=float, default=None, help="decay the lr linearly to this (default: constant)")
-    p.add_argument("--lr-decay-steps", type=int, default=d.lr_decay_steps, help="env steps over which --lr-end is reached")
+    p.add_argument("--lr-decay-steps", type=int, default=100_000, help="env steps over which --lr-end is reached")
     p.add_argument("--envs", type=int, default=8, help="training envs (one EnvGroup)")
     p.add_argument("--chunk-steps", type=int, default=25)
     p.add_argument("--lag", type=int, default=1, help="versions the behaviour policy lags behind")
@@ -57,7 +57,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--epochs", type=int, default=d.update_epochs)
     p.add_argument("--lr", type=float, default=d.lr)
     p.add_argument("--critic-lr", type=float, default=None, help="the critic's own learning rate (default: --lr)")
-    p.add_argument("--log-std-lr", type=float, default=None, help="the action log-std's own learning rate (default: --lr)")
     p.add_argument("--gamma", type=float, default=d.gamma)
     p.add_argument("--lam", type=float, default=d.gae_lambda)
     p.add_argument("--clip", type=float, default=d.clip)
@@ -92,8 +91,6 @@ def ppo_config(a: argparse.Namespace) -> PPOConfig:
         gamma=a.gamma,
         gae_lambda=a.lam,
         lr=a.lr,
-        lr_end=a.lr_end,
-        lr_decay_steps=a.lr_decay_steps,
         clip=a.clip,
         update_epochs=a.epochs,
         minibatches=a.minibatches,
@@ -179,25 +176,22 @@ class Run:
         self.policy = make_policy("mlp", g.obs_dim, g.act_dim, obs_norm=a.obs_norm, init_log_std=a.init_log_std)
         self.behaviour = copy.deepcopy(self.policy)
         self.learner = PPOLearner(self.policy, self.cfg, "cpu", seed=a.seed, decoupled=not a.plain, is_clip=a.is_clip)
-        if (a.critic_lr is not None or a.log_std_lr is not None) and a.lr_end is not None:
-            raise SystemExit("--lr-end sets one learning rate for every parameter: not with --critic-lr/--log-std-lr")
-        if a.critic_lr is not None or a.log_std_lr is not None:
-            own = {"critic": (list(self.policy.critic.parameters()), a.critic_lr),
-                   "log_std": ([self.policy.log_std], a.log_std_lr)}
-            groups = [{"params": ps, "lr": lr} for ps, lr in own.values() if lr is not None]
-            taken = {id(p) for g in groups for p in g["params"]}
-            rest = [p for p in self.policy.parameters() if id(p) not in taken]
-            self.learner.optimizer = torch.optim.Adam([{"params": rest, "lr": a.lr}, *groups], eps=1e-5)
+        if a.critic_lr is not None:
+            critic = list(self.policy.critic.parameters())
+            ids = {id(p) for p in critic}
+            rest = [p for p in self.policy.parameters() if id(p) not in ids]
+            self.learner.optimizer = torch.optim.Adam(
+                [{"params": rest, "lr": a.lr}, {"params": critic, "lr": a.critic_lr}], eps=1e-5)
         # The behaviour policy is the oldest of the last lag+1 versions.
         self.history = collections.deque([copy.deepcopy(self.policy.state_dict())], maxlen=a.lag + 1)
         self.sampler = ChunkSampler(g, a.chunk_steps)
 
-    def learn_one_version(self, env_steps: int) -> dict[str, float]:
+    def learn_one_version(self) -> dict[str, float]:
         a = self.a
         self.behaviour.load_state_dict(self.history[0])
         chunks = [self.sampler.chunk(self.behaviour) for _ in range(a.batch_steps // self.per_chunk)]
         batch = gae_batch(self.policy, side_by_side(chunks), self.cfg)
-        stats = self.learner.update(batch, env_steps=env_steps)
+        stats = self.learner.update(batch)
         self.history.append(copy.deepcopy(self.policy.state_dict()))
         return stats
 
@@ -231,7 +225,11 @@ def train(a: argparse.Namespace) -> dict:
     result: dict = {"reached": False}
     try:
         while env_steps < a.max_steps and time.perf_counter() - started < a.max_wall:
-            stats = run.learn_one_version(env_steps)
+            if a.lr_end is not None:
+                frac = min(1.0, env_steps / a.lr_decay_steps)
+                for group in run.learner.optimizer.param_groups:
+                    group["lr"] = a.lr + frac * (a.lr_end - a.lr)
+            stats = run.learn_one_version()
             env_steps += a.batch_steps
             version += 1
             if version % a.eval_every:
