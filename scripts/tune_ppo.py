@@ -177,6 +177,8 @@ class Run:
         self.behaviour = copy.deepcopy(self.policy)
         self.learner = PPOLearner(self.policy, self.cfg, "cpu", seed=a.seed, decoupled=not a.plain, is_clip=a.is_clip)
         if a.critic_lr is not None:
+            if a.lr_end is not None:
+                raise SystemExit("--lr-end decays one learning rate for every parameter: not with --critic-lr")
             critic = list(self.policy.critic.parameters())
             ids = {id(p) for p in critic}
             rest = [p for p in self.policy.parameters() if id(p) not in ids]
