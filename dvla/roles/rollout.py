@@ -287,7 +287,7 @@ class Rollout:
         # Sampling noise is a function of (process seed, group, step): the same seed replays the
         # same actions whatever the threads' timing (an action recomputed for new weights included).
         # (A generator of the infer lane's own: simulators may draw from torch's global one.)
-        self._noise.manual_seed((self.cfg.seed * 4 + gid) * 2**32 + g.steps)
+        self._noise.manual_seed(noise_seed(self.cfg.seed, gid, g.steps))
         with torch.no_grad():
             obs = obs_to_torch(g.obs, self.device)  # no copy where the scene is on this device
             action, logprob, extras = sample_actions(self.pool.active, obs, generator=self._noise)
@@ -501,6 +501,15 @@ class Rollout:
         self.counters.close()
         for g in self.groups:
             g.envs.close()
+
+
+def noise_seed(process_seed: int, group: int, step: int) -> int:
+    """The seed of one step's sampling noise for one env group of one rollout: a 64-bit hash of
+    all three numbers. (Packing them side by side is not enough: torch's CPU generator keeps only
+    a seed's low 32 bits, so every group of every rollout of every run would draw the same noise
+    at the same step.)"""
+    entropy = (process_seed % 2**64, group % 2**64, step % 2**64)
+    return int(np.random.SeedSequence(entropy).generate_state(1, np.uint64)[0])
 
 
 def _mean(values: list[float]) -> float:
