@@ -213,6 +213,8 @@ def report_row(version, env_steps, wall, eval_s, ev, stats, train_success) -> di
         eval_return=round(ev["return_mean"], 2), train_success=round(train_success, 2),
         kl=round(stats["approx_kl"], 4), bkl=round(stats["behaviour_kl"], 4),
         epochs=stats["epochs_run"], lr=f'{stats["lr"]:.2e}', ent=round(stats["entropy"], 2), v_loss=round(stats["v_loss"], 4),
+        # the evaluation episodes (the same initial states every time) that did not succeed
+        failed=",".join(map(str, ev["failed_episodes"])) or "-",
     )
 
 

@@ -489,7 +489,8 @@ def run_eval_episodes(
 
     Returns success_once (fraction of episodes with a success at any step) with its 95 % Wilson
     interval (success_once_low, success_once_high), success_at_end (success at the last step),
-    return_mean, episodes and env_steps; with envs that name their tasks (LIBERO), also
+    return_mean, episodes, failed_episodes (the indices j of the episodes without a success: with
+    the same seed, the same initial states) and env_steps; with envs that name their tasks (LIBERO), also
     ``per_task``: task label -> (episodes, episodes with a success at any step).
     """
     import torch
@@ -517,6 +518,7 @@ def _play_eval(policy: Any, group: EnvGroup, n_episodes: int, seed: int, device:
     ret = np.zeros(n)
     once = np.zeros(n, dtype=bool)
     returns, successes_once, successes_end = [], [], []
+    failed: list[int] = []  # episodes (0 .. n_episodes - 1) without a success at any step
     per_task: dict[str, tuple[int, int]] = {}
     env_steps = 0
     started = time.perf_counter()
@@ -537,6 +539,8 @@ def _play_eval(policy: Any, group: EnvGroup, n_episodes: int, seed: int, device:
             returns.append(ret[i])
             successes_once.append(once[i])
             successes_end.append(success[i])
+            if not once[i]:
+                failed.append(int(episode[i]))
             if labels[i]:
                 done, ok = per_task.get(labels[i], (0, 0))
                 per_task[labels[i]] = (done + 1, ok + int(once[i]))
@@ -552,6 +556,7 @@ def _play_eval(policy: Any, group: EnvGroup, n_episodes: int, seed: int, device:
         "success_at_end": float(np.mean(successes_end)),
         "return_mean": float(np.mean(returns)),
         "episodes": len(returns),
+        "failed_episodes": sorted(failed),
         "env_steps": env_steps,
         "eval_s": time.perf_counter() - started,
     }

@@ -113,7 +113,9 @@ class Evaluator:
                 time_ns=time.time_ns(),
             )
             self.fabric.publish_ctrl(self.fabric.keys.eval(self.cfg.name), msg)
-            self.results.append({"version": version, **{k: float(v) for k, v in res.items() if k != "per_task"}})
+            # the scalars (status's last_eval); per_task and failed_episodes are not
+            self.results.append({"version": version, **{k: float(v) for k, v in res.items()
+                                                         if isinstance(v, (int, float))}})
             log.info("eval v%d: success_once %.2f [%.2f, %.2f] success_at_end %.2f (%d episodes, %.1f s)", version,
                      res["success_once"], res["success_once_low"], res["success_once_high"], res["success_at_end"],
                      res["episodes"], time.perf_counter() - t0)

@@ -191,6 +191,7 @@ def test_evaluation_reports_each_task() -> None:
     # seeds 10..14: tasks 0, 1, 0, 1, 0; task 0 succeeds, task 1 never does
     assert out["per_task"] == {"fake/0": (3, 3), "fake/1": (2, 0)}
     assert out["episodes"] == 5 and out["success_once"] == pytest.approx(0.6)
+    assert out["failed_episodes"] == [1, 3]  # episode j starts from seed 10 + j
 
 
 def test_per_task_results_travel_and_join() -> None:
