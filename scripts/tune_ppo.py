@@ -56,7 +56,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--minibatches", type=int, default=d.minibatches)
     p.add_argument("--epochs", type=int, default=d.update_epochs)
     p.add_argument("--lr", type=float, default=d.lr)
-    p.add_argument("--critic-lr", type=float, default=None, help="the critic's own learning rate (default: --lr)")
     p.add_argument("--gamma", type=float, default=d.gamma)
     p.add_argument("--lam", type=float, default=d.gae_lambda)
     p.add_argument("--clip", type=float, default=d.clip)
@@ -176,14 +175,6 @@ class Run:
         self.policy = make_policy("mlp", g.obs_dim, g.act_dim, obs_norm=a.obs_norm, init_log_std=a.init_log_std)
         self.behaviour = copy.deepcopy(self.policy)
         self.learner = PPOLearner(self.policy, self.cfg, "cpu", seed=a.seed, decoupled=not a.plain, is_clip=a.is_clip)
-        if a.critic_lr is not None:
-            if a.lr_end is not None:
-                raise SystemExit("--lr-end decays one learning rate for every parameter: not with --critic-lr")
-            critic = list(self.policy.critic.parameters())
-            ids = {id(p) for p in critic}
-            rest = [p for p in self.policy.parameters() if id(p) not in ids]
-            self.learner.optimizer = torch.optim.Adam(
-                [{"params": rest, "lr": a.lr}, {"params": critic, "lr": a.critic_lr}], eps=1e-5)
         # The behaviour policy is the oldest of the last lag+1 versions.
         self.history = collections.deque([copy.deepcopy(self.policy.state_dict())], maxlen=a.lag + 1)
         self.sampler = ChunkSampler(g, a.chunk_steps)
