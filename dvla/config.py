@@ -99,6 +99,12 @@ class EvalConfig:
     seed_offset: int = 1_000_000
     #: envs one evaluator steps at once (its episodes are played `envs` at a time)
     envs: int = 8
+    #: play every episode to the time limit, success or not, so ``success_at_end`` is measured.
+    #: False ends an episode where the env terminates it (ManiSkill: at its first success), as
+    #: training envs do: ``success_once`` is the same, an evaluation costs fewer env steps the
+    #: more episodes succeed, and ``success_at_end`` then equals ``success_once`` (an episode that
+    #: ended at its success counts as a success at its end); ``return_mean`` covers the steps played
+    full_episodes: bool = True
 
 
 @dataclass(frozen=True, kw_only=True)

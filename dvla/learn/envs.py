@@ -392,10 +392,15 @@ class EnvGroup:
 
     # --- stepping -----------------------------------------------------------------------------
 
-    def step(self, actions: Any) -> StepResult:
-        """Apply ``actions`` [n, act_dim] (clipped to the action space); auto-reset ended episodes."""
+    def step(self, actions: Any, active: Any = None) -> StepResult:
+        """Apply ``actions`` [n, act_dim] (clipped to the action space); auto-reset ended episodes.
+
+        ``active`` (bool [n], default all): envs left out are not stepped; their observation stays,
+        their reward is 0 and their flags are False (an evaluation whose envs finish their
+        episodes at different times steps only those still playing)."""
         if self._obs is None:
             raise RuntimeError("call reset() before step()")
+        skip = np.zeros(self.n, dtype=bool) if active is None else ~np.asarray(active, dtype=bool).reshape(self.n)
         actions = np.asarray(actions, dtype=np.float32).reshape(self.n, self.act_dim)
         actions = np.clip(actions, self.action_low, self.action_high)
         n, a = self.n, self.env_act_dim
@@ -406,6 +411,10 @@ class EnvGroup:
         truncated = np.zeros(n, dtype=bool)
         success = np.zeros(n, dtype=bool)
         for i, env in enumerate(self._envs):
+            if skip[i]:
+                for key, arr in self._obs.items():
+                    next_obs[key][i] = arr[i]
+                continue
             for k in range(self.chunk):
                 raw, r, term, trunc, info = env.step(actions[i, k * a : (k + 1) * a])
                 ok = "success" in info and _scalar(info["success"], bool)
@@ -482,10 +491,12 @@ def run_eval_episodes(
     ``stop`` (a ``threading.Event``) is set before they are all played.
 
     Episode j starts from seed ``seed + j``, so two calls with the same seed see the same
-    initial states. Pass ``group`` to reuse envs between evaluations (it is reset here; create it
-    with ``ignore_terminations=True`` to play episodes to the time limit, which is what a group
-    made here does). Env i plays episodes i, i + n, ...: every episode that is started is
-    counted, so short (successful) episodes are not over-represented.
+    initial states. Pass ``group`` to reuse envs between evaluations (it is reset here): one made
+    with ``ignore_terminations=True`` plays every episode to the time limit, one without ends an
+    episode where the env terminates it (ManiSkill: at success). A group made here follows
+    ``task.eval.full_episodes``. Env i plays episodes i, i + n, ...: every episode that is started
+    is counted, so short (successful) episodes are not over-represented; an env whose episodes
+    are all played is no longer stepped.
 
     Returns success_once (fraction of episodes with a success at any step) with its 95 % Wilson
     interval (success_once_low, success_once_high), success_at_end (success at the last step),
@@ -499,7 +510,8 @@ def run_eval_episodes(
         raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
     own = group is None
     if own:
-        group = make_env_group(task, min(n_envs, n_episodes), seed, ignore_terminations=True, batching="auto")
+        group = make_env_group(task, min(n_envs, n_episodes), seed, ignore_terminations=task.eval.full_episodes,
+                               batching="auto")
     try:
         return _play_eval(policy, group, n_episodes, seed, torch.device(device), stop)
     finally:
@@ -529,9 +541,12 @@ def _play_eval(policy: Any, group: EnvGroup, n_episodes: int, seed: int, device:
             action, _, _ = sample_actions(policy, obs_to_torch(obs, device), deterministic=True)
             action = action.float()
         labels = list(group.task_labels)  # the episodes in progress (a step may reset into another task)
-        res = group.step(action if group.on_device else action.cpu().numpy())
-        reward, success, ended = _to_numpy(res.reward), _to_numpy(res.success), _to_numpy(res.episode_done)
         active = episode < n_episodes
+        if group.on_device:  # one scene steps all its envs at once
+            res = group.step(action)
+        else:
+            res = group.step(action.cpu().numpy(), active=active)
+        reward, success, ended = _to_numpy(res.reward), _to_numpy(res.success), _to_numpy(res.episode_done)
         env_steps += int(active.sum())
         ret += reward
         once |= success

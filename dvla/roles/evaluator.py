@@ -47,7 +47,7 @@ class Evaluator:
         self.first_episode, self.n_episodes = first, end - first
         # one ManiSkill scene on a CUDA node (ManiSkill's rule), one-env simulators elsewhere
         self.group = make_env_group(task, min(task.eval.envs, self.n_episodes), cfg.eval_seed + first,
-                                    ignore_terminations=True, batching="auto")
+                                    ignore_terminations=task.eval.full_episodes, batching="auto")
         self.device = torch.device(resolve_device(task.eval_device))
         policy = make_policy(task.policy, self.group.obs_spec, self.group.act_dim, **task.policy_kwargs)
         self.policy = policy.to(self.device).eval()

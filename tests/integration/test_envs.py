@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from dvla.config import TaskConfig
+from dvla.config import EvalConfig, TaskConfig
 from dvla.learn.envs import EnvGroup, run_eval_episodes
 from dvla.learn.policies import MLPPolicy
 
@@ -140,6 +140,73 @@ def test_eval_on_factory_env():
     assert out["episodes"] == 3 and out["env_steps"] == 15
     assert out["success_once"] == 1.0 and out["success_at_end"] == 0.0
     assert out["return_mean"] == 5.0
+
+
+class _SeededEnv(gym.Env):
+    """Succeeds (and terminates) at step ``seed % 4 + 1``, never for seeds divisible by 5;
+    obs = [steps, reset seed]. ``calls`` counts the steps of every instance."""
+
+    calls = 0
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (2,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def __init__(self, limit: int):
+        self.limit, self.steps, self.seed_ = limit, 0, -1
+
+    def reset(self, *, seed=None, options=None):
+        self.steps, self.seed_ = 0, seed
+        return np.array([0, seed], np.float32), {}
+
+    def step(self, action):
+        _SeededEnv.calls += 1
+        self.steps += 1
+        success = self.seed_ % 5 != 0 and self.steps >= self.seed_ % 4 + 1
+        obs = np.array([self.steps, self.seed_], np.float32)
+        return obs, 1.0, success, self.steps >= self.limit, {"success": success}
+
+
+def make_seeded_env(task: TaskConfig, seed: int) -> gym.Env:
+    return _SeededEnv(task.max_episode_steps)
+
+
+def _seeded_task(full_episodes: bool) -> TaskConfig:
+    return TaskConfig(env=f"{__name__}:make_seeded_env", max_episode_steps=6,
+                      eval=EvalConfig(full_episodes=full_episodes))
+
+
+class _Zero(torch.nn.Module):
+    def act(self, obs, deterministic=False):
+        z = torch.zeros(obs.shape[0])
+        return torch.zeros(obs.shape[0], 1), z, z
+
+
+def test_inactive_envs_are_not_stepped():
+    with EnvGroup(SCRIPTED, 2, seed=10) as g:
+        g.reset()
+        res = g.step(np.zeros((2, 1)), active=[True, False])
+        np.testing.assert_array_equal(res.next_obs[:, 0], [1, 0])  # env 1 did not take a step
+        np.testing.assert_array_equal(res.reward, [1.0, 0.0])
+        res = g.step(np.zeros((2, 1)))
+        np.testing.assert_array_equal(res.next_obs[:, 0], [2, 1])
+
+
+@pytest.mark.parametrize("envs", [1, 3, 8])
+def test_eval_ending_episodes_at_termination_keeps_success_once(envs):
+    """eval.full_episodes=False: the same episodes, the same success_once and failures, each
+    episode played only to its success, and no env stepped once its episodes are all played."""
+    full = run_eval_episodes(_Zero(), _seeded_task(True), 11, seed=20, n_envs=envs)
+    _SeededEnv.calls = 0
+    short = run_eval_episodes(_Zero(), _seeded_task(False), 11, seed=20, n_envs=envs)
+    assert _SeededEnv.calls == short["env_steps"]  # what was simulated is what was counted
+    seeds = range(20, 31)
+    failed = [j for j, s in enumerate(seeds) if s % 5 == 0]
+    assert full["failed_episodes"] == short["failed_episodes"] == failed
+    assert full["success_once"] == short["success_once"] == 1 - len(failed) / 11
+    assert full["env_steps"] == 11 * 6
+    assert short["env_steps"] == sum(6 if s % 5 == 0 else s % 4 + 1 for s in seeds)
+    assert full["success_at_end"] == full["success_once"]  # this env stays successful once it is
+    assert short["success_at_end"] == short["success_once"]
+    assert short["episodes"] == 11 and short["return_mean"] < full["return_mean"]
 
 
 @pytest.mark.timeout(180)
