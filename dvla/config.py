@@ -44,14 +44,8 @@ class PPOConfig:
     gamma: float = 0.8
     #: GAE lambda
     gae_lambda: float = 0.9
-    #: Adam learning rate (the starting one when ``lr_end`` is set)
+    #: Adam learning rate
     lr: float = 1e-3
-    #: decay the learning rate linearly from ``lr`` to this over the first ``lr_decay_steps``
-    #: env steps the learners consume (the whole group's, so every rank and a resumed run agree),
-    #: then hold it (None: ``lr`` throughout)
-    lr_end: float | None = None
-    #: env steps over which the learning rate goes from ``lr`` to ``lr_end``
-    lr_decay_steps: int = 100_000
     #: PPO ratio clip
     clip: float = 0.2
     #: passes over each batch
@@ -86,10 +80,6 @@ class PPOConfig:
             raise ValueError(f"gamma must be in (0, 1], got {self.gamma!r}")
         if self.batch_steps < self.minibatches:
             raise ValueError(f"batch_steps ({self.batch_steps}) must be >= minibatches ({self.minibatches})")
-        if self.lr_end is not None and not self.lr_end > 0:
-            raise ValueError(f"lr_end must be > 0 (or null), got {self.lr_end!r}")
-        if self.lr_decay_steps < 1:
-            raise ValueError(f"lr_decay_steps must be >= 1, got {self.lr_decay_steps!r}")
         if self.micro_batch is not None and self.micro_batch < 1:
             raise ValueError(f"micro_batch must be >= 1 (or null), got {self.micro_batch!r}")
 

@@ -47,8 +47,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--env", default="PushCube-v1")
     p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--lr-end", type=float, default=d.lr_end, help="decay the lr linearly to this (ppo.lr_end)")
-    p.add_argument("--lr-decay-steps", type=int, default=d.lr_decay_steps, help="env steps over which --lr-end is reached")
+    p.add_argument("--lr-end", type=float, default=None, help="decay the lr linearly to this (default: constant)")
+    p.add_argument("--lr-decay-steps", type=int, default=100_000, help="env steps over which --lr-end is reached")
     p.add_argument("--envs", type=int, default=8, help="training envs (one EnvGroup)")
     p.add_argument("--chunk-steps", type=int, default=25)
     p.add_argument("--lag", type=int, default=1, help="versions the behaviour policy lags behind")
@@ -90,8 +90,6 @@ def ppo_config(a: argparse.Namespace) -> PPOConfig:
         gamma=a.gamma,
         gae_lambda=a.lam,
         lr=a.lr,
-        lr_end=a.lr_end,
-        lr_decay_steps=a.lr_decay_steps,
         clip=a.clip,
         update_epochs=a.epochs,
         minibatches=a.minibatches,
@@ -181,12 +179,12 @@ class Run:
         self.history = collections.deque([copy.deepcopy(self.policy.state_dict())], maxlen=a.lag + 1)
         self.sampler = ChunkSampler(g, a.chunk_steps)
 
-    def learn_one_version(self, env_steps: int) -> dict[str, float]:
+    def learn_one_version(self) -> dict[str, float]:
         a = self.a
         self.behaviour.load_state_dict(self.history[0])
         chunks = [self.sampler.chunk(self.behaviour) for _ in range(a.batch_steps // self.per_chunk)]
         batch = gae_batch(self.policy, side_by_side(chunks), self.cfg)
-        stats = self.learner.update(batch, env_steps=env_steps)  # ppo.lr_end's schedule, as the actor
+        stats = self.learner.update(batch)
         self.history.append(copy.deepcopy(self.policy.state_dict()))
         return stats
 
@@ -224,7 +222,11 @@ def train(a: argparse.Namespace) -> dict:
     result: dict = {"reached": False}
     try:
         while env_steps < a.max_steps and time.perf_counter() - started < a.max_wall:
-            stats = run.learn_one_version(env_steps)
+            if a.lr_end is not None:
+                frac = min(1.0, env_steps / a.lr_decay_steps)
+                for group in run.learner.optimizer.param_groups:
+                    group["lr"] = a.lr + frac * (a.lr_end - a.lr)
+            stats = run.learn_one_version()
             env_steps += a.batch_steps
             version += 1
             if version % a.eval_every:

@@ -28,7 +28,7 @@ from torch import Tensor, nn
 
 from dvla.config import PPOConfig
 
-__all__ = ["compute_gae", "Trajectories", "gae_batch", "PPOLearner", "scheduled_lr"]
+__all__ = ["compute_gae", "Trajectories", "gae_batch", "PPOLearner"]
 
 log = logging.getLogger("dvla.ppo")
 
@@ -228,15 +228,10 @@ class PPOLearner:
             raise ValueError(f"batch of {size} is smaller than minibatches={self.cfg.minibatches}")
         return out
 
-    def update(self, batch: Mapping[str, Any], env_steps: int | None = None) -> dict[str, float]:
-        """Run up to ``update_epochs`` passes of minibatch SGD on ``batch``; return statistics.
-        ``env_steps`` (consumed before this batch) sets the learning rate where ``cfg.lr_end``
-        asks for a decay (:func:`scheduled_lr`)."""
+    def update(self, batch: Mapping[str, Any]) -> dict[str, float]:
+        """Run up to ``update_epochs`` passes of minibatch SGD on ``batch``; return statistics."""
         started = time.perf_counter()
         cfg = self.cfg
-        if env_steps is not None and cfg.lr_end is not None:
-            for g in self.optimizer.param_groups:
-                g["lr"] = scheduled_lr(cfg, env_steps)
         b = self._tensors(batch)
         size = _obs_len(b["obs"])
         state = self._state()
@@ -370,15 +365,6 @@ class PPOLearner:
         with torch.no_grad():
             clipfrac = ((ratio - 1).abs() > cfg.clip).float().mean().item()
         return loss, {"pg_loss": pg_loss.item(), "v_loss": v_loss.item(), "entropy": ent.item(), "clipfrac": clipfrac}
-
-def scheduled_lr(cfg: PPOConfig, env_steps: int) -> float:
-    """The learning rate after ``env_steps`` consumed: ``lr`` decaying linearly to ``lr_end`` over
-    ``lr_decay_steps``, then held; ``lr`` throughout without ``lr_end``."""
-    if cfg.lr_end is None:
-        return cfg.lr
-    frac = min(1.0, max(0, env_steps) / cfg.lr_decay_steps)
-    return cfg.lr + frac * (cfg.lr_end - cfg.lr)
-
 
 def make_adam(params: Any, **kwargs: Any) -> torch.optim.Adam:
     """Adam with the fused kernel (one kernel for all parameters) where this PyTorch has it."""

@@ -597,8 +597,6 @@ _RANGES: dict[type, dict[str, _Range]] = {
     PPOConfig: {
         "gae_lambda": _Range(low=0, high=1),
         "lr": _POSITIVE,
-        "lr_end": _POSITIVE,
-        "lr_decay_steps": _AT_LEAST_1,
         "clip": _POSITIVE,
         "update_epochs": _AT_LEAST_1,
         "minibatches": _AT_LEAST_1,

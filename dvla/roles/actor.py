@@ -267,7 +267,7 @@ class Actor:
                         data = grpo_batch(batch, task)
                     else:
                         data = gae_batch(self.policy, batch, task.ppo)
-                    stats = self.learner.update(data, env_steps=self.env_steps)
+                    stats = self.learner.update(data)
                     steps = int(self.group.sum([batch.steps])[0])  # the group's env steps
                 except RuntimeError as err:
                     if not ctx.running:  # a rank that stopped first closed the group: not an error

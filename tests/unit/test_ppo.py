@@ -158,23 +158,6 @@ def test_ppo_target_kl_stops_early_and_checkpoint_roundtrip():
             torch.testing.assert_close(a[k], b[k])
 
 
-def test_lr_decays_linearly_with_env_steps_then_holds():
-    from dvla.learn.ppo import scheduled_lr
-
-    cfg = PPOConfig(lr=3e-4, lr_end=1e-4, lr_decay_steps=60_000, batch_steps=512, update_epochs=1)
-    assert [round(scheduled_lr(cfg, s), 10) for s in (0, 30_000, 60_000, 90_000)] == [3e-4, 2e-4, 1e-4, 1e-4]
-    assert scheduled_lr(PPOConfig(lr=3e-4), 10**9) == 3e-4  # no lr_end: constant
-    policy, batch = _fixed_batch()
-    learner = PPOLearner(policy, cfg, "cpu", seed=0)
-    assert learner.update(batch, env_steps=30_000)["lr"] == pytest.approx(2e-4)
-    assert learner.optimizer.param_groups[0]["lr"] == pytest.approx(2e-4)
-    assert learner.update(batch)["lr"] == pytest.approx(2e-4)  # no env steps given: left as it is
-    with pytest.raises(ValueError, match="lr_end"):
-        PPOConfig(lr_end=0.0)
-    with pytest.raises(ValueError, match="lr_decay_steps"):
-        PPOConfig(lr_end=1e-4, lr_decay_steps=0)
-
-
 def test_ppo_rejects_bad_batches():
     policy, batch = _fixed_batch(n=8)
     learner = PPOLearner(policy, PPOConfig(minibatches=16, batch_steps=16), "cpu")
