@@ -49,8 +49,10 @@ def test_bench_e2e_runs_both_modes_per_seed(tmp_path: Path) -> None:
     out = tmp_path / "e2e.json"
     text = (ROOT / "topologies/tiny.yaml").read_text()
     assert "  algorithm: ppo\n" in text
-    topo = tmp_path / "tiny-evals.yaml"  # frequent short evaluations: a curve within the budget
-    topo.write_text(text.replace("  algorithm: ppo\n", "  algorithm: ppo\n  eval: {episodes: 4, every_versions: 1}\n", 1))
+    # frequent short evaluations: a curve within the budget; episodes end at success, as in local.yaml
+    topo = tmp_path / "tiny-evals.yaml"
+    evals = "  eval: {episodes: 4, every_versions: 1, full_episodes: false}\n"
+    topo.write_text(text.replace("  algorithm: ppo\n", "  algorithm: ppo\n" + evals, 1))
     proc = subprocess.run(
         [sys.executable, "-m", "dvla", "bench", "e2e", str(topo), "--seeds", "3", "--modes", "async,sync",
          "--json", str(out), "--base-port", str(free_port_block())],
