@@ -5,7 +5,8 @@ Lanes:
 - ``sync``: verified weight versions from the parent (as a rollout does).
 - ``eval``: whenever the newest version enters a new window of `every_versions` versions
             (version // every_versions grows), loads it and plays its block of the evaluation's
-            `episodes` episodes (ManiSkill's `success_once` and `success_at_end`).
+            `episodes` episodes (ManiSkill's `success_once` and `success_at_end`), each to the
+            time limit, or to the env's termination (success) with `full_episodes: false`.
 
 Several evaluators split every evaluation: evaluator i of n plays the i-th contiguous block of the
 episodes, from the run's fixed eval seeds, and the orchestrator joins the n blocks of one window
