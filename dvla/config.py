@@ -106,6 +106,11 @@ class EvalConfig:
     #: ended at its success counts as a success at its end); ``return_mean`` covers the steps played
     full_episodes: bool = True
 
+    def first_seed(self, run_seed: int) -> int:
+        """Seed of episode 0 of every evaluation of the run with master seed ``run_seed``
+        (episode j: this + j)."""
+        return run_seed * 1000 + self.seed_offset
+
 
 @dataclass(frozen=True, kw_only=True)
 class BudgetConfig:

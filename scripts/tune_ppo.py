@@ -36,7 +36,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dvla.config import EvalConfig, PPOConfig, TaskConfig  # noqa: E402
+from dvla.config import PPOConfig, TaskConfig  # noqa: E402
 from dvla.learn.envs import EnvGroup, run_eval_episodes  # noqa: E402
 from dvla.learn.policies import make_policy  # noqa: E402
 from dvla.learn.ppo import PPOLearner, Trajectories, gae_batch  # noqa: E402
@@ -189,9 +189,9 @@ class Run:
         return stats
 
     def evaluate(self) -> dict[str, float]:
-        # The distributed run's evaluation states (dvla/orchestrator/plan.py): the same 16 initial
-        # states for a given --seed as `dvla up --seed`, so figures of both are comparable.
-        seed = self.a.seed * 1000 + EvalConfig().seed_offset
+        # The distributed run's evaluation states: the same initial states for a given --seed as
+        # `dvla up --seed`, so figures of both are comparable.
+        seed = self.task.eval.first_seed(self.a.seed)
         return run_eval_episodes(self.policy, self.task, self.a.eval_episodes, seed, "cpu", group=self.eval_group)
 
     def close(self) -> None:

@@ -149,7 +149,7 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
             lockstep_steps=_lockstep_steps(topo, s, by_name), task=topo.task, replication=topo.replication,
             group=_group_rank(topo, actors, s, f"tcp://{addresses[root.node.name]}:{group_port}") if group_port else None,
             eval_shard=(evaluators.index(s), len(evaluators)) if s.kind == "evaluator" else (0, 1),
-            eval_seed=topo.seed * 1000 + topo.task.eval.seed_offset,
+            eval_seed=topo.task.eval.first_seed(topo.seed),
         )
         netns = netns_name(topo.run, s.node.name) if topo.emulate == "netns" else None
         processes.append(Process(config=cfg, host=s.node.host, netns=netns))
