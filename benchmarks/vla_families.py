@@ -253,7 +253,9 @@ def _learner(cfg: FamilyBenchConfig, task: Any, rec: dict, progress: Callable[[s
                 if p.is_alive():
                     p.terminate()
             runs[name].append(res)
-            progress(f"learner {task.policy} {name}: {res['update_s'] * 1e3:.0f} ms, updates add {res['update_rss_mb']:.0f} MB RSS")
+            memory = (f"peak GPU memory {res['peak_gpu_mb']:.0f} MB" if res["peak_gpu_mb"] is not None
+                      else f"updates add {res['update_rss_mb']:.0f} MB RSS")
+            progress(f"learner {task.policy} {name}: {res['update_s'] * 1e3:.0f} ms, {memory}")
     out: dict[str, Any] = {"batch": cfg.batch, "minibatch": cfg.batch // 2, "micro_batch": cfg.micro_batch}
     for name, values in runs.items():
         out[name] = {k: (statistics.median(v[k] for v in values) if values[0][k] is not None else None)

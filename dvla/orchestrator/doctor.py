@@ -208,6 +208,37 @@ def check_maniskill(needs: Needs) -> CheckResult:
     return outcome("maniskill", rc == 0, detail, fix=SETUP_PYTHON, required=needs.simulator)
 
 
+PHYSX_GPU_PROBE = (
+    "import json, pathlib, torch, sapien.physx as p; v = p.version(); "
+    "f = pathlib.Path.home() / '.sapien' / 'physx' / v / 'libPhysXGpu_64.so'; "
+    "print(json.dumps({'cuda': torch.cuda.is_available(), 'version': v, 'path': str(f), 'present': f.is_file()}))"
+)
+
+
+def physx_gpu_result(info: dict, needs: Needs) -> CheckResult:
+    """The ``physx-gpu`` check from :data:`PHYSX_GPU_PROBE`'s answer: SAPIEN downloads its PhysX GPU
+    library from GitHub the first time a physx_cuda scene is made, so on a GPU host without network
+    every such scene fails (``sim_backend: auto`` picks one for a CUDA rollout of several envs)."""
+    if not info["cuda"] and not needs.cuda:
+        return skip("physx-gpu", "no CUDA device: ManiSkill simulates on physx_cpu")
+    path = info["path"]
+    if info["present"]:
+        return outcome("physx-gpu", True, f"PhysX GPU library {info['version']} at {path}", required=False)
+    return outcome(
+        "physx-gpu", False,
+        f"no PhysX GPU library at {path}: the first physx_cuda scene downloads it from GitHub (needs network)",
+        fix=(f"offline: unzip linux-so.zip of release {info['version']} of sapien-sim/physx-precompiled into "
+             f"{path.rsplit('/', 1)[0]}, or set task.sim_backend: physx_cpu"),
+        required=False)
+
+
+def check_physx_gpu(needs: Needs) -> CheckResult:
+    rc, out, err = _python_probe(PHYSX_GPU_PROBE)
+    if rc != 0:
+        return skip("physx-gpu", f"probe failed: {last_line(err)}")
+    return physx_gpu_result(json.loads(last_line(out)), needs)
+
+
 def check_transformers(needs: Needs) -> CheckResult:
     """transformers and peft import (the Hugging Face policies). The usual failure: a torchvision
     built for another torch (robomimic's), which transformers imports whenever it is installed."""
@@ -401,6 +432,7 @@ CHECKS: dict[str, Callable[[Topology | None, Needs], CheckResult | list[CheckRes
     "zenoh": lambda topo, needs: check_zenoh(),
     "vulkan": lambda topo, needs: check_vulkan(needs),
     "maniskill": lambda topo, needs: check_maniskill(needs),
+    "physx-gpu": lambda topo, needs: check_physx_gpu(needs),
     "transformers": lambda topo, needs: check_transformers(needs),
     "libero": check_libero,
     "ports": lambda topo, needs: check_ports(needs),

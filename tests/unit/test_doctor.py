@@ -5,11 +5,15 @@ from __future__ import annotations
 
 import json
 import socket
+import subprocess
+import sys
 
 import pytest
 
 from dvla.orchestrator.doctor import (
+    PHYSX_GPU_PROBE,
     CheckResult,
+    Needs,
     check_cpus,
     check_ports,
     exit_code,
@@ -19,6 +23,7 @@ from dvla.orchestrator.doctor import (
     outcome,
     parse_device_summary,
     parse_ntp,
+    physx_gpu_result,
 )
 from dvla.orchestrator.topology import parse_topology
 
@@ -182,3 +187,24 @@ def test_cpus_check_names_the_node_role_and_key_of_a_core_this_host_lacks() -> N
     assert pinning_problems(bad, allowed={usable[0], missing}) == []
     assert check_cpus(None).status == "skip"
     assert check_cpus(_topo()).status == "skip"  # nothing pinned
+
+
+def test_physx_gpu_library_is_checked_only_where_cuda_is_and_a_missing_one_names_the_path_and_the_way_out() -> None:
+    info = {"cuda": False, "version": "105.1-physx-5.3.1.patch0", "present": False,
+            "path": "/root/.sapien/physx/105.1-physx-5.3.1.patch0/libPhysXGpu_64.so"}
+    assert physx_gpu_result(info, Needs()).status == "skip"
+    missing = physx_gpu_result(info, Needs(cuda=True))  # the topology asks for CUDA: checked even here
+    assert missing.status == "warn" and not missing.required  # online hosts download it at first use
+    assert info["path"] in missing.detail and "GitHub" in missing.detail
+    assert "into /root/.sapien/physx/105.1-physx-5.3.1.patch0," in missing.fix and "sim_backend: physx_cpu" in missing.fix
+    assert physx_gpu_result({**info, "cuda": True}, Needs()).status == "warn"
+    assert physx_gpu_result({**info, "cuda": True, "present": True}, Needs()).status == "ok"
+
+
+def test_physx_gpu_probe_answers_on_this_host() -> None:
+    """The probe itself runs against the installed sapien and torch and says what this host has."""
+    p = subprocess.run([sys.executable, "-c", PHYSX_GPU_PROBE], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    info = json.loads(p.stdout.strip().splitlines()[-1])
+    assert set(info) == {"cuda", "version", "path", "present"}
+    assert info["path"].endswith(f"/.sapien/physx/{info['version']}/libPhysXGpu_64.so")

@@ -292,3 +292,24 @@ def test_envs_tokenise_instructions_with_the_checkpoints_tokenizer(ckpt):
     np.testing.assert_array_equal(hashed.encode("push the cube"), tokenize("push the cube", 10))
     # a directory without tokenizer files (e.g. a tiny-vla kwarg named checkpoint) keeps the hashed one
     assert instruction_tokenizer({"checkpoint": "/nonexistent"}, 10).source == "hashed"
+
+
+@pytest.mark.filterwarnings("ignore:CUDA is not available")  # autocast on "cuda" here, without one
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_forwards_on_cuda_never_use_cudnn_attention(dtype):
+    """PyTorch's cuDNN attention failed on PaliGemma's bf16 prefix on an H200 (docs/benchmarks.md,
+    "VLA"): the policies' forward context turns it off on CUDA, and only there and only inside."""
+    import types
+
+    from dvla.learn.vla.hf_backbone import HFBackbone
+
+    bb = types.SimpleNamespace(dtype=dtype)
+    assert torch.backends.cuda.cudnn_sdp_enabled()
+    with HFBackbone.autocast(bb, torch.device("cuda")):  # sets the kernel flags; needs no GPU
+        assert not torch.backends.cuda.cudnn_sdp_enabled()
+        assert torch.backends.cuda.flash_sdp_enabled() and torch.backends.cuda.mem_efficient_sdp_enabled()
+        assert torch.backends.cuda.math_sdp_enabled()
+    assert torch.backends.cuda.cudnn_sdp_enabled()
+    with HFBackbone.autocast(bb, torch.device("cpu")):
+        assert torch.backends.cuda.cudnn_sdp_enabled()
+        assert torch.is_autocast_enabled("cpu") == (dtype == torch.bfloat16)

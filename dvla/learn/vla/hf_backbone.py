@@ -39,14 +39,20 @@ from typing import Any, Iterator, Mapping, Sequence
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from .checkpoint import CheckpointError, CheckpointInfo
 from .tokenizer import pad_id_of, tokenize_instruction
 
 __all__ = ["HFBackbone", "SampleAndAct", "apply_lora", "load_tokenizer", "tokenize_instruction", "torch_dtype", "float32_head",
-           "seeded", "pooled", "freeze_all_but_lora", "DTYPES", "LORA_TARGETS"]
+           "seeded", "pooled", "freeze_all_but_lora", "DTYPES", "LORA_TARGETS", "SDPA_BACKENDS"]
 
 DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+SDPA_BACKENDS = [SDPBackend.FLASH_ATTENTION, SDPBackend.EFFICIENT_ATTENTION, SDPBackend.MATH]
+"""Attention kernels the policies' forwards may use on CUDA: PyTorch's own, not cuDNN's. On an H200
+(torch 2.11 + CUDA 13.0) cuDNN's attention failed its internal check on PaliGemma's bf16 prefix
+(``mha_graph.execute(...).is_good()``, a known defect of that backend: pytorch/pytorch#134001)
+while these ran the same batch (docs/benchmarks.md, "VLA")."""
 LORA_TARGETS = ("q_proj", "k_proj", "v_proj", "o_proj")
 """Default LoRA targets: the attention projections (the language model's, and the flow expert's)."""
 _INIT_SEED = 0x5EED
@@ -214,9 +220,14 @@ class HFBackbone(nn.Module):
         return self.vlm.model.language_model
 
     def autocast(self, device: torch.device) -> contextlib.AbstractContextManager:
-        if self.dtype == torch.float32:
-            return contextlib.nullcontext()
-        return torch.autocast(device_type=device.type, dtype=self.dtype)
+        """The context every forward of the policy runs in: bf16 autocast for a bf16 model, and on
+        CUDA attention without cuDNN's backend (:data:`SDPA_BACKENDS`)."""
+        stack = contextlib.ExitStack()
+        if device.type == "cuda":
+            stack.enter_context(sdpa_kernel(SDPA_BACKENDS))
+        if self.dtype != torch.float32:
+            stack.enter_context(torch.autocast(device_type=device.type, dtype=self.dtype))
+        return stack
 
     def prefix(self, obs: Mapping[str, Tensor]) -> tuple[Tensor, Tensor]:
         """(embeddings [B, S, width] in the model dtype, mask [B, S] bool): images then words."""

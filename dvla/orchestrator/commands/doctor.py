@@ -17,8 +17,8 @@ def doctor(
     format: Annotated[Format, typer.Option("--format", "-f", help="table or json")] = Format.table,
     skip: Annotated[list[str], typer.Option("--skip", help=f"leave a check out (repeatable): {', '.join(CHECKS)}")] = [],
 ) -> None:
-    """Check this host: Vulkan for SAPIEN, torch and CUDA, zenoh, free ports, netns and tc, ssh
-    to remote nodes, clock sync. Exits 1 when a required check fails."""
+    """Check this host: Vulkan for SAPIEN, torch and CUDA, SAPIEN's PhysX GPU library, zenoh, free
+    ports, netns and tc, ssh to remote nodes, clock sync. Exits 1 when a required check fails."""
     unknown = [name for name in skip if name not in CHECKS]
     if unknown:
         raise fail(f"--skip: unknown check {unknown[0]!r} (expected one of {', '.join(CHECKS)})")
