@@ -11,6 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import torch
+
 from .test_up_e2e import ROOT, free_port_block
 
 CHECKS = ["python", "torch", "cuda", "zenoh", "vulkan", "maniskill", "physx-gpu", "transformers", "libero", "ports", "cpus", "netns", "ssh", "clock"]
@@ -45,8 +47,6 @@ def test_doctor_json_with_a_topology_whose_port_is_taken(tmp_path: Path) -> None
     for name in ("python", "torch", "zenoh", "maniskill", "transformers"):
         assert by_name[name]["status"] == "ok", by_name[name]
     assert by_name["ssh"]["status"] == "skip"  # tiny has no remote node
-    import torch
-
     if not torch.cuda.is_available():  # nothing asks for CUDA here: the PhysX GPU library is not looked for
         assert by_name["physx-gpu"]["status"] == "skip", by_name["physx-gpu"]
     if _netns_usable():
