@@ -305,11 +305,11 @@ def test_forwards_on_cuda_never_use_cudnn_attention(dtype):
 
     bb = types.SimpleNamespace(dtype=dtype)
     assert torch.backends.cuda.cudnn_sdp_enabled()
-    with HFBackbone.autocast(bb, torch.device("cuda")):  # sets the kernel flags; needs no GPU
+    with HFBackbone.forward_context(bb, torch.device("cuda")):  # sets the kernel flags; needs no GPU
         assert not torch.backends.cuda.cudnn_sdp_enabled()
         assert torch.backends.cuda.flash_sdp_enabled() and torch.backends.cuda.mem_efficient_sdp_enabled()
         assert torch.backends.cuda.math_sdp_enabled()
     assert torch.backends.cuda.cudnn_sdp_enabled()
-    with HFBackbone.autocast(bb, torch.device("cpu")):
+    with HFBackbone.forward_context(bb, torch.device("cpu")):
         assert torch.backends.cuda.cudnn_sdp_enabled()
         assert torch.is_autocast_enabled("cpu") == (dtype == torch.bfloat16)

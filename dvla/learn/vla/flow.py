@@ -199,7 +199,7 @@ class FlowVLA(SampleAndAct, nn.Module):
         """(expert context [B, S, ew], mask [B, S], proprio token [B, 1, ew] or None, value [B])."""
         device = obs["rgb"].device
         bb = self.backbone
-        with bb.autocast(device):
+        with bb.forward_context(device):
             x, mask = bb.prefix(obs)
             hidden = bb.run(x, mask)
             context = self.expert.context(hidden.to(bb.dtype))
@@ -211,7 +211,7 @@ class FlowVLA(SampleAndAct, nn.Module):
     def _step(self, x: Tensor, k: Tensor, context: Tensor, mask: Tensor, extra: Tensor | None) -> tuple[Tensor, Tensor]:
         """Float32 (mean, sigma) of x_{k+1} given x_k ``x`` [N, C, D] at step indices ``k`` [N]."""
         device = x.device
-        with self.backbone.autocast(device):
+        with self.backbone.forward_context(device):
             h = self.expert(x.to(self.backbone.dtype), k.float() / self.steps, context, mask, extra)
             velocity = self.expert.velocity_out(h)
         with float32_head(device):

@@ -219,7 +219,7 @@ class HFBackbone(nn.Module):
         """Where LoRA goes: the decoder stack (not the vision tower, whose attention shares names)."""
         return self.vlm.model.language_model
 
-    def autocast(self, device: torch.device) -> contextlib.AbstractContextManager:
+    def forward_context(self, device: torch.device) -> contextlib.AbstractContextManager:
         """The context every forward of the policy runs in: bf16 autocast for a bf16 model, and on
         CUDA attention without cuDNN's backend (:data:`SDPA_BACKENDS`)."""
         stack = contextlib.ExitStack()

@@ -104,7 +104,7 @@ class TokenActionVLA(SampleAndAct, nn.Module):
         """(bin log-probs [B, act_dim, n_bins] float32, value [B] float32)."""
         device = obs["rgb"].device
         bb = self.backbone
-        with bb.autocast(device):
+        with bb.forward_context(device):
             x, mask = bb.prefix(obs)
             b = x.shape[0]
             parts = [x]
