@@ -1,14 +1,13 @@
 """Percentiles for every benchmark: one definition (nearest rank), so figures of different
-benchmarks compare; and the window between two readings of a role's cumulative latency buckets
-(:class:`dvla.roles.swimlane.LatencyHistogram`)."""
+benchmarks compare; cumulative latency buckets (:class:`LatencyHistogram`, kept by the rollouts
+`dvla bench swimlane` runs) and the window between two readings of them."""
 
 from __future__ import annotations
 
 import math
+import threading
 from collections import Counter
 from typing import Iterable, Mapping
-
-from dvla.roles.swimlane import bucket_upper_ms
 
 
 def weighted_percentile(counts: Mapping[float, int], q: float) -> float:
@@ -50,3 +49,52 @@ def histogram_percentile(counts: Mapping[str, int], q: float) -> float:
     0.0 for no samples."""
     edges = {bucket_upper_ms(int(b)): int(n) for b, n in counts.items() if int(n) > 0}
     return weighted_percentile(edges, q) if edges else 0.0
+
+
+LATENCY_BUCKET_RATIO = 1.02
+"""Upper edge of bucket ``i`` is ``LATENCY_MIN_MS * ratio**i``: percentiles are exact to 2%."""
+
+LATENCY_MIN_MS = 0.001
+"""Everything at or below 1 us lands in bucket 0."""
+
+_LOG_RATIO = math.log(LATENCY_BUCKET_RATIO)
+
+
+def latency_bucket(ms: float) -> int:
+    """Index of the bucket holding ``ms`` (its upper edge is >= ``ms``)."""
+    if ms <= LATENCY_MIN_MS:
+        return 0
+    return int(math.ceil(math.log(ms / LATENCY_MIN_MS) / _LOG_RATIO - 1e-9))
+
+
+def bucket_upper_ms(index: int) -> float:
+    """Upper edge of bucket ``index`` in milliseconds."""
+    return LATENCY_MIN_MS * LATENCY_BUCKET_RATIO**index
+
+
+class LatencyHistogram:
+    """Cumulative latency counts per label, in log buckets (2% wide), since it was made.
+
+    Counts only ever grow, so a reader that polls :meth:`counts` twice and subtracts
+    (:func:`histogram_diff`) gets the distribution of exactly the batches in between: warm-up
+    never leaks into a steady-state figure, and no sample is lost to a bounded buffer. Written by
+    one lane thread; read (copied) from the status thread.
+    """
+
+    def __init__(self, labels: Iterable[str]) -> None:
+        self._counts: dict[str, dict[int, int]] = {label: {} for label in labels}
+        if not self._counts:
+            raise ValueError("LatencyHistogram needs at least one label")
+        self._lock = threading.Lock()
+
+    def record(self, label: str, ms: float) -> None:
+        """Count one batch of ``label`` that took ``ms`` milliseconds."""
+        buckets = self._counts[label]  # KeyError for an undeclared label: a bug, not data
+        b = latency_bucket(ms)
+        with self._lock:
+            buckets[b] = buckets.get(b, 0) + 1
+
+    def counts(self) -> dict[str, dict[str, int]]:
+        """``{label: {bucket index as str: count}}`` (str keys: status travels as msgpack maps)."""
+        with self._lock:
+            return {label: {str(b): n for b, n in sorted(c.items())} for label, c in self._counts.items()}

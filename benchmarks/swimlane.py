@@ -19,7 +19,7 @@ Two workloads, each run in two modes on the same topology, env and policy:
   random actions' (shorter episodes, so more resets; contacts with the object), and
   ``async_over_sim_only_equal_step_cost`` is the ratio with that difference taken out. The async
   run also measures RSS growth over the steady state, policy lag and the inference latency split
-  by weight swaps.
+  by weight swaps (its rollouts are :mod:`benchmarks.swimlane_probe`'s, which keep that split).
 * **balanced**: the same task with the rollouts (and the replicator) pinned to core 0 and the
   actor to core 1, and PPO epochs chosen so that the learner needs about as long per batch as
   the rollouts need to sample one. ``sync`` (lock-step: sample a batch, ship, learn, publish,
@@ -54,6 +54,7 @@ from dvla.orchestrator.plan import role_cpus
 from benchmarks.ports import free_port_block
 
 from .stats import histogram_diff, histogram_percentile, weighted_percentile
+from .swimlane_probe import ProbeWrapper
 
 HEADLINE_KEYS = (
     "sim_only_sps",
@@ -335,6 +336,7 @@ def measure_run(
     port = base_port if base_port is not None else free_port_block()
     opts = UpOptions(runs_root=runs_root, base_port=port, max_restarts=0, fresh=True)
     u = Up(topo, opts, on_tick=tick)
+    u.launcher.wrap = ProbeWrapper()  # rollouts that also split their inference latency by swaps
     try:
         code: int | None = u.run()
     except (ConnectionError, RuntimeError, OSError) as err:  # e.g. the ctrl plane never came up

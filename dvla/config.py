@@ -33,7 +33,7 @@ ROLE_LANES: dict[str, tuple[str, ...]] = {
     "evaluator": ("sync", "eval"),
 }
 """The lanes (named threads) of each role, as its ``build()`` registers them; ``lane_cpus`` may
-pin any of them. A rollout with ``rollout_infer: inline`` has no ``infer`` lane."""
+pin any of them."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -224,10 +224,6 @@ class TaskConfig:
     budget: BudgetConfig = field(default_factory=BudgetConfig)
     #: envs stepped by each rollout process (split into two groups for double-buffered sampling)
     envs_per_rollout: int = 4
-    #: where a rollout computes actions: "lane" (its own `infer` thread, overlapping the other
-    #: group's simulation) or "inline" (the `sim` lane calls the policy between steps: no
-    #: hand-off between threads, for CPU policies whose forward holds the GIL anyway)
-    rollout_infer: Literal["lane", "inline"] = "lane"
     #: steps per env in one trajectory chunk
     chunk_steps: int = 25
     #: the actor's torch device (it learns there): "auto" (cuda when present), "cpu", "cuda"

@@ -43,7 +43,7 @@ from ..replication import ParamLayout, bind_flat, unflatten_into
 from ..counters import INCARNATION_SHIFT, CounterFile
 from .chunkpool import ChunkPool, DeviceChunk, Shipment, chunk_template
 from .runtime import main
-from .swimlane import LaneContext, LatencyHistogram, Swimlane, sample_percentile
+from .swimlane import LaneContext, Swimlane, sample_percentile
 from .weightsync import WeightSync
 
 log = logging.getLogger("dvla.rollout")
@@ -210,20 +210,13 @@ class Rollout:
         #: CPU seconds the sim lane spent inside env.step (resets included): what a step costs the
         #: simulator itself, apart from acting, recording and hand-offs
         self.step_cpu_s = 0.0
-        self.infer_ms: list[float] = []
-        # Inference batch latency (the dual pool promises that a swap costs inference nothing),
-        # split two ways. "swap": the batch *started* while a staging write was under way, or is
-        # the first on newly swapped weights; decided before the batch runs, so its duration
-        # cannot pick the label. "overlap": a write overlapped the batch or the one before; a
-        # long batch overlaps a write more often than a short one whatever the write costs, so
-        # that split leans towards slow batches (length-biased) and is kept as a second figure.
-        self.infer_latency = LatencyHistogram(("swap", "no_swap", "overlap", "no_overlap"))
+        #: the most recent inference batches' latency, ms (status: p50/p99)
+        self.infer_ms: collections.deque[float] = collections.deque(maxlen=512)
         self.sync_mode = cfg.mode == "sync"
         self.sim_only = cfg.mode == "sim_only"
         self._lockstep_version = -1  # sync mode: actions of older versions are recomputed
         self._since_version = 0
         self._ready = threading.Event()
-        self._touched_before = False  # a staging write overlapped the previous inference batch
         #: (version, checksum) of the newest verified weights
         self.held: tuple[int, str] = (-1, "")
 
@@ -241,10 +234,8 @@ class Rollout:
             self.fabric, self.pool.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version,
             base_hash=policy_base_hash(self.pool.active), base_source=str(self.cfg.task.policy_kwargs.get("checkpoint", "")),
         )
-        inline = self.cfg.task.rollout_infer == "inline"
-        sl.lane("sim", self._sim_random if self.sim_only else self._sim_inline if inline else self._sim)
-        if not inline:
-            sl.lane("infer", self._infer)
+        sl.lane("sim", self._sim_random if self.sim_only else self._sim)
+        sl.lane("infer", self._infer)
         sl.lane("ship", self._ship)
         sl.lane("sync", self._sync)
 
@@ -280,9 +271,8 @@ class Rollout:
         """Install pending weights, then the actions of group ``gid`` for its observations. The
         latency recorded includes the install (a copy of the replicated tensors): what a new
         version costs the batch that first uses it."""
-        seq0 = self.pool.stage_seq
         t0 = time.perf_counter()
-        swapped = self.pool.maybe_swap()
+        self.pool.maybe_swap()
         g = self.groups[gid]
         # Sampling noise is a function of (process seed, group, step): the same seed replays the
         # same actions whatever the threads' timing (an action recomputed for new weights included).
@@ -296,29 +286,8 @@ class Rollout:
                 action, logprob = action.cpu().numpy(), logprob.cpu().numpy()
                 extras = {k: v.cpu().numpy() for k, v in extras.items()}
         ms = (time.perf_counter() - t0) * 1e3
-        seq1 = self.pool.stage_seq
-        self.infer_latency.record("swap" if swapped or seq0 % 2 == 1 else "no_swap", ms)
-        touched = swapped or seq1 != seq0 or seq1 % 2 == 1
-        self.infer_latency.record("overlap" if touched or self._touched_before else "no_overlap", ms)
-        self._touched_before = touched
         self.infer_ms.append(ms)
-        if len(self.infer_ms) > 2048:
-            del self.infer_ms[:1024]
         return Actions(gid, action, logprob, self.pool.active_version, extras)
-
-    def _sim_inline(self, ctx: LaneContext) -> None:
-        """``rollout_infer: inline``: act and step each group in turn on this one thread."""
-        self._wait_for_weights(ctx)
-        while ctx.running:
-            for g in self.groups:
-                with ctx.busy():
-                    a = self._act(g.gid)
-                    self._record_step(g, a)
-                    ctx.count(g.envs.n)
-                if g.t == self.T:
-                    self._finish_chunk(g, ctx)
-                if not ctx.running:
-                    return
 
     def _sim(self, ctx: LaneContext) -> None:
         for g in self.groups:
@@ -467,7 +436,7 @@ class Rollout:
 
     # -- status -------------------------------------------------------------------------------
     def status_extra(self) -> dict[str, Any]:
-        ms = self.infer_ms[-512:]
+        ms = list(self.infer_ms)
         return {
             # envs per group; one_scene: they share one simulator scene stepped as a batch
             "env_groups": [g.envs.n for g in self.groups],
@@ -482,8 +451,6 @@ class Rollout:
             "episode_len_mean": _mean(list(self.recent_lengths)),
             "infer_ms_p50": sample_percentile(ms, 0.5),
             "infer_ms_p99": sample_percentile(ms, 0.99),
-            # cumulative bucket counts (dvla.roles.swimlane.LatencyHistogram): diff two readings
-            "infer_latency_counts": self.infer_latency.counts(),
             "swaps": self.pool.swaps,
             "swap_deferred": self.pool.swap_deferred,
             "versions_overwritten": self.pool.overwritten,

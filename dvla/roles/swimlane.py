@@ -12,7 +12,6 @@ from __future__ import annotations
 import collections
 import contextlib
 import logging
-import math
 import os
 import queue
 import threading
@@ -22,7 +21,7 @@ from collections.abc import Callable, Iterable, Iterator
 from typing import Any, ContextManager, Generic, TypeVar
 
 __all__ = [
-    "BoundedQueue", "LatencyHistogram", "LaneContext", "LaneError", "LaneStats", "Swimlane", "current_lane",
+    "BoundedQueue", "LaneContext", "LaneError", "LaneStats", "Swimlane", "current_lane",
     "sample_percentile", "pin_cpus", "set_torch_threads",
 ]
 
@@ -565,54 +564,6 @@ class Swimlane:
                 snap["cpu_s"] = cpu
             out[name] = snap
         return out
-
-LATENCY_BUCKET_RATIO = 1.02
-"""Upper edge of bucket ``i`` is ``LATENCY_MIN_MS * ratio**i``: percentiles are exact to 2%."""
-
-LATENCY_MIN_MS = 0.001
-"""Everything at or below 1 us lands in bucket 0."""
-
-_LOG_RATIO = math.log(LATENCY_BUCKET_RATIO)
-
-
-def latency_bucket(ms: float) -> int:
-    """Index of the bucket holding ``ms`` (its upper edge is >= ``ms``)."""
-    if ms <= LATENCY_MIN_MS:
-        return 0
-    return int(math.ceil(math.log(ms / LATENCY_MIN_MS) / _LOG_RATIO - 1e-9))
-
-
-def bucket_upper_ms(index: int) -> float:
-    """Upper edge of bucket ``index`` in milliseconds."""
-    return LATENCY_MIN_MS * LATENCY_BUCKET_RATIO**index
-
-
-class LatencyHistogram:
-    """Cumulative latency counts per label, in log buckets (2% wide), since the lane started.
-
-    Counts only ever grow, so a reader that polls :meth:`counts` twice and subtracts
-    (:func:`histogram_diff`) gets the distribution of exactly the batches in between: warm-up
-    never leaks into a steady-state figure, and no sample is lost to a bounded buffer. Written by
-    one lane thread; read (copied) from the status thread.
-    """
-
-    def __init__(self, labels: Iterable[str]) -> None:
-        self._counts: dict[str, dict[int, int]] = {label: {} for label in labels}
-        if not self._counts:
-            raise ValueError("LatencyHistogram needs at least one label")
-        self._lock = threading.Lock()
-
-    def record(self, label: str, ms: float) -> None:
-        """Count one batch of ``label`` that took ``ms`` milliseconds."""
-        buckets = self._counts[label]  # KeyError for an undeclared label: a bug, not data
-        b = latency_bucket(ms)
-        with self._lock:
-            buckets[b] = buckets.get(b, 0) + 1
-
-    def counts(self) -> dict[str, dict[str, int]]:
-        """``{label: {bucket index as str: count}}`` (str keys: status travels as msgpack maps)."""
-        with self._lock:
-            return {label: {str(b): n for b, n in sorted(c.items())} for label, c in self._counts.items()}
 
 def sample_percentile(values: list, q: float) -> float:
     """Nearest-rank ``q``-quantile (0-1) of ``values``; 0.0 for none."""

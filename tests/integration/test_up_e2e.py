@@ -154,14 +154,13 @@ def up_tiny_variant(tmp_path: Path, text: str, max_env_steps: int) -> Path:
 
 
 @pytest.mark.timeout(300)
-def test_up_with_inline_inference(tmp_path: Path) -> None:
-    """`rollout_infer: inline`: the rollouts act on their sim lane (no infer lane), weights still
-    advance, and the chunk accounting closes exactly. Two evaluators share every evaluation
-    (3 episodes each): the orchestrator records whole evaluations of 6."""
+def test_up_with_two_evaluators_sharing_evaluations(tmp_path: Path) -> None:
+    """Two evaluators share every evaluation (3 episodes each): the orchestrator records whole
+    evaluations of 6; weights still advance, and the chunk accounting closes exactly."""
     text = (ROOT / "topologies/tiny.yaml").read_text()
     assert "  algorithm: ppo\n" in text and text.endswith("          - role: evaluator\n")
-    text = text.replace("  algorithm: ppo\n", "  algorithm: ppo\n  rollout_infer: inline\n"
-                        "  eval: {episodes: 6, every_versions: 2, envs: 3}\n", 1) + "            count: 2\n"
+    text = text.replace("  algorithm: ppo\n", "  algorithm: ppo\n  eval: {episodes: 6, every_versions: 2, envs: 3}\n",
+                        1) + "            count: 2\n"
     run_dir = up_tiny_variant(tmp_path, text, 1600)
     blocks = []
     for name in ("evaluator-node0-0", "evaluator-node0-1"):
@@ -174,10 +173,9 @@ def test_up_with_inline_inference(tmp_path: Path) -> None:
     assert evals and all(int(e["episodes"]) == 6 for e in evals), evals
     for name in ("rollout-node0-0", "rollout-node0-1"):
         s = json.loads((run_dir / "summaries" / f"{name}.json").read_text())
-        assert "infer" not in s["lanes"] and s["lanes"]["sim"]["items"] > 0, s["lanes"]
+        assert s["lanes"]["infer"]["items"] > 0 and s["lanes"]["sim"]["items"] > 0, s["lanes"]
         assert s["policy_version"] >= 2 and s["error"] is None
-        lat = s["extra"]["infer_latency_counts"]
-        assert sum(lat["swap"].values()) + sum(lat["no_swap"].values()) > 0  # acting is still timed
+        assert s["extra"]["infer_ms_p99"] > 0  # acting is timed
 
 
 @pytest.mark.timeout(300)

@@ -2,10 +2,21 @@
 
 from __future__ import annotations
 
+import json
+import threading
+
 import pytest
 
-from benchmarks.stats import histogram_diff, histogram_percentile, percentile, weighted_percentile
-from dvla.roles.swimlane import LatencyHistogram, latency_bucket
+from benchmarks.stats import (
+    LATENCY_BUCKET_RATIO,
+    LatencyHistogram,
+    bucket_upper_ms,
+    histogram_diff,
+    histogram_percentile,
+    latency_bucket,
+    percentile,
+    weighted_percentile,
+)
 
 
 def test_nearest_rank_on_samples() -> None:
@@ -54,3 +65,44 @@ def test_histogram_window_between_two_readings() -> None:
     assert histogram_percentile({}, 99) == 0.0
     with pytest.raises(ValueError):
         histogram_diff(before["no_swap"], after["no_swap"])  # counts never go down
+
+
+# -- latency histograms -------------------------------------------------------------------------
+
+
+def test_latency_bucket_edges_bound_their_values() -> None:
+    for ms in (0.0, 0.0005, 0.001, 0.0123, 0.5, 1.0, 1.7, 33.3, 2500.0):
+        b = latency_bucket(ms)
+        assert bucket_upper_ms(b) >= ms * (1 - 1e-9)
+        if b > 0:
+            assert bucket_upper_ms(b - 1) < ms
+    assert bucket_upper_ms(latency_bucket(10.0)) <= 10.0 * LATENCY_BUCKET_RATIO
+
+
+def test_latency_histogram_counts_per_label() -> None:
+    h = LatencyHistogram(("swap", "no_swap"))
+    for ms in (0.1, 0.1, 5.0):
+        h.record("no_swap", ms)
+    h.record("swap", 2.0)
+    assert h.counts() == {"swap": {str(latency_bucket(2.0)): 1},
+                          "no_swap": {str(latency_bucket(0.1)): 2, str(latency_bucket(5.0)): 1}}
+    with pytest.raises(KeyError):
+        h.record("other", 1.0)
+    with pytest.raises(ValueError):
+        LatencyHistogram(())
+
+
+def test_latency_histogram_counts_every_sample_from_a_thread_while_read() -> None:
+    h = LatencyHistogram(("no_swap",))
+    n = 20_000
+
+    def writer() -> None:
+        for i in range(n):
+            h.record("no_swap", 0.01 * (i % 100 + 1))
+
+    t = threading.Thread(target=writer)
+    t.start()
+    while t.is_alive():
+        json.dumps(h.counts())  # a status thread reading concurrently
+    t.join()
+    assert sum(h.counts()["no_swap"].values()) == n

@@ -139,3 +139,13 @@ def test_sim_lane_cpu_per_step_separates_less_cpu_from_dearer_steps():
     assert out["sim_cpu_ms_per_step"] == pytest.approx(5000 / 3000)
     assert out["env_step_cpu_ms"] == pytest.approx(4200 / 3000)  # of it inside env.step
     assert out["episodes_per_1k_steps"] == pytest.approx(20.0)
+
+
+def test_the_bench_starts_its_rollouts_with_the_swap_probe_and_the_other_roles_as_they_are():
+    from benchmarks.swimlane_probe import ProbeWrapper
+
+    wrap = ProbeWrapper()
+    argv = ["python", "-m", "dvla.roles.rollout", "--config", "r.json"]
+    assert wrap(None, argv) == ["python", "-m", "benchmarks.swimlane_probe", "--config", "r.json"]  # type: ignore[arg-type]
+    actor = ["python", "-m", "dvla.roles.actor", "--config", "a.json"]
+    assert wrap(None, actor) == actor  # type: ignore[arg-type]

@@ -13,16 +13,12 @@ import types
 import pytest
 
 from dvla.roles.swimlane import (
-    LATENCY_BUCKET_RATIO,
     BoundedQueue,
     LaneContext,
     LaneError,
     LaneStats,
-    LatencyHistogram,
     Swimlane,
-    bucket_upper_ms,
     current_lane,
-    latency_bucket,
     pin_cpus,
     set_torch_threads,
 )
@@ -687,48 +683,6 @@ def test_swimlane_queues_are_bounded() -> None:
     assert all(q.put(i, stop, timeout=0.01) for i in range(3))
     assert q.put(3, stop, timeout=0.01) is False
     assert q.depth == q.maxsize == 3
-
-
-# -- latency histograms -------------------------------------------------------------------------
-
-
-def test_latency_bucket_edges_bound_their_values() -> None:
-    for ms in (0.0, 0.0005, 0.001, 0.0123, 0.5, 1.0, 1.7, 33.3, 2500.0):
-        b = latency_bucket(ms)
-        assert bucket_upper_ms(b) >= ms * (1 - 1e-9)
-        if b > 0:
-            assert bucket_upper_ms(b - 1) < ms
-    assert bucket_upper_ms(latency_bucket(10.0)) <= 10.0 * LATENCY_BUCKET_RATIO
-
-
-def test_latency_histogram_counts_per_label() -> None:
-    h = LatencyHistogram(("swap", "no_swap"))
-    for ms in (0.1, 0.1, 5.0):
-        h.record("no_swap", ms)
-    h.record("swap", 2.0)
-    assert h.counts() == {"swap": {str(latency_bucket(2.0)): 1},
-                          "no_swap": {str(latency_bucket(0.1)): 2, str(latency_bucket(5.0)): 1}}
-    with pytest.raises(KeyError):
-        h.record("other", 1.0)
-    with pytest.raises(ValueError):
-        LatencyHistogram(())
-
-
-def test_latency_histogram_counts_every_sample_from_a_lane_while_read() -> None:
-    h = LatencyHistogram(("no_swap",))
-    n = 20_000
-
-    def writer(ctx: LaneContext) -> None:
-        for i in range(n):
-            h.record("no_swap", 0.01 * (i % 100 + 1))
-
-    sl = Swimlane("rollout")
-    sl.lane("infer", writer)
-    sl.start()
-    while not sl.wait(timeout=0.001):
-        json.dumps(h.counts())  # a status thread reading concurrently
-    assert sl.join() == [] and sl.error is None
-    assert sum(h.counts()["no_swap"].values()) == n
 
 
 # -- lanes in `dvla status` ---------------------------------------------------------------------
