@@ -7,7 +7,8 @@ its own process (multiprocessing, spawn) so that the cores are used as in a real
   trajectory path as a rollout and an actor use it (what each side does per chunk is spelled
   out in :data:`DOES` and copied into the JSON): chunks/s and bytes/s from the publisher's
   first put to the consumer's last chunk, and each side's CPU time per chunk; the median of
-  the rounds.
+  the rounds. A round ends when every chunk sent has arrived, or when the publisher is done and
+  nothing has arrived for `IDLE_S`: chunks that never came are reported as `lost`.
 * **Ctrl latency.** RTT of a signed status request/reply (`Fabric.query` -> `Fabric.serve`)
   from a tool process, through the sink's ctrl router, to a source process: idle; while the
   source floods its data session with 1 MiB chunks to the sink (the real layout of a rollout
@@ -26,6 +27,7 @@ the bench instead of hanging it, and the namespaces are removed whatever happens
 from __future__ import annotations
 
 import contextlib
+import logging
 import multiprocessing as mp
 import os
 import queue
@@ -42,6 +44,8 @@ from typing import Any, Callable
 import numpy as np
 
 from .stats import percentile
+
+log = logging.getLogger("dvla.bench.fabric")
 
 RUN = "bench"
 SOURCE, SINK, TOOL = "bench-source", "bench-sink", "bench-tool"
@@ -192,24 +196,50 @@ def _between_rounds_s(phase_timeout_s: float) -> float:
     return START_TIMEOUT_S + 2 * phase_timeout_s
 
 
-def _throughput_sub(port: int, n: int, rounds: int, secret: bytes, ready: Any, routed: Any, out: Any,
+class Arrivals:
+    """Chunks a subscriber has taken, counted as they come; a round ends when every chunk sent
+    has arrived, or, once the publisher is done, when nothing has arrived for `idle_s` (a chunk
+    lost on the way then ends the round as a loss, not as a stall)."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self.count = 0
+        self.last = time.monotonic()
+
+    def add(self) -> None:
+        with self._cond:
+            self.count += 1
+            self.last = time.monotonic()
+            self._cond.notify_all()
+
+    def wait_for(self, sent: int, idle_s: float) -> tuple[int, float]:
+        """Once `sent` chunks have been sent in all: (chunks taken in all, when the last came)."""
+        told = time.monotonic()
+        with self._cond:
+            while self.count < sent and time.monotonic() - max(self.last, told) < idle_s:
+                self._cond.wait(0.05)
+            return self.count, self.last
+
+
+#: a round whose publisher is done ends after this long without an arrival (what is missing is lost)
+IDLE_S = 3.0
+
+
+def _throughput_sub(port: int, rounds: int, secret: bytes, ready: Any, routed: Any, sent: Any, out: Any,
                     timeout_s: float, auth: str = "identity", identity: str | None = None) -> None:
-    """Takes `rounds` x `n` chunks from a trajectory inbox; reports when each round's last one
-    was taken, and this process's CPU time by then."""
+    """Takes chunks from a trajectory inbox; after each round, told how many were sent in all,
+    reports how many it has taken in all, when the last one was taken, and its CPU time by then."""
     from dvla.fabric import TrajectoryChunk, plane_config
 
     fabric = _open_fabric(SINK, secret, ctrl=plane_config(), data=plane_config(mode="peer", listen=[endpoint(port)]),
                           auth=auth, identity=identity)
-    ends: queue.Queue[float] = queue.Queue()
+    arrivals = Arrivals()
     stop = threading.Event()
 
     def consume() -> None:  # as the actor's ingest lane takes chunks
-        count = 0
         while not stop.is_set():
             if inbox.get(timeout=0.5) is not None:
-                count += 1
-                if count % n == 0:
-                    ends.put(time.monotonic())
+                arrivals.add()
 
     try:
         inbox = fabric.subscribe_traj(maxsize=64, expect=TrajectoryChunk)
@@ -220,9 +250,13 @@ def _throughput_sub(port: int, n: int, rounds: int, secret: bytes, ready: Any, r
             out.put(("sub_ready", 0, 0.0, _cpu_s()))
             ready.set()
             for r in range(rounds):
-                out.put(("sub", r, ends.get(timeout=_between_rounds_s(timeout_s)), _cpu_s()))
+                total = sent.get(timeout=_between_rounds_s(timeout_s))
+                if total is None:
+                    return
+                got, last = arrivals.wait_for(total, IDLE_S)
+                out.put(("sub", r, last, _cpu_s(), got, fabric.accounting.snapshot()))
         except queue.Empty:
-            out.put(("error", f"the subscriber got fewer than {rounds * n} chunks: {fabric.accounting.snapshot()}"))
+            out.put(("error", "the subscriber was never told what the publisher sent"))
         finally:
             probe.undeclare()
             stop.set()
@@ -273,15 +307,23 @@ class _Pair:
 
         self.n, self.size, self.cfg = n, payload_size(target), cfg
         self.rounds = rounds or cfg.rounds
+        #: chunks sent and taken in all, over the rounds so far
+        self.sent = self.taken = 0
         port = free_port()
         self.ready, self.routed, self.out, self.go = ctx.Event(), ctx.Event(), ctx.Queue(), ctx.Queue()
+        self.told = ctx.Queue()  # to the subscriber: chunks sent in all, once a round is sent
         t = cfg.phase_timeout_s
         op = Identity.operator(RUN)  # as `dvla up` issues them: the sink acts as the actor
         ids = (op.issue("actor", SINK).to_text(), op.issue("rollout", SOURCE).to_text())
-        self.sub = ctx.Process(target=_throughput_sub, args=(port, n, self.rounds, secret, self.ready, self.routed,
+        self.sub = ctx.Process(target=_throughput_sub, args=(port, self.rounds, secret, self.ready, self.routed, self.told,
                                                              self.out, t, auth, ids[0]))
         self.pub = ctx.Process(target=_throughput_pub, args=(port, n, self.rounds, target, secret, self.routed, self.go,
                                                              self.out, t, auth, ids[1]))
+
+    @property
+    def lost(self) -> int:
+        """Chunks sent that the subscriber never took (late ones count once they arrive)."""
+        return self.sent - self.taken
 
     def start(self, pids: list[int]) -> None:
         self.sub.start()
@@ -293,18 +335,27 @@ class _Pair:
         _wait_event(self.routed, self.pub, "publisher route")
 
     def round(self, r: int) -> tuple[float, float, float]:
-        """Round `r`: bytes/s from the publisher's first put to the consumer's last chunk, and
-        the CPU time per chunk (µs, all threads, Zenoh's included) of publisher and subscriber."""
+        """Round `r`: bytes/s of the chunks taken, from the publisher's first put to the
+        consumer's last chunk, and the CPU time per chunk (µs, all threads, Zenoh's included) of
+        publisher and subscriber."""
         self.go.put(r)
-        got = _collect(self.out, {"sub", "pub"}, self.cfg.phase_timeout_s + 5)
+        pub = _collect(self.out, {"pub"}, self.cfg.phase_timeout_s + 5)["pub"]
+        self.sent += self.n
+        self.told.put(self.sent)
+        sub = _collect(self.out, {"sub"}, self.cfg.phase_timeout_s + IDLE_S + 5)["sub"]
+        taken, self.taken = sub[4] - self.taken, sub[4]
+        if self.lost:
+            log.warning("throughput round %d: %d of %d chunks lost so far (subscriber's counters: %s)",
+                        r, self.lost, self.sent, sub[5])
         # The subscriber's CPU between the ends of two of its rounds: it idles in between.
-        sub_cpu = got["sub"][3] - self.sub_cpu_mark
-        self.sub_cpu_mark = got["sub"][3]
-        rate = self.n * self.size / max(got["sub"][2] - got["pub"][2], 1e-9)
-        return rate, got["pub"][3] / self.n * 1e6, sub_cpu / self.n * 1e6
+        sub_cpu = sub[3] - self.sub_cpu_mark
+        self.sub_cpu_mark = sub[3]
+        rate = taken * self.size / max(sub[2] - pub[2], 1e-9)
+        return rate, pub[3] / self.n * 1e6, sub_cpu / max(taken, 1) * 1e6
 
     def stop(self) -> None:
         self.go.put(None)
+        self.told.put(None)
         _stop([self.sub, self.pub])
 
 
@@ -330,7 +381,7 @@ def _measure_auth(ctx: Any, cfg: BenchConfig, secret: bytes, pids: list[int]) ->
         bps = statistics.median(x[0] for x in rs)
         data[mode] = {"chunks_per_s": bps / pairs[mode].size, "pub_cpu_us_per_chunk": statistics.median(x[1] for x in rs),
                       "sub_cpu_us_per_chunk": statistics.median(x[2] for x in rs),
-                      "rounds_chunks_per_s": [x[0] / pairs[mode].size for x in rs]}
+                      "rounds_chunks_per_s": [x[0] / pairs[mode].size for x in rs], "lost": pairs[mode].lost}
     base = data["none"]
     for mode in ("hmac", "identity"):
         d = data[mode]
@@ -377,7 +428,8 @@ def _measure_throughput(ctx: Any, n: int, target: int, cfg: BenchConfig, secret:
     finally:
         pair.stop()
     bps = statistics.median(r[0] for r in rounds)
-    return {"payload_bytes": pair.size, "messages": n, "bytes_per_s": bps, "chunks_per_s": bps / pair.size,
+    return {"payload_bytes": pair.size, "messages": n, "lost": pair.lost, "bytes_per_s": bps,
+            "chunks_per_s": bps / pair.size,
             "rounds_bytes_per_s": [r[0] for r in rounds], "does": DOES,
             "pub_cpu_us_per_msg": statistics.median(r[1] for r in rounds),
             "sub_cpu_us_per_msg": statistics.median(r[2] for r in rounds)}
@@ -781,10 +833,10 @@ HEADLINE_KEYS = (
 
 def format_table(doc: dict[str, Any]) -> str:
     """A short human summary of `run_bench`'s document."""
-    lines = [f"{'throughput':<11}{'payload':>9}{'chunks/s':>10}{'MB/s':>8}{'CPU us/chunk pub':>18}{'sub':>6}"]
+    lines = [f"{'throughput':<11}{'payload':>9}{'chunks/s':>10}{'MB/s':>8}{'CPU us/chunk pub':>18}{'sub':>6}{'lost':>6}"]
     for label, e in doc["throughput"].items():
         lines.append(f"{label:<11}{e['payload_bytes']:>9}{e['chunks_per_s']:>10.0f}{e['bytes_per_s'] / 1e6:>8.0f}"
-                     f"{e['pub_cpu_us_per_msg']:>18.0f}{e['sub_cpu_us_per_msg']:>6.0f}")
+                     f"{e['pub_cpu_us_per_msg']:>18.0f}{e['sub_cpu_us_per_msg']:>6.0f}{e['lost']:>6}")
     lines.append("publish_traj of a TrajectoryChunk to subscribe_traj's inbox and a consumer thread")
     auth = doc["auth"]
     lines.append("")

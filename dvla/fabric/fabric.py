@@ -19,6 +19,7 @@ Usable without any dvla configuration: pass two plain `zenoh.Config` objects (do
 
 from __future__ import annotations
 
+import json
 import logging
 import queue
 import threading
@@ -36,6 +37,8 @@ from .signing import SignatureError, Signer, Verifier, nonce_of
 log = logging.getLogger("dvla.fabric")
 
 DATA, CTRL = "data", "ctrl"
+#: Zenoh's limit on one session handshake (ms)
+OPEN_TIMEOUT_KEY = "transport/unicast/open_timeout"
 
 
 #: priority of commands, status and eval results: above everything else on the ctrl link
@@ -397,16 +400,23 @@ class Fabric:
 
     def query(
         self, selector: str, request: Any | None = None, *, expect: type | tuple[type, ...] | None = None,
-        timeout: float = 2.0,
+        timeout: float = 2.0, droppable: bool = False,
     ) -> list[tuple[str, Any]]:
         """Query every matching queryable with a signed request (`request`, or an empty payload);
-        returns the verified (sender, message) replies bound to this query."""
+        returns the verified (sender, message) replies bound to this query.
+
+        The query and its replies (which travel with the query's QoS) use BLOCK congestion
+        control, unless `droppable`: then a link congested by weights drops them instead, for
+        small repeated queries such as status. Under BLOCK a status query fanned out by the ctrl
+        router into a link full of weights, or a role's status reply, would wait there for up to
+        Zenoh's ``wait_before_close`` (zconfig.py) and hold every status query behind it."""
         payload = self._signer.seal(selector, encode(request) if request is not None else b"")
         nonce = nonce_of(payload)
         # Every reply is kept (no consolidation): a queryable may answer with several (a snapshot
         # in chunks), and each one is verified on its own.
         replies = self.ctrl.get(selector, payload=payload, timeout=timeout, priority=PRIO_CTRL,
-                                consolidation=zenoh.ConsolidationMode.NONE)
+                                consolidation=zenoh.ConsolidationMode.NONE,
+                                congestion_control=zenoh.CongestionControl.DROP if droppable else zenoh.CongestionControl.BLOCK)
         out = []
         for reply in replies:
             if reply.ok is None:
@@ -574,10 +584,16 @@ def _on_receive_thread(callback: Callable[[zenoh.Sample], None]) -> Any:
 
 
 def _open_retrying(conf: zenoh.Config, timeout_s: float, plane: str) -> zenoh.Session:
-    """Open a session; a client whose router is not up yet retries until `timeout_s`."""
+    """Open a session; a client whose router is not up yet retries until `timeout_s`.
+
+    Each attempt's handshake is cut to the time left: a listener that accepts but never answers
+    (a run that is ending) would otherwise hold one attempt for Zenoh's whole open timeout."""
     deadline = time.monotonic() + timeout_s
     delay = 0.05
+    cap_ms = int(json.loads(conf.get_json(OPEN_TIMEOUT_KEY)))
     while True:
+        left_ms = int((deadline - time.monotonic()) * 1000)
+        conf.insert_json5(OPEN_TIMEOUT_KEY, str(max(100, min(cap_ms, left_ms))))
         try:
             return zenoh.open(conf)
         except zenoh.ZError as err:

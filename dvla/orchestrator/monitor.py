@@ -82,7 +82,7 @@ class Monitor:
         return time.monotonic() - self.t0
 
     def collect(self) -> Snapshot:
-        replies = self.fabric.query(self.fabric.keys.status_all(), expect=RoleStatus, timeout=1.5)
+        replies = self.fabric.query(self.fabric.keys.status_all(), expect=RoleStatus, timeout=1.5, droppable=True)
         statuses = {msg.name: msg for _sender, msg in replies}
         actors = sorted((s for s in statuses.values() if s.kind == "actor"), key=lambda s: s.name)
         env_steps = max((s.env_steps for s in actors), default=0)  # every rank reports the group's

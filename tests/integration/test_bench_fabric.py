@@ -39,6 +39,7 @@ def test_bench_fabric_quick_writes_every_figure(tmp_path: Path) -> None:
         e = doc["throughput"][label]
         assert positive(e["payload_bytes"]) and positive(e["messages"])
         assert positive(e["bytes_per_s"]) and positive(e["chunks_per_s"])
+        assert isinstance(e["lost"], int) and 0 <= e["lost"] < e["messages"]  # a loss is reported, never a stall
         assert math.isclose(e["chunks_per_s"] * e["payload_bytes"], e["bytes_per_s"])
         assert doc[f"chunks_per_s_{label}"] == e["chunks_per_s"] and doc[f"mb_per_s_{label}"] == e["bytes_per_s"] / 1e6
     assert 60_000 < doc["throughput"]["64k"]["payload_bytes"] < 70_000
@@ -67,6 +68,7 @@ def test_bench_fabric_quick_writes_every_figure(tmp_path: Path) -> None:
     assert set(auth["data"]) == {"none", "hmac", "identity"}
     for mode in ("hmac", "identity"):
         assert positive(auth["data"][mode]["throughput_ratio"]) and positive(auth["data"][mode]["chunks_per_s"])
+        assert isinstance(auth["data"][mode]["lost"], int) and auth["data"][mode]["lost"] >= 0
         w = auth["weights"][mode]
         assert positive(w["seal_cpu_s"]) and positive(w["open_cpu_s"])
     assert doc["auth_throughput_ratio"] == auth["data"]["identity"]["throughput_ratio"]

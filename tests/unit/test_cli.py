@@ -61,3 +61,26 @@ def test_status_without_run_names_the_problem(tmp_path: Path) -> None:
 def test_missing_topology_file(tmp_path: Path) -> None:
     res = runner.invoke(app, ["plan", str(tmp_path / "nope.yaml")])
     assert res.exit_code == 2 and "nope.yaml" in res.output
+
+
+def test_status_is_bounded_when_the_control_plane_accepts_but_never_answers(tmp_path: Path) -> None:
+    """A run ending under `dvla status`: its listener still accepts connections, nothing answers.
+    The command gives up after --connect-timeout, not after Zenoh's own 10 s handshake limit."""
+    import socket
+    import time
+
+    silent = socket.socket()
+    silent.bind(("127.0.0.1", 0))
+    silent.listen(16)
+    run = tmp_path / "gone"
+    (run / "roles").mkdir(parents=True)
+    (run / "secret").write_text("ab" * 32)
+    (run / "state.json").write_text(json.dumps({
+        "run": "gone", "ctrl_entry": [f"tcp/127.0.0.1:{silent.getsockname()[1]}"], "secret_file": str(run / "secret")}))
+    t0 = time.monotonic()
+    try:
+        res = runner.invoke(app, ["status", "gone", "--runs", str(tmp_path), "--connect-timeout", "1", "--timeout", "1"])
+    finally:
+        silent.close()
+    assert res.exit_code == 2 and "run gone: control plane unreachable" in res.output, res.output
+    assert time.monotonic() - t0 < 8.0  # 1 s to connect, 1 s to query; Zenoh alone would hold 10 s

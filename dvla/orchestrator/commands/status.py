@@ -6,8 +6,10 @@ for the entry endpoints and the secret, collects every status reply, then render
 
 from __future__ import annotations
 
+import queue
+import threading
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Any, Optional
 
 import typer
 
@@ -29,14 +31,7 @@ def status(
     if not (timeout > 0 and connect_timeout > 0):
         raise fail(f"--timeout ({timeout}) and --connect-timeout ({connect_timeout}) must be > 0")
     run_id, state = find_run(run, runs)
-    try:
-        fabric = state_fabric(state, "status-cli", open_timeout_s=connect_timeout)
-    except (ConnectionError, ValueError) as err:
-        raise fail(f"run {run_id}: control plane unreachable: {err}")
-    try:
-        replies = fabric.query(fabric.keys.status_all(), expect=RoleStatus, timeout=timeout)
-    finally:
-        fabric.close()
+    replies = _collect(run_id, state, timeout, connect_timeout)
     statuses = {msg.name: msg for _s, msg in replies}
     expected = sorted(p.stem for p in (runs / run_id / "roles").glob("*.json"))
     restarts = {k: int(v) for k, v in state.get("restarts", {}).items()}
@@ -45,3 +40,32 @@ def status(
         typer.echo(render_json(statuses, {"run": run_id, "silent": silent, "restarts": restarts}))
     else:
         typer.echo(render_table(statuses, expected, restarts))
+
+
+def _collect(run_id: str, state: dict, timeout: float, connect_timeout: float) -> list[tuple[str, RoleStatus]]:
+    """Every status reply. Opening the session is bounded by `connect_timeout`, querying and
+    closing by `timeout`: the session lives on a thread of its own, and a close that a run
+    ending under it holds up is left to the process's exit."""
+    done: queue.Queue[tuple[str, Any]] = queue.Queue()
+
+    def work() -> None:
+        try:
+            fabric = state_fabric(state, "status-cli", open_timeout_s=connect_timeout)
+        except (ConnectionError, ValueError) as err:
+            done.put(("error", f"control plane unreachable: {err}"))
+            return
+        try:
+            done.put(("ok", fabric.query(fabric.keys.status_all(), expect=RoleStatus, timeout=timeout, droppable=True)))
+        except Exception as err:  # reported as the command's error, not as a dead thread
+            done.put(("error", f"status query failed: {err}"))
+        finally:
+            fabric.close()
+
+    threading.Thread(target=work, name="status-cli", daemon=True).start()
+    try:
+        kind, got = done.get(timeout=connect_timeout + timeout + 1.0)  # +1: the open's last attempt
+    except queue.Empty:
+        raise fail(f"run {run_id}: no answer from the control plane within {connect_timeout + timeout:.0f} s") from None
+    if kind == "error":
+        raise fail(f"run {run_id}: {got}")
+    return got
