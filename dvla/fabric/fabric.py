@@ -124,16 +124,6 @@ class Inbox:
     def depth(self) -> int:
         return self._queue.qsize()
 
-    def drain_count(self) -> int:
-        """Discard what is queued (at shutdown); returns how many were discarded."""
-        n = 0
-        while True:
-            try:
-                self._queue.get_nowait()
-            except queue.Empty:
-                return n
-            n += 1
-
 
 class Fabric:
     """Two Zenoh sessions (data, ctrl), signed control traffic, accounting, liveliness.

@@ -79,20 +79,40 @@ class LaneStats:
     @contextlib.contextmanager
     def busy(self) -> Iterator[None]:
         """``with stats.busy():`` around real work."""
-        self._enter_busy()
+        self._busy_depth += 1
+        if self._busy_depth == 1 and self._wait_depth == 0:
+            self._busy_since = self._clock()
         try:
             yield
         finally:
-            self._exit_busy()
+            self._busy_depth -= 1
+            if self._busy_depth == 0 and self._busy_since is not None:
+                now = self._clock()
+                self.busy_s += now - self._busy_since
+                self._busy_since = None
+                self._maybe_sample(now)
 
     @contextlib.contextmanager
     def waiting(self) -> Iterator[None]:
         """``with stats.waiting():`` around blocking on a queue, a peer or a timer."""
-        self._enter_wait()
+        now = self._clock()
+        self._wait_depth += 1
+        if self._wait_depth == 1:
+            self._wait_since = now
+            if self._busy_since is not None:  # pause the busy clock while blocked
+                self.busy_s += now - self._busy_since
+                self._busy_since = None
         try:
             yield
         finally:
-            self._exit_wait()
+            self._wait_depth -= 1
+            if self._wait_depth == 0 and self._wait_since is not None:
+                now = self._clock()
+                self.wait_s += now - self._wait_since
+                self._wait_since = None
+                if self._busy_depth > 0:  # resume the enclosing busy section
+                    self._busy_since = now
+                self._maybe_sample(now)
 
     def count(self, n: int = 1) -> None:
         """Record ``n`` finished items (steps, batches, messages: the lane decides)."""
@@ -103,38 +123,6 @@ class LaneStats:
     def record_error(self) -> None:
         """Record one error the lane survived (or the one that ended it)."""
         self.errors += 1
-
-    def _enter_busy(self) -> None:
-        self._busy_depth += 1
-        if self._busy_depth == 1 and self._wait_depth == 0:
-            self._busy_since = self._clock()
-
-    def _exit_busy(self) -> None:
-        self._busy_depth -= 1
-        if self._busy_depth == 0 and self._busy_since is not None:
-            now = self._clock()
-            self.busy_s += now - self._busy_since
-            self._busy_since = None
-            self._maybe_sample(now)
-
-    def _enter_wait(self) -> None:
-        now = self._clock()
-        self._wait_depth += 1
-        if self._wait_depth == 1:
-            self._wait_since = now
-            if self._busy_since is not None:  # pause the busy clock while blocked
-                self.busy_s += now - self._busy_since
-                self._busy_since = None
-
-    def _exit_wait(self) -> None:
-        self._wait_depth -= 1
-        if self._wait_depth == 0 and self._wait_since is not None:
-            now = self._clock()
-            self.wait_s += now - self._wait_since
-            self._wait_since = None
-            if self._busy_depth > 0:  # resume the enclosing busy section
-                self._busy_since = now
-            self._maybe_sample(now)
 
     def _totals(self, now: float) -> tuple[float, float]:
         """Busy and wait seconds including a section still open at ``now``."""
@@ -202,7 +190,6 @@ def _fraction(part: float, whole: float) -> float:
     if whole <= 0:
         return 0.0
     return min(1.0, max(0.0, part / whole))
-
 
 
 class BoundedQueue(Generic[T]):
@@ -403,7 +390,6 @@ class Swimlane:
         self._error_lock = threading.Lock()
         self._started = False
 
-
     def lane(self, name: str, target: LaneTarget, *, stop_on_exit: bool = True) -> LaneContext:
         """Register lane ``name`` running ``target(ctx)``; returns its context.
 
@@ -445,7 +431,6 @@ class Swimlane:
     def affinity(self) -> dict[str, list[int] | None]:
         """Each lane's CPU affinity as its thread found it after pinning (None before it runs)."""
         return {name: lane.affinity for name, lane in self._lanes.items()}
-
 
     def start(self) -> None:
         """Start one daemon thread per lane, named ``"{role}/{lane}"``."""
