@@ -564,8 +564,10 @@ def _on_receive_thread(callback: Callable[[zenoh.Sample], None]) -> Any:
     queue, so an `Inbox` waiting for space stalls only that thread while Zenoh keeps reading
     the link and buffering samples (hundreds of MB for a stalled consumer). Run directly, the
     wait holds the link's receive task instead, and Zenoh's BLOCK congestion control slows
-    the sender down. `indirect` is an unstable zenoh-python option: fall back to the default
-    when it is missing.
+    the sender down. That wait holds one thread of Zenoh's receive pool, which every session of
+    the process shares: a process with such links needs more threads than it has links
+    (``dvla.roles.runtime.size_zenoh_rx``). `indirect` is an unstable zenoh-python option: fall
+    back to the default when it is missing.
     """
     try:
         return zenoh.handlers.Callback(callback, indirect=False)

@@ -50,8 +50,25 @@ class Role(Protocol):
     def close(self) -> None: ...
 
 
+#: threads of Zenoh's receive pool by default; one pool serves every session of a process
+ZENOH_RX_THREADS = 2
+
+
+def size_zenoh_rx(waiting_links: int) -> None:
+    """Give Zenoh's receive pool one more thread per link whose reader may wait on purpose.
+
+    An actor's trajectory subscription waits on Zenoh's receive thread while its inbox is full
+    (backpressure to the rollouts, fabric.py), and the data and ctrl sessions share the pool: with
+    as many rollouts waiting as the pool has threads, the ctrl session's links (status queries,
+    commands) would not be read until the learner caught up. Call before the first session
+    opens; a ``ZENOH_RUNTIME`` already set is kept."""
+    if waiting_links > 0:
+        os.environ.setdefault("ZENOH_RUNTIME", f"(rx: (worker_threads: {ZENOH_RX_THREADS + waiting_links}))")
+
+
 def open_fabric(cfg: RoleConfig) -> Fabric:
     """The role's two sessions, as the plan wired them."""
+    size_zenoh_rx(len(cfg.rollouts))  # an actor: one trajectory link per rollout
     # The largest ctrl message: a weight chunk or one snapshot reply (chunk_bytes of parameters),
     # status and commands are far smaller.
     ctrl_cap = plane_max_message_size(cfg.replication.chunk_bytes, headroom=2.0, floor=4 << 20)

@@ -614,3 +614,30 @@ def test_a_snapshot_comes_in_chunks_bound_to_one_query(pair: Pair) -> None:
     replies = rollout.query(actor.keys.snapshot(actor.name), SnapshotRequest(requester=rollout.name, have_version=3),
                             expect=WeightSnapshot, timeout=5.0)
     assert [(s.version, s.data, s.n_chunks) for _n, s in replies] == [(3, b"", 1)]
+
+
+def test_a_role_gets_a_zenoh_receive_thread_per_rollout_beside_the_default_ones() -> None:
+    """An actor's trajectory links may each hold a receive thread while its inbox is full
+    (backpressure); the ctrl session must still have threads of the shared pool to be read on."""
+    import subprocess
+    import sys
+
+    code = """
+import collections, os, socket, time, zenoh
+from dvla.roles.runtime import ZENOH_RX_THREADS, size_zenoh_rx
+from dvla.fabric import plane_config
+size_zenoh_rx(3)
+s = socket.socket(); s.bind(("127.0.0.1", 0)); port = s.getsockname()[1]; s.close()
+a = zenoh.open(plane_config(listen=[f"tcp/127.0.0.1:{port}"]))
+b = zenoh.open(plane_config(connect=[f"tcp/127.0.0.1:{port}"]))
+deadline = time.monotonic() + 20
+while time.monotonic() < deadline and not b.info.peers_zid():
+    time.sleep(0.05)
+names = [open(f"/proc/self/task/{t}/comm").read().strip() for t in os.listdir("/proc/self/task")]
+print(sum(n.startswith("rx-") for n in names), ZENOH_RX_THREADS + 3)
+"""
+    env = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, env=env)
+    assert out.returncode == 0, out.stderr
+    got, want = out.stdout.split()
+    assert got == want, out.stdout
