@@ -14,7 +14,7 @@ Two workloads, each run in two modes on the same topology, env and policy:
   shipped or learned) against ``async`` (training): ``async_over_sim_only`` = learner-consumed
   env steps/s ÷ simulated env steps/s, where the simulated rate is the mean of the sim_only runs
   just before and just after the async run (a closing sim_only run follows the last pair). The
-  rollouts time their ``env.step`` calls in CPU seconds, so each run also reports what a step
+  bench's rollouts time their ``env.step`` calls in CPU seconds, so each run also reports what a step
   costs the simulator in that mode (``env_step_cpu_ms``): a learning policy's steps cost more than
   random actions' (shorter episodes, so more resets; contacts with the object), and
   ``async_over_sim_only_equal_step_cost`` is the ratio with that difference taken out. The async

@@ -1,6 +1,7 @@
-"""The rollout `dvla bench swimlane` runs: dvla's own rollout, plus a histogram of its inference
-batch latency split by weight swaps, which only the benchmark reads (the role itself reports
-plain p50/p99). `python -m benchmarks.swimlane_probe --config FILE` is started in place of
+"""The rollout `dvla bench swimlane` runs: dvla's own rollout, plus two figures only the benchmark
+reads: a histogram of its inference batch latency split by weight swaps (the role itself reports
+plain p50/p99), and the CPU seconds its sim lane spends inside ``env.step`` (resets included:
+what a step costs the simulator itself, apart from acting, recording and hand-offs). `python -m benchmarks.swimlane_probe --config FILE` is started in place of
 `python -m dvla.roles.rollout` by :class:`ProbeWrapper`.
 
 The dual pool promises that a swap costs inference nothing; two splits test it. "swap": the
@@ -14,7 +15,7 @@ kept as a second figure.
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Any, Callable
 
 from dvla.orchestrator.process import CommandWrapper, Process
 from dvla.roles.rollout import Actions, Rollout
@@ -26,13 +27,26 @@ ROLLOUT_MODULE, PROBE_MODULE = "dvla.roles.rollout", "benchmarks.swimlane_probe"
 
 
 class ProbedRollout(Rollout):
-    """A rollout whose status ``extra`` adds ``infer_latency_counts``: cumulative bucket counts per
-    label (``swap``/``no_swap``, ``overlap``/``no_overlap``); diff two readings."""
+    """A rollout whose status ``extra`` adds ``infer_latency_counts`` (cumulative bucket counts per
+    label: ``swap``/``no_swap``, ``overlap``/``no_overlap``; diff two readings) and
+    ``env_step_cpu_s``."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.infer_latency = LatencyHistogram(("swap", "no_swap", "overlap", "no_overlap"))
         self._touched_before = False  # a staging write overlapped the previous inference batch
+        self.step_cpu_s = 0.0
+        for g in self.groups:
+            g.envs.step = self._timed(g.envs.step)
+
+    def _timed(self, step: Callable[[Any], Any]) -> Callable[[Any], Any]:
+        def timed(actions: Any) -> Any:
+            t0 = time.thread_time()  # the sim lane's own CPU clock
+            try:
+                return step(actions)
+            finally:
+                self.step_cpu_s += time.thread_time() - t0
+        return timed
 
     def _act(self, gid: int) -> Actions:
         # stage_seq is odd while a staging write is in progress and bumped at its start and end
@@ -49,7 +63,8 @@ class ProbedRollout(Rollout):
         return out
 
     def status_extra(self) -> dict[str, Any]:
-        return {**super().status_extra(), "infer_latency_counts": self.infer_latency.counts()}
+        return {**super().status_extra(), "infer_latency_counts": self.infer_latency.counts(),
+                "env_step_cpu_s": self.step_cpu_s}
 
 
 class ProbeWrapper(CommandWrapper):

@@ -207,9 +207,6 @@ class Rollout:
         #: returns and lengths of the most recent finished training episodes (status, TensorBoard)
         self.recent_returns: collections.deque[float] = collections.deque(maxlen=256)
         self.recent_lengths: collections.deque[int] = collections.deque(maxlen=256)
-        #: CPU seconds the sim lane spent inside env.step (resets included): what a step costs the
-        #: simulator itself, apart from acting, recording and hand-offs
-        self.step_cpu_s = 0.0
         #: the most recent inference batches' latency, ms (status: p50/p99)
         self.infer_ms: collections.deque[float] = collections.deque(maxlen=512)
         self.sync_mode = cfg.mode == "sync"
@@ -315,25 +312,18 @@ class Rollout:
                 with ctx.busy():
                     e = g.envs
                     actions = rng.uniform(e.action_low, e.action_high, (e.n, e.act_dim)).astype(np.float32)
-                    step = self._step(e, actions)
+                    step = e.step(actions)
                     g.obs = step.next_obs
                     self.env_steps += e.n
                     self.episodes += int(step.episode_done.sum())
                 ctx.count(e.n)
-
-    def _step(self, envs: EnvGroup, actions: np.ndarray) -> Any:
-        """``envs.step``, its CPU time added to ``step_cpu_s``."""
-        t0 = time.thread_time()
-        step = envs.step(actions)
-        self.step_cpu_s += time.thread_time() - t0
-        return step
 
     def _record_step(self, g: _Group, a: Actions) -> None:
         actions, logprobs, version = a.actions, a.logprobs, a.version
         m, t = g.dev or g.chunk, g.t  # numpy into the chunk, or tensors on the sim device
         for k, v in obs_as_dict(g.obs).items():
             m.obs[k][t] = v
-        step = self._step(g.envs, actions)
+        step = g.envs.step(actions)
         m.actions[t] = actions  # as sampled: the log-probs are of these, the env clips
         m.logprobs[t] = logprobs
         for k, v in a.extras.items():
@@ -444,7 +434,6 @@ class Rollout:
             "chunks_produced": self.chunks_shipped,
             "bytes_produced": self.bytes_shipped,
             "episodes": self.episodes,
-            "env_step_cpu_s": self.step_cpu_s,
             "train_success_rate": self.successes / self.episodes if self.episodes else 0.0,
             # copies first: the sim lane appends while status runs (list() of a deque is atomic)
             "episode_return_mean": _mean(list(self.recent_returns)),
