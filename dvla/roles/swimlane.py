@@ -342,12 +342,11 @@ LaneTarget = Callable[[LaneContext], None]
 
 
 class _Lane:
-    """A registered lane: its context, target, thread and exit policy."""
+    """A registered lane: its context, target and thread."""
 
-    def __init__(self, ctx: LaneContext, target: LaneTarget, stop_on_exit: bool) -> None:
+    def __init__(self, ctx: LaneContext, target: LaneTarget) -> None:
         self.ctx = ctx
         self.target = target
-        self.stop_on_exit = stop_on_exit
         self.thread: threading.Thread | None = None
         #: cores this lane's thread pins itself to when it starts (None: the process's)
         self.cpus: tuple[int, ...] | None = None
@@ -390,18 +389,16 @@ class Swimlane:
         self._error_lock = threading.Lock()
         self._started = False
 
-    def lane(self, name: str, target: LaneTarget, *, stop_on_exit: bool = True) -> LaneContext:
-        """Register lane ``name`` running ``target(ctx)``; returns its context.
-
-        With ``stop_on_exit`` (default) a target that returns before stop is set stops the role
-        (cleanly, no error): a lane that quietly ended would otherwise stall the pipeline.
-        """
+    def lane(self, name: str, target: LaneTarget) -> LaneContext:
+        """Register lane ``name`` running ``target(ctx)``; returns its context. A target that
+        returns before stop is set stops the role (cleanly, no error): a lane that quietly ended
+        would otherwise stall the pipeline."""
         if self._started:
             raise RuntimeError(f"swimlane {self.role!r}: cannot add lane {name!r} after start()")
         if not name or name in self._lanes:
             raise ValueError(f"swimlane {self.role!r}: lane name {name!r} is empty or taken")
         ctx = LaneContext(self.role, name, self.stop_event, LaneStats(self._window_s))
-        self._lanes[name] = _Lane(ctx, target, stop_on_exit)
+        self._lanes[name] = _Lane(ctx, target)
         return ctx
 
     def queue(self, name: str, maxsize: int) -> BoundedQueue[Any]:
@@ -465,7 +462,7 @@ class Swimlane:
         except BaseException as exc:  # noqa: BLE001 - any lane failure must stop the role
             self._fail(ctx, exc)
         else:
-            if lane.stop_on_exit and not self.stop_event.is_set():
+            if not self.stop_event.is_set():
                 log.info("lane %s/%s returned; stopping the role", self.role, ctx.name)
                 self.stop_event.set()
         finally:
