@@ -296,7 +296,7 @@ class Fabric:
 
         inbox = Inbox(maxsize, _decode, self.accounting, CTRL, block_s)
         # Zenoh's default hand-off thread here (unlike the data plane): a full weights inbox
-        # must not hold the receive task that also brings commands and status queries.
+        # holds that thread, and the receive task only once zenoh-python has queued 256 samples.
         inbox.subscription = self.ctrl.declare_subscriber(key, inbox._on_sample)
         self._declared.append(inbox.subscription)
         return inbox
