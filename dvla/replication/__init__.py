@@ -19,45 +19,16 @@ the held version sent whole, through the same assembler and ``apply``. See docs/
 """
 
 from dvla.replication.encoding import (
-    ChecksumMismatch,
-    ChunkAssembler,
-    CorruptPayload,
-    HeldWeights,
-    NeedSnapshot,
-    StaleVersion,
-    WeightEncoder,
-    WeightVersion,
-    bf16_round_bits,
-    bf16_to_float32,
-    checksum,
-    chunk_count,
-    split_chunks,
-    split_encoding,
+    ChecksumMismatch, ChunkAssembler, CorruptPayload, HeldWeights, NeedSnapshot, StaleVersion, WeightEncoder, WeightVersion,
+    bf16_round_bits, bf16_to_float32, checksum, chunk_count, split_chunks, split_encoding,
 )
 from dvla.replication.layout import (
     LayoutMismatch, ParamLayout, ReplicationError, bind_flat, flatten, replicated_tensors, unflatten_into,
 )
 
 __all__ = [
-    "ChecksumMismatch",
-    "ChunkAssembler",
-    "CorruptPayload",
-    "HeldWeights",
-    "LayoutMismatch",
-    "NeedSnapshot",
-    "ParamLayout",
-    "ReplicationError",
-    "StaleVersion",
-    "WeightEncoder",
-    "WeightVersion",
-    "bf16_round_bits",
-    "bf16_to_float32",
-    "bind_flat",
-    "replicated_tensors",
-    "checksum",
-    "chunk_count",
-    "flatten",
-    "split_chunks",
-    "split_encoding",
-    "unflatten_into",
+    "ChecksumMismatch", "ChunkAssembler", "CorruptPayload", "HeldWeights", "LayoutMismatch", "NeedSnapshot",
+    "ParamLayout", "ReplicationError", "StaleVersion", "WeightEncoder", "WeightVersion", "bf16_round_bits",
+    "bf16_to_float32", "bind_flat", "checksum", "chunk_count", "flatten", "replicated_tensors", "split_chunks",
+    "split_encoding", "unflatten_into",
 ]

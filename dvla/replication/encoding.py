@@ -278,14 +278,31 @@ def _byte_view(data: BytesLike) -> memoryview:
 
 
 # --------------------------------------------------------------------------------------------
-# Arithmetic shared by encoder and decoder. Replicas match the encoder bit for bit because both
-# sides run exactly these float32 operations on exactly the same inputs.
+# Decoding, shared by the encoder and every replica: replicas match the encoder bit for bit
+# because both sides run exactly this function on exactly the same inputs.
 
 
-def _apply_bf16(base: np.ndarray, q: np.ndarray, out: np.ndarray) -> None:
-    """out = base + float32(q); ``out`` must not alias ``base``."""
-    bf16_to_float32(q, out=out)
-    np.add(base, out, out=out)
+def _decode_into(encoding: str, view: memoryview, base: np.ndarray, out: np.ndarray) -> None:
+    """The parameters after a version of `encoding` whose payload is `view`, applied to `base`,
+    into `out` (which must not alias `base`)."""
+    n = base.size
+    if encoding == "full":
+        np.copyto(out, np.frombuffer(view, dtype=_F32, count=n))
+    elif encoding == "full-bf16":
+        bf16_to_float32(np.frombuffer(view, dtype=_U16, count=n), out=out)
+    elif encoding == "delta-bf16":
+        bf16_to_float32(np.frombuffer(view, dtype=_U16, count=n), out=out)
+        np.add(base, out, out=out)
+    else:
+        k = view.nbytes // 8
+        idx = np.frombuffer(view, dtype=_U32, count=k)
+        vals = np.frombuffer(view, dtype=_F32, count=k, offset=4 * k)
+        # Strictly increasing indices are what encoders send; this also rules out
+        # duplicates, whose scatter order would otherwise be ambiguous.
+        if idx[-1] >= n or (k > 1 and not bool(np.all(idx[1:] > idx[:-1]))):
+            raise CorruptPayload("delta-topk indices out of range or not strictly increasing")
+        np.copyto(out, base)
+        out[idx] = np.add(base[idx], vals)
 
 
 def topk_count(numel: int, fraction: float) -> int:
@@ -357,7 +374,7 @@ class WeightEncoder:
         self.held = HeldWeights(layout)
         n = layout.numel
         # Buffers an encoding does not use are left empty rather than sized for the layout.
-        self._delta = np.zeros(n if encoding != "full" else 0, dtype=np.float32)
+        self._delta_buf = np.zeros(n if encoding != "full" else 0, dtype=np.float32)
         self._bf16 = np.zeros(n if encoding == "delta-bf16" else 0, dtype=_U16)
         self._k = topk_count(n, topk_fraction)
         self._topk = np.zeros(2 * self._k if encoding == "delta-topk" else 0, dtype=_U32)
@@ -396,8 +413,11 @@ class WeightEncoder:
         payload: memoryview | None = None
         encoding = self.encoding
         new = self.held.staging
-        if not (full or self._wants_full(version)):
-            payload = self._encode_bf16(true_flat, new) if encoding == "delta-bf16" else self._encode_topk(true_flat, new)
+        if not (full or self._wants_full(version)) and (payload := self._delta(true_flat, new)) is not None:
+            # What every replica will hold, computed by the very function they decode with.
+            _decode_into(encoding, payload, self.held.active, new)
+            if not _all_finite(new):
+                payload = None
         if payload is None:
             encoding = "full"
             np.copyto(new, true_flat)
@@ -424,35 +444,19 @@ class WeightEncoder:
         self.held.publish(version, digest, proof)
         return WeightVersion(manifest, payload, proof)
 
-    def _encode_bf16(self, true_flat: np.ndarray, new: np.ndarray) -> memoryview | None:
-        d, pub = self._delta, self.held.active
-        np.subtract(true_flat, pub, out=d)
+    def _delta(self, true_flat: np.ndarray, scratch: np.ndarray) -> memoryview | None:
+        """The delta payload ``true - published`` (None when it is not finite)."""
+        d = self._delta_buf
+        np.subtract(true_flat, self.held.active, out=d)
         if not _all_finite(d):
             return None
-        bf16_round_bits(d, out=self._bf16, scratch=new.view(np.uint32))
-        _apply_bf16(pub, self._bf16, out=new)
-        if not _all_finite(new):
-            return None
-        return memoryview(self._bf16).cast("B")
-
-    def _encode_topk(self, true_flat: np.ndarray, new: np.ndarray) -> memoryview | None:
-        d, pub = self._delta, self.held.active
-        np.subtract(true_flat, pub, out=d)
-        if not _all_finite(d):
-            return None
+        if self.encoding == "delta-bf16":
+            return memoryview(bf16_round_bits(d, out=self._bf16, scratch=scratch.view(np.uint32))).cast("B")
         n, k = self.layout.numel, self._k
-        magnitude = np.abs(d, out=new)
-        chosen = np.argpartition(magnitude, n - k)[n - k :]
+        chosen = np.argpartition(np.abs(d, out=scratch), n - k)[n - k :]
         chosen.sort()  # ascending indices: cache-friendly scatter, and a cheap validity check
-        idx = self._topk[:k]
-        vals = self._topk[k:].view(_F32)
-        np.copyto(idx, chosen, casting="unsafe")  # < numel < 2**32
-        np.take(d, idx, out=vals)
-        changed = np.add(pub[idx], vals)
-        if not _all_finite(changed):
-            return None
-        np.copyto(new, pub)
-        new[idx] = changed
+        np.copyto(self._topk[:k], chosen, casting="unsafe")  # < numel < 2**32
+        np.take(d, self._topk[:k], out=self._topk[k:].view(_F32))
         return memoryview(self._topk).cast("B")
 
 
@@ -543,7 +547,7 @@ class HeldWeights:
         staging = self.staging
         self.seq += 1
         try:
-            self._decode_into(encoding, view, staging)
+            _decode_into(encoding, view, self.active, staging)
             digest = checksum(staging)
             if digest != m.checksum:
                 raise ChecksumMismatch(f"version {m.version}: decoded checksum {digest} != manifest {m.checksum}")
@@ -578,25 +582,6 @@ class HeldWeights:
         if encoding == "delta-topk" and (nbytes % 8 or nbytes > 4 * n):
             # Encoders never send a top-k payload larger than a full one.
             raise CorruptPayload(f"delta-topk payload of {nbytes} bytes is not 8*k with 8*k <= {4 * n}")
-
-    def _decode_into(self, encoding: str, view: memoryview, staging: np.ndarray) -> None:
-        n = self.layout.numel
-        if encoding == "full":
-            np.copyto(staging, np.frombuffer(view, dtype=_F32, count=n))
-        elif encoding == "full-bf16":
-            bf16_to_float32(np.frombuffer(view, dtype=_U16, count=n), out=staging)
-        elif encoding == "delta-bf16":
-            _apply_bf16(self.active, np.frombuffer(view, dtype=_U16, count=n), out=staging)
-        else:
-            k = view.nbytes // 8
-            idx = np.frombuffer(view, dtype=_U32, count=k)
-            vals = np.frombuffer(view, dtype=_F32, count=k, offset=4 * k)
-            # Strictly increasing indices are what encoders send; this also rules out
-            # duplicates, whose scatter order would otherwise be ambiguous.
-            if idx[-1] >= n or (k > 1 and not bool(np.all(idx[1:] > idx[:-1]))):
-                raise CorruptPayload("delta-topk indices out of range or not strictly increasing")
-            np.copyto(staging, self.active)
-            staging[idx] = np.add(self.active[idx], vals)
 
 
 # --------------------------------------------------------------------------------------------

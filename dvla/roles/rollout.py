@@ -100,8 +100,8 @@ class PolicyPool:
     `bind_flat`), converting to the policy's device and dtype. It never waits: the sync lane
     decodes the next version into the held weights' other buffer, and when the held lock is
     taken (a version being swapped in) the install is put off to the next batch. A newer
-    version replaces an uninstalled one. A LoRA policy holds its base once and only its
-    replicated tensors (adapters, heads) twice more, as float32, on the host.
+    version replaces an uninstalled one. A LoRA policy holds its base once: only the replicated
+    tensors (adapters, heads) are held again, in the two float32 host buffers.
     """
 
     def __init__(self, policy: torch.nn.Module) -> None:
@@ -132,6 +132,8 @@ class PolicyPool:
             self.swap_deferred += 1
             return False
         try:
+            if held.version <= self.active_version:  # another lane installed it first
+                return False
             with torch.no_grad():
                 if self._bound is not None:
                     self._bound.copy_(torch.from_numpy(held.active))

@@ -305,6 +305,10 @@ class WeightSync:
             for c in replies:
                 if isinstance(c, WeightChunk) and c.version == m.version:
                     asm.add(c.index, c.data)
+            if not asm.complete:  # replies lost on the way (a query timing out): ask again shortly
+                log.warning("weights: snapshot v%d from %s incomplete", m.version, p)
+                self._next_fetch = time.monotonic() + 0.5
+                return
             payload = asm.payload()
             if hashlib.sha256(payload).hexdigest() != m.digest:
                 raise ReplicationError("data does not hash to the actor's digest")

@@ -85,7 +85,7 @@ def test_layout_hash_depends_on_names_shapes_dtypes(layout: ParamLayout) -> None
 def test_flatten_and_unflatten_work_in_place(layout: ParamLayout) -> None:
     src, dst = _mlp(seed=1), _mlp(seed=2)
     dst.steps.fill_(5)
-    buf = layout.empty()
+    buf = np.zeros(layout.numel, np.float32)
     assert flatten(src, layout, out=buf) is buf
     assert np.array_equal(buf, flatten(src.state_dict(), layout))
     ptrs = {name: t.data_ptr() for name, t in dst.state_dict().items()}
@@ -509,7 +509,7 @@ def test_decoded_weights_drive_the_policy(layout: ParamLayout) -> None:
     learner, rollout = _mlp(seed=1), _mlp(seed=2)
     enc = WeightEncoder(layout, "delta-bf16", snapshot_every=1000)
     dec = HeldWeights(layout)
-    buf = layout.empty()
+    buf = np.zeros(layout.numel, np.float32)
     x = torch.randn(16, 64)
     for _ in range(5):
         with torch.no_grad():  # stands in for a learner step
