@@ -45,6 +45,9 @@ from .swimlane import LaneContext
 
 log = logging.getLogger("dvla.weights")
 
+#: verified weight messages waiting for the receiving lane
+INBOX = 64
+
 
 class WeightSync:
     """Follows one parent (with fallbacks) and fills `held` with verified weight versions.
@@ -67,7 +70,6 @@ class WeightSync:
         on_version: Callable[[int], None] | None = None,
         *,
         on_message: Callable[[Any, bytes], None] | None = None,
-        inbox_size: int = 64,
         base_hash: str | None = None,
         base_source: str = "",
     ) -> None:
@@ -77,13 +79,12 @@ class WeightSync:
         self.parents = parents
         self.on_version = on_version
         self.on_message = on_message
-        self.inbox_size = inbox_size
         self.base_hash = base_hash
         self.base_source = base_source
         self._base_logged: set[str] = set()
         self.held: HeldWeights | None = None
-        self.assembler: ChunkAssembler | None = None
-        self.manifest: WeightManifest | None = None
+        self._assembler: ChunkAssembler | None = None
+        self._manifest: WeightManifest | None = None  # of the version being assembled
         #: how long one snapshot query waits for its reply (a full snapshot of a large model)
         self.fetch_timeout_s = 5.0
         if held is not None:
@@ -149,7 +150,7 @@ class WeightSync:
         if self._inbox is not None:
             self.fabric.unsubscribe(self._inbox)
         self._inbox = self.fabric.subscribe_ctrl(
-            self.fabric.keys.weights(parent), self.inbox_size, (WeightManifest, WeightChunk),
+            self.fabric.keys.weights(parent), INBOX, (WeightManifest, WeightChunk),
             sign_key=self.fabric.keys.weights_signed(), with_envelope=True,
         )
         self._sub_parent = parent
@@ -209,33 +210,33 @@ class WeightSync:
     def _handle(self, msg: Any) -> None:
         if isinstance(msg, WeightManifest):
             if not self._fits(msg):
-                self.manifest = None
+                self._manifest = None
                 return
             try:
-                if self.assembler is None:
-                    self.assembler = ChunkAssembler(msg.n_chunks, msg.total_bytes, self.held.layout.nbytes)
+                if self._assembler is None:
+                    self._assembler = ChunkAssembler(msg.n_chunks, msg.total_bytes, self.held.layout.nbytes)
                 else:
-                    self.assembler.reset(msg.n_chunks, msg.total_bytes)
+                    self._assembler.reset(msg.n_chunks, msg.total_bytes)
             except ReplicationError as err:
                 self.counters["rejected"] += 1
                 log.warning("weights: manifest v%d from %s rejected: %s", msg.version, msg.sender, err)
-                self.manifest = None
+                self._manifest = None
                 return
-            self.manifest = msg
+            self._manifest = msg
             return
-        m = self.manifest
+        m = self._manifest
         if m is None or msg.version != m.version:
             return  # chunk of a version whose manifest we missed: the next version repairs it
         try:
-            self.assembler.add(msg.index, msg.data)
+            self._assembler.add(msg.index, msg.data)
         except ReplicationError as err:
             self.counters["rejected"] += 1
             log.warning("weights: chunk %d of v%d rejected: %s", msg.index, msg.version, err)
             return
-        if self.assembler.complete:
-            self.manifest = None
+        if self._assembler.complete:
+            self._manifest = None
             proof = self._proof[1] if self._proof[0] == m.version else b""
-            self._apply(m, self.assembler.payload(), proof, "stream")
+            self._apply(m, self._assembler.payload(), proof, "stream")
 
     def _apply(self, m: WeightManifest, payload: Any, proof: bytes, via: str) -> bool:
         """Hold one assembled version (stream or snapshot); False (counted) when it does not apply."""
