@@ -5,9 +5,6 @@ replicators), with the one snapshot queryable both ends serve (`serve_snapshots`
 - Listens on the parent's weights key; assembles each version's chunks into a reusable buffer;
   `HeldWeights.apply` decodes and verifies it (layout, base version, checksum); only a verified,
   complete version is held and announced to `on_version`.
-- A relay (replicator) is given no layout: it learns the size and hash from the first verified
-  manifest (or snapshot proof), never building the model. A receiver holding a model is given
-  its frozen base's content hash and refuses versions made for another base.
 - Anything that does not fit (a missed base version, a bad checksum, a fresh start) is repaired by
   asking the parent's `snapshot` queryable (falling back to further ancestors): the held version
   sent whole, as a full version's chunks, through the same assembler and `apply`.
