@@ -376,10 +376,9 @@ def serve_snapshots(
                 chunks = split_chunks(memoryview(h.active).cast("B"), chunk_bytes)
                 n = len(chunks)
                 encoded.clear()
-                encoded[version] = [encode(WeightSnapshot(sender=sender, version=version, manifest=h.proof, n_chunks=n))] + [
-                    encode(WeightChunk(sender=sender, version=version, index=i, n_chunks=n, data=bytes(c)))
-                    for i, c in enumerate(chunks)
-                ]
+                encoded[version] = [encode(WeightSnapshot(sender=sender, version=version, manifest=h.proof, n_chunks=n))]
+                encoded[version] += [encode(WeightChunk(sender=sender, version=version, index=i, n_chunks=n, data=bytes(c)))
+                                     for i, c in enumerate(chunks)]
             return list(encoded[version])
 
     fabric.serve(fabric.keys.snapshot(sender), reply, SnapshotRequest, worker=True)
