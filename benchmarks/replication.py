@@ -79,14 +79,7 @@ def measure(cluster: RepCluster, versions: int, timeout_s: float, progress: Call
         cpu_by = {n: round(cpu1[n] - cpu0[n], 2) for n in cpu1 if n in cpu0}
         cpu_s = sum(cpu_by.values())
         pub = _wait_sent(cluster, v, timeout_s)
-        relays = {}
-        for name in cluster.relays:
-            st = cluster.status(name, timeout=1.0)
-            t = (st.extra.get("forward_timing") or {}).get(str(v)) if st is not None else None
-            if t:
-                relays[name] = {"last_in_s": (t["last_in_ns"] - pub["t0_ns"]) / 1e9,
-                                "last_out_s": (t["last_out_ns"] - pub["t0_ns"]) / 1e9,
-                                "max_lag_ms": t["max_lag_ms"]}
+        relays = relay_timing(cluster, v, pub["t0_ns"], held)
         times = {n: (h["held"][str(v)]["held_ns"] - pub["t0_ns"]) / 1e9 for n, h in held.items()}
         bad = sorted(n for n, h in held.items() if h["held"][str(v)]["checksum"] != pub["checksum"])
         if bad:
@@ -102,7 +95,7 @@ def measure(cluster: RepCluster, versions: int, timeout_s: float, progress: Call
             # CPU of every process of the cluster while this version moved (includes status polls)
             "cluster_cpu_s": cpu_s,
             "cpu_s_by_process": cpu_by,
-            # per relay: its last chunk in and out, and the longest any chunk waited in it
+            # per relay: when its last chunk reached it and its children, and the difference
             "relays": relays,
             "per_sink_s": times,
             # where the time went, per sink: when its lane got the last chunk, and how long the
@@ -126,6 +119,25 @@ def measure(cluster: RepCluster, versions: int, timeout_s: float, progress: Call
         "counter_bytes": {k: c1[k] - c0[k] for k in c1 if k in c0},
         "cluster_cpu_s_median": statistics.median(p["cluster_cpu_s"] for p in per_version if not p["warmup"]),
     }
+
+
+def relay_timing(cluster: RepCluster, version: int, t0_ns: int, held: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Per relay, seconds from the source's start until the last chunk of `version` reached
+    the relay (``last_in_s``) and the last of its children (``last_out_s``, the link included),
+    and ``lag_ms`` between the two: what the relay's forwarding added, measured from outside."""
+    arrived = {n: h["held"][str(version)].get("last_chunk_ns") for n, h in held.items()}
+    for name in cluster.relays:
+        st = cluster.status(name, timeout=1.0)
+        arrived[name] = ((st.extra.get("arrivals") or {}).get(str(version)) or {}).get("last_chunk_ns") if st else None
+    out = {}
+    for name in cluster.relays:
+        children = [arrived.get(c) for c in cluster.children_of(name)]
+        if arrived[name] is None or not children or None in children:
+            continue
+        last_out = max(children)
+        out[name] = {"last_in_s": (arrived[name] - t0_ns) / 1e9, "last_out_s": (last_out - t0_ns) / 1e9,
+                     "lag_ms": (last_out - arrived[name]) / 1e6}
+    return out
 
 
 def _wait_sent(cluster: RepCluster, version: int, timeout_s: float) -> dict[str, Any]:

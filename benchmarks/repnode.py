@@ -11,10 +11,12 @@ planner wrote, so it sits in the real link graph and weight tree:
   It publishes the next version each time the driver raises the number in its trigger file
   (``<run_dir>/bench/trigger``), so the driver decides when a transfer starts.
 - ``relay`` is the real :class:`~dvla.roles.replicator.Replicator`, given the synthetic layout
-  instead of building a policy; ``--fault`` injects one fault on the way to its children (a
+  instead of building a policy, recording when each version's manifest and chunks reached it
+  (:class:`TimedRelay`); ``--fault`` injects one fault on the way to its children (a
   corrupted chunk, or a stall in the middle of a transfer): see :class:`FaultyRelay`.
 - ``sink`` stands where a rollout does: the same :class:`~dvla.roles.weightsync.WeightSync` the
-  rollouts use, recording when it held each version and the checksum of what it holds.
+  rollouts use, recording when its messages arrived, when it held each version and the
+  checksum of what it holds.
 
 No simulator, no policy: a version is a flat float32 vector of ``--numel`` elements, so the
 processes start in about a second and the figures are about moving weights, nothing else.
@@ -36,7 +38,7 @@ import numpy as np
 from dvla.config import RoleConfig
 from dvla.fabric import Fabric
 from dvla.fabric.messages import WeightChunk, WeightManifest
-from dvla.replication import ParamLayout
+from dvla.replication import HeldWeights, ParamLayout
 from dvla.roles.replicator import Replicator
 from dvla.roles.runtime import ExitStatus, RoleHost, open_fabric, setup_logging
 from dvla.roles.swimlane import LaneContext, Swimlane
@@ -121,14 +123,15 @@ class Source:
                 enc = self.publisher.encode(self.flat)
                 t_enc = time.time_ns()
                 # Recorded before sending: a replica may hold the version before the last put returns.
-                entry = {"t0_ns": t0, "encoded_ns": t_enc, "payload_bytes": enc.total_bytes,
-                         "encoding": enc.encoding, "checksum": enc.checksum}
-                self.published = _trim({**self.published, str(enc.version): entry})
+                m = enc.manifest
+                entry = {"t0_ns": t0, "encoded_ns": t_enc, "payload_bytes": m.total_bytes,
+                         "encoding": m.encoding, "checksum": m.checksum}
+                self.published = _trim({**self.published, str(m.version): entry})
                 sent = self.publisher.send(enc)
                 t1 = time.time_ns()
-                self.policy_version = enc.version
-                self.published[str(enc.version)] = {**entry, "sent_ns": t1, "bytes": sent}
-                log.info("published v%d (%s, %d bytes) in %.3f s", enc.version, enc.encoding, sent, (t1 - t0) / 1e9)
+                self.policy_version = m.version
+                self.published[str(m.version)] = {**entry, "sent_ns": t1, "bytes": sent}
+                log.info("published v%d (%s, %d bytes) in %.3f s", m.version, m.encoding, sent, (t1 - t0) / 1e9)
                 # The next version's parameters: every element moves (one vector add).
                 self.flat += self.step
             ctx.count()
@@ -138,6 +141,29 @@ class Source:
 
     def close(self) -> None:
         pass
+
+
+class Arrivals:
+    """When the manifest and the first and last chunk of each version reached a receiving lane
+    (a sink's: the delivery time split into waiting for the data and processing it; a relay's:
+    with its children's, how long it held the stream up)."""
+
+    def __init__(self) -> None:
+        self.seen: dict[int, dict[str, int]] = {}
+
+    def __call__(self, msg: Any, _envelope: bytes) -> None:
+        now = time.time_ns()
+        if isinstance(msg, WeightManifest):
+            self.seen[msg.version] = {"manifest_ns": now}
+        elif isinstance(msg, WeightChunk):
+            seen = self.seen.setdefault(msg.version, {})
+            seen.setdefault("first_chunk_ns", now)
+            seen["last_chunk_ns"] = now
+        while len(self.seen) > KEEP_VERSIONS:
+            self.seen.pop(min(self.seen))
+
+    def status(self) -> dict[str, dict[str, int]]:
+        return {str(v): dict(t) for v, t in list(self.seen.items())}
 
 
 class Sink:
@@ -150,31 +176,17 @@ class Sink:
         self.policy_version = -1
         self.env_steps = 0
         self.held: dict[str, dict[str, Any]] = {}
-        self._arrivals: dict[int, dict[str, int]] = {}
+        self.arrivals = Arrivals()
 
     def build(self, sl: Swimlane) -> None:
-        self.weights = WeightSync(self.fabric, self.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version,
-                                  on_message=self._on_message)
+        self.weights = WeightSync(self.fabric, HeldWeights(self.layout), (self.cfg.parent, *self.cfg.ancestors[1:]),
+                                  self._on_version, on_message=self.arrivals)
         sl.lane("sync", self._sync)
 
-    def _on_message(self, msg: Any, _envelope: bytes) -> None:
-        # When the manifest and the first and last chunk of each version reached this lane: the
-        # delivery time split into waiting for the data and processing it.
-        now = time.time_ns()
-        if isinstance(msg, WeightManifest):
-            self._arrivals[msg.version] = {"manifest_ns": now}
-        elif isinstance(msg, WeightChunk):
-            seen = self._arrivals.setdefault(msg.version, {})
-            seen.setdefault("first_chunk_ns", now)
-            seen["last_chunk_ns"] = now
-        while len(self._arrivals) > 8:
-            self._arrivals.pop(min(self._arrivals))
-
-    def _on_version(self, version: int, flat: np.ndarray) -> None:
-        # Held from here on: verified against the manifest's checksum (recomputed over the
-        # result by the decoder) and swapped in.
-        self.held[str(version)] = {"held_ns": time.time_ns(), "checksum": self.weights.decoder.checksum,
-                                   "parent": self.weights.parent, **self._arrivals.get(version, {})}
+    def _on_version(self, version: int) -> None:
+        # Held from here on: verified against the manifest's checksum and swapped in.
+        self.held[str(version)] = {"held_ns": time.time_ns(), "checksum": self.weights.held.checksum,
+                                   "parent": self.weights.parent, **self.arrivals.seen.get(version, {})}
         self.held = _trim(self.held)
         self.policy_version = version
 
@@ -189,7 +201,26 @@ class Sink:
         pass
 
 
-class FaultyRelay(Replicator):
+class TimedRelay(Replicator):
+    """The replicator, recording when each version's messages reached it (its status's
+    ``arrivals``): with its children's arrival times, how long it held the stream up."""
+
+    def build(self, sl: Swimlane) -> None:
+        super().build(sl)
+        self.arrivals = Arrivals()
+        cut_through = self.weights.on_message
+
+        def on_message(msg: Any, envelope: bytes) -> None:
+            self.arrivals(msg, envelope)
+            cut_through(msg, envelope)
+
+        self.weights.on_message = on_message
+
+    def status_extra(self) -> dict[str, Any]:
+        return {**super().status_extra(), "arrivals": self.arrivals.status()}
+
+
+class FaultyRelay(TimedRelay):
     """A replicator with injected faults on the way to its children (tests, chaos):
 
     - ``corrupt:V:I`` flips a byte of chunk I of version V (signed afresh, so only the checksum
@@ -245,7 +276,7 @@ def make_node(mode: str, cfg: RoleConfig, fabric: Fabric, layout: ParamLayout, f
         return Sink(cfg, fabric, layout)
     if faults:
         return FaultyRelay(cfg, fabric, layout, faults)
-    return Replicator(cfg, fabric, layout)
+    return TimedRelay(cfg, fabric, layout)
 
 
 def parse_fault(text: str) -> Fault:

@@ -232,7 +232,7 @@ def where_time_goes(run: dict[str, Any]) -> dict[str, Any]:
         "send_s": statistics.median(v["send_s"] for v in counted),
         "relay_last_in_s": med(lambda v: [r["last_in_s"] for r in v["relays"].values()]),
         "relay_last_out_s": med(lambda v: [r["last_out_s"] for r in v["relays"].values()]),
-        "relay_max_lag_ms": med(lambda v: [r["max_lag_ms"] for r in v["relays"].values()]),
+        "relay_lag_ms": med(lambda v: [r["lag_ms"] for r in v["relays"].values()]),
         "sink_last_chunk_s": med(lambda v: list(v["last_chunk_s"].values())),
         "sink_apply_s": med(lambda v: list(v["apply_s"].values())),
         "cluster_cpu_s": run["cluster_cpu_s_median"],

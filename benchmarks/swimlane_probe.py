@@ -49,13 +49,13 @@ class ProbedRollout(Rollout):
         return timed
 
     def _act(self, gid: int) -> Actions:
-        # stage_seq is odd while a staging write is in progress and bumped at its start and end
-        seq0, swaps0 = self.pool.stage_seq, self.pool.swaps
+        # held.seq is odd while a staging write is in progress and bumped at its start and end
+        seq0, swaps0 = self.pool.held.seq, self.pool.swaps
         t0 = time.perf_counter()
         out = super()._act(gid)
         ms = (time.perf_counter() - t0) * 1e3
         swapped = self.pool.swaps != swaps0
-        seq1 = self.pool.stage_seq
+        seq1 = self.pool.held.seq
         self.infer_latency.record("swap" if swapped or seq0 % 2 == 1 else "no_swap", ms)
         touched = swapped or seq1 != seq0 or seq1 % 2 == 1
         self.infer_latency.record("overlap" if touched or self._touched_before else "no_overlap", ms)

@@ -53,19 +53,16 @@ from dvla.fabric import (  # noqa: E402
     load_secret,
     plane_config,
 )
-from dvla.fabric.errors import CodecError  # noqa: E402
-from dvla.fabric.messages import SnapshotRequest, WeightSnapshot, join_snapshot  # noqa: E402
+from dvla.fabric.messages import SnapshotRequest, WeightSnapshot  # noqa: E402
 from dvla.learn.policies import MLPPolicy  # noqa: E402
 from dvla.orchestrator.plan import make_plan  # noqa: E402
 from dvla.replication import (  # noqa: E402
-    MANIFEST_FIELDS,
     ChunkAssembler,
+    HeldWeights,
     NeedSnapshot,
     ParamLayout,
     ReplicationError,
-    Snapshot,
     StaleVersion,
-    WeightDecoder,
     checksum,
     flatten,
     unflatten_into,
@@ -125,7 +122,7 @@ class WeightFollower:
         self.actor = actor
         self.policy = policy
         self.layout = ParamLayout.from_state_dict(policy.state_dict())
-        self.decoder = WeightDecoder(self.layout)
+        self.held = HeldWeights(self.layout)
         self.assembler = ChunkAssembler(1, 1, self.layout.nbytes)  # reset by each manifest
         self.manifest: WeightManifest | None = None
         #: every version loaded: {"version", "manifest_checksum", "policy_checksum", "via"}
@@ -137,29 +134,36 @@ class WeightFollower:
 
     @property
     def version(self) -> int:
-        return self.decoder.version
+        return self.held.version
 
     def catch_up(self, timeout: float = 2.0) -> bool:
-        """Load the actor's latest full weights from its snapshot queryable; True on success."""
+        """Load the actor's newest version whole from its snapshot queryable; True on success.
+
+        The reply is a header carrying the actor's signed manifest of that version, then the
+        version as a full one, in chunks: assembled and applied like any other version."""
         request = SnapshotRequest(requester=self.fabric.name, have_version=self.version)
-        replies = self.fabric.query(self.fabric.keys.snapshot(self.actor), request, expect=WeightSnapshot, timeout=timeout)
-        try:  # a full snapshot comes as several replies (chunks of the parameters)
-            whole = [join_snapshot([snap for _s, snap in replies])] if replies else []
-        except CodecError:
+        replies = [m for _s, m in self.fabric.query(self.fabric.keys.snapshot(self.actor), request,
+                                                    expect=(WeightSnapshot, WeightChunk), timeout=timeout)]
+        heads = [m for m in replies if isinstance(m, WeightSnapshot)]
+        if len(heads) != 1 or not heads[0].n_chunks or heads[0].version <= self.version:
+            return False  # nothing newer (or an incomplete reply)
+        proof = self.fabric.open_signed(self.fabric.keys.weights_signed(), heads[0].manifest, WeightManifest, fresh=False)
+        if proof is None:
             self.rejected += 1
             return False
-        for snap in whole:
-            if snap.layout_hash != self.layout.hash or snap.version <= self.version:
-                continue
-            try:
-                self.decoder.reset()
-                self.decoder.load_snapshot(Snapshot(snap.version, snap.data, snap.checksum))
-            except ReplicationError:
-                self.rejected += 1
-                continue
-            self._load(snap.checksum, "snapshot")
-            return True
-        return False
+        whole = proof[1].whole(heads[0].n_chunks)
+        self.manifest = None  # the assembler is taken for this version
+        try:
+            self.assembler.reset(whole.n_chunks, whole.total_bytes)
+            for c in replies:
+                if isinstance(c, WeightChunk) and c.version == whole.version:
+                    self.assembler.add(c.index, c.data)
+            self.held.apply(whole, self.assembler.payload())
+        except ReplicationError:
+            self.rejected += 1
+            return False
+        self._load(whole.checksum, "snapshot")
+        return True
 
     def poll(self) -> int:
         """Handle every message waiting, without blocking; returns how many versions were loaded."""
@@ -191,9 +195,8 @@ class WeightFollower:
         return self._apply(m)
 
     def _apply(self, m: WeightManifest) -> int:
-        fields = {name: getattr(m, name) for name in MANIFEST_FIELDS}
         try:
-            self.decoder.apply(fields, self.assembler.payload(), swap=True)
+            self.held.apply(m, self.assembler.payload())
         except StaleVersion:
             return 0
         except NeedSnapshot:
@@ -205,7 +208,7 @@ class WeightFollower:
         return 1
 
     def _load(self, manifest_checksum: str, via: str) -> None:
-        unflatten_into(self.decoder.active, self.policy, self.layout)
+        unflatten_into(self.held.active, self.policy, self.layout)
         with torch.no_grad():
             held = checksum(flatten(self.policy.state_dict(), self.layout))
         self.loaded.append(

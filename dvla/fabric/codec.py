@@ -45,7 +45,7 @@ __all__ = [
     "encode_into",
 ]
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 """Version of the top-level map and of every message schema; bumped on any incompatible change."""
 
 ARRAY_EXT_CODE = 1

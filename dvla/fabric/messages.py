@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -151,7 +151,11 @@ class TrajectoryChunk(Message):
 
 @dataclass(frozen=True, kw_only=True)
 class WeightManifest(Message):
-    """Announces a weight version; the payload follows as ``n_chunks`` :class:`WeightChunk`."""
+    """Announces a weight version; the payload follows as ``n_chunks`` :class:`WeightChunk`.
+
+    The one manifest of a weight version: the encoder makes it, the actor signs it, relays
+    forward it unchanged, and every replica checks its payload against it (dvla.replication).
+    """
 
     TYPE_TAG: ClassVar[str] = "weights.manifest"
 
@@ -159,11 +163,12 @@ class WeightManifest(Message):
     sender: str
     #: policy version the chunks reconstruct
     version: int
-    #: version the delta applies to; -1 for a full (non-delta) snapshot
+    #: version the delta applies to (always ``version - 1``); -1 for a full version
     base_version: int
-    #: how the payload encodes the weights (e.g. "full", "delta-bf16")
+    #: how the payload encodes the weights: "full", "full-bf16", "delta-bf16" or "delta-topk",
+    #: the deltas optionally with "+zstd" (compressed payload)
     encoding: str
-    #: hash of parameter names/shapes/dtypes; receivers refuse a layout they don't have
+    #: ``ParamLayout.hash`` of the sender; receivers refuse a layout they don't have
     layout_hash: str
     #: number of chunks that follow
     n_chunks: int
@@ -190,6 +195,11 @@ class WeightManifest(Message):
         _require(self.n_chunks >= 0, "schema", f"n_chunks {self.n_chunks} < 0")
         _require(self.total_bytes >= 0, "schema", f"total_bytes {self.total_bytes} < 0")
         _require(0 <= self.numel < 2**32, "schema", f"numel {self.numel} out of range")
+
+    def whole(self, n_chunks: int) -> "WeightManifest":
+        """This version's manifest for its parameters sent whole, in `n_chunks` chunks (a
+        snapshot): ``full`` float32 encoding, no base; checksum and digest are the same."""
+        return replace(self, base_version=-1, encoding="full", n_chunks=n_chunks, total_bytes=4 * self.numel)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -317,7 +327,7 @@ class EvalResult(Message):
 
 @dataclass(frozen=True, kw_only=True)
 class SnapshotRequest(Message):
-    """Asks a weight publisher for a full snapshot (e.g. after joining late or losing chunks)."""
+    """Asks a weight holder for its version whole (e.g. after joining late or losing chunks)."""
 
     TYPE_TAG: ClassVar[str] = "snapshot.req"
 
@@ -329,10 +339,11 @@ class SnapshotRequest(Message):
 
 @dataclass(frozen=True, kw_only=True)
 class WeightSnapshot(Message):
-    """Reply of a ``snapshot`` queryable: the sender's latest verified full weights (catch-up).
+    """First reply of a ``snapshot`` queryable (catch-up): the version the sender holds, and the
+    ``n_chunks`` :class:`WeightChunk` replies that follow with it whole (its ``full`` encoding).
 
-    Empty ``data`` is a header-only reply: the sender holds ``version`` (-1: nothing yet) and
-    the requester already has it or newer, so no parameters are sent.
+    ``n_chunks`` 0 is a header-only reply: the sender holds ``version`` (-1: nothing yet) and the
+    requester already has it or newer, so no parameters are sent.
     """
 
     TYPE_TAG: ClassVar[str] = "snapshot"
@@ -341,48 +352,18 @@ class WeightSnapshot(Message):
     sender: str
     #: policy version held
     version: int
-    #: hash of parameter names/shapes/dtypes
-    layout_hash: str
-    #: hex digest of `data` (the flat float32 parameters)
-    checksum: str
-    #: the flat float32 parameters, little-endian
-    data: bytes
-    #: the actor's signed envelope of this version's :class:`WeightManifest` (whose ``digest``
-    #: the data must hash to); empty in a header-only reply
-    manifest: bytes = b""
-    #: a full snapshot comes as ``n_chunks`` replies to one query, ``data`` being the
-    #: ``index``-th slice of the parameters (each reply stays within the ctrl plane's message cap)
-    index: int = 0
-    n_chunks: int = 1
+    #: the actor's signed envelope of this version's :class:`WeightManifest`: its ``digest`` is
+    #: what the parameters must hash to (empty in a header-only reply)
+    manifest: bytes
+    #: WeightChunk replies that follow (0: header only)
+    n_chunks: int
     #: wall-clock creation time, ns since the Unix epoch
     created_ns: int = field(default_factory=_now_ns)
 
     def validate(self) -> None:
         _require(self.version >= -1, "schema", f"version {self.version} < -1")
-        _require(self.version >= 0 or not self.data, "schema", "version -1 (nothing held) with parameters")
-        _require(len(self.data) % 4 == 0, "shape", f"snapshot of {len(self.data)} bytes is not float32")
-        _require(0 <= self.index < self.n_chunks, "schema", f"index {self.index} outside [0, {self.n_chunks})")
-
-
-def join_snapshot(pieces: list[WeightSnapshot]) -> WeightSnapshot:
-    """The one snapshot that the replies to one snapshot query make up (one sender, one version,
-    every index exactly once), with the slices' data joined in order; CodecError otherwise."""
-    if not pieces:
-        raise CodecError("schema", "no snapshot reply")
-    first = pieces[0]
-    n = first.n_chunks
-    _require(len(pieces) == n, "schema", f"{len(pieces)} snapshot replies for {n} chunks")
-    for p in pieces:
-        _require((p.sender, p.version, p.layout_hash, p.checksum, p.manifest, p.n_chunks)
-                 == (first.sender, first.version, first.layout_hash, first.checksum, first.manifest, n),
-                 "schema", f"snapshot chunk {p.index} of {p.sender} v{p.version} disagrees with chunk {first.index}")
-    ordered = sorted(pieces, key=lambda p: p.index)
-    _require([p.index for p in ordered] == list(range(n)), "schema", "snapshot chunk indices repeat or miss")
-    if n == 1:
-        return first
-    return WeightSnapshot(sender=first.sender, version=first.version, layout_hash=first.layout_hash,
-                          checksum=first.checksum, data=b"".join(p.data for p in ordered), manifest=first.manifest,
-                          created_ns=first.created_ns)
+        _require(self.n_chunks >= 0, "schema", f"n_chunks {self.n_chunks} < 0")
+        _require(self.version >= 0 or not self.n_chunks, "schema", "version -1 (nothing held) with parameters")
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {

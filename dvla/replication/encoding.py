@@ -1,43 +1,41 @@
 """Versioned weight encodings with error feedback, chunking and verified decoding.
 
-This module owns the replication wire format of policy weights (see docs/replication.md):
+This module owns the replication wire format of policy weights (see docs/replication.md). A
+weight version is one :class:`WeightVersion` (the wire's :class:`WeightManifest` plus its
+payload) from the encoder to the weights a node holds:
 
 * :class:`WeightEncoder` (actor side) turns successive flat parameter vectors into versions
   encoded as ``full``, ``delta-bf16`` or ``delta-topk`` (a full version of a bfloat16 model
-  goes as ``full-bf16``: its values are exact in two bytes). It keeps ``published``, the exact
-  float32 vector every replica holds after applying the versions so far; each delta is measured
-  against ``published`` (error feedback), so quantisation and sparsification errors never
-  accumulate.
-* :class:`WeightDecoder` (relay and rollout side) applies versions into a staging buffer,
-  verifies the result bit for bit against the manifest checksum, and swaps it in by reference.
-* :class:`ChunkAssembler` reassembles a payload from chunks arriving in any order, so relays can
-  forward each chunk as it arrives while also assembling a verified copy.
-* :class:`Manifest`, :class:`EncodedVersion` and :class:`Snapshot` are the plain-data records
-  exchanged between them; :func:`checksum` is the digest they carry.
+  goes as ``full-bf16``: its values are exact in two bytes). Each delta is measured against
+  ``published``, what every replica holds after the versions so far (error feedback), so
+  quantisation and sparsification errors never accumulate.
+* :class:`ChunkAssembler` reassembles a payload from its chunks, arriving in any order.
+* :class:`HeldWeights` is the newest verified version a node holds (the encoder's ``published``
+  too): :meth:`HeldWeights.apply` decodes a version into its staging buffer, verifies it bit for
+  bit against the manifest's checksum and only then swaps it in. Every reader (a rollout's
+  policy, an evaluator, a snapshot server) reads ``active`` under its ``lock``.
 
-Everything here is pure computation on numpy buffers: no I/O, no threads. Payload bytes are
-little-endian, as are the hosts the framework runs on.
+Everything here is pure computation on numpy buffers: no I/O, no threads of its own. Payload
+bytes are little-endian, as are the hosts the framework runs on.
 """
 
 from __future__ import annotations
 
-import dataclasses
+import hashlib
 import math
-from collections.abc import Mapping
-from dataclasses import dataclass, field
-from typing import Any, NamedTuple, Union
+import threading
+from dataclasses import dataclass
+from typing import Any, Callable, Union
 
 import numpy as np
 import xxhash
 import zstandard
 
 from dvla.config import COMPRESSIONS, ENCODINGS, ReplicationConfig
+from dvla.fabric.messages import WeightManifest
 from dvla.replication.layout import LayoutMismatch, ParamLayout, ReplicationError
 
 BytesLike = Union[bytes, bytearray, memoryview]
-
-MANIFEST_FIELDS = ("version", "base_version", "encoding", "layout_hash", "checksum", "n_chunks", "total_bytes")
-"""Fields of a manifest, in wire order."""
 
 _U16 = np.dtype("<u2")
 _U32 = np.dtype("<u4")
@@ -248,97 +246,28 @@ def inflate_delta(encoding: str, data: memoryview, numel: int) -> memoryview:
 
 
 # --------------------------------------------------------------------------------------------
-# Records
+# A version
 
 
 @dataclass(frozen=True)
-class Manifest:
-    """Header of one weight version: everything a receiver needs besides the payload bytes."""
+class WeightVersion:
+    """One encoded weight version: its manifest and its payload.
 
-    #: version number (1, 2, 3, ...); strictly increasing per actor
-    version: int
-    #: version a delta applies to (always ``version - 1``); -1 for a full version
-    base_version: int
-    #: "full", "delta-bf16" or "delta-topk"
-    encoding: str
-    #: ``ParamLayout.hash`` of the sender
-    layout_hash: str
-    #: :func:`checksum` of the flat parameters after applying this version
-    checksum: str
-    #: number of payload chunks
-    n_chunks: int
-    #: payload size in bytes
-    total_bytes: int
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain-data form for the wire (the payload travels separately, as chunks)."""
-        return {name: getattr(self, name) for name in MANIFEST_FIELDS}
-
-    def manifest(self) -> "Manifest":
-        """The bare manifest (drops the payload of an :class:`EncodedVersion`)."""
-        return Manifest(**self.to_dict())
-
-    @staticmethod
-    def from_dict(raw: Mapping[str, Any]) -> "Manifest":
-        """Parse a received manifest; wrong or missing fields raise :class:`CorruptPayload`."""
-        values = {}
-        for name in MANIFEST_FIELDS:
-            if name not in raw:
-                raise CorruptPayload(f"manifest lacks {name!r}")
-            value = raw[name]
-            want = str if name in ("encoding", "layout_hash", "checksum") else int
-            # bool is an int subclass; a True version is a malformed manifest, not version 1.
-            if not isinstance(value, want) or isinstance(value, bool):
-                raise CorruptPayload(f"manifest field {name!r} must be {want.__name__}, got {value!r}")
-            values[name] = value
-        return Manifest(**values)
-
-
-@dataclass(frozen=True)
-class EncodedVersion(Manifest):
-    """A manifest plus its payload, split into chunks.
-
-    The chunks are zero-copy slices of ``payload``, which lives in the encoder's buffers: they
-    stay valid until the next ``encode()`` call (copy them with ``bytes(chunk)`` to keep them
-    longer). Payloads of :meth:`Snapshot.encode` are immutable and never go stale.
+    ``payload`` views the encoder's buffers: it stays valid until the next ``encode()`` call
+    (copy it with ``bytes()`` to keep it longer).
     """
 
-    #: the whole payload
-    payload: memoryview = field(repr=False, compare=False)
-    #: ``payload`` split into even chunks of at most ``chunk_bytes`` bytes
-    chunks: list[memoryview] = field(repr=False, compare=False)
+    manifest: WeightManifest
+    #: the whole payload (``manifest.total_bytes`` bytes)
+    payload: memoryview
+    #: the signed envelope of ``manifest`` (empty when the encoder has no signer)
+    proof: bytes = b""
 
-
-class Snapshot(NamedTuple):
-    """A full copy of the replicated parameters at one version, for catch-up."""
-
-    #: the version held
-    version: int
-    #: raw float32 bytes of the flat parameters
-    payload: bytes
-    #: :func:`checksum` of those bytes
-    checksum: str
-
-    def encode(self, layout_hash: str, chunk_bytes: int) -> EncodedVersion:
-        """This snapshot as a ``full`` version ready to send (chunks view the immutable bytes)."""
-        return _encoded(self.version, -1, "full", layout_hash, self.checksum, memoryview(self.payload), chunk_bytes)
-
-
-def _encoded(
-    version: int, base: int, encoding: str, layout_hash: str, digest: str, payload: memoryview, chunk_bytes: int
-) -> EncodedVersion:
-    chunks = split_chunks(payload, chunk_bytes)
-    return EncodedVersion(
-        version=version,
-        base_version=base,
-        encoding=encoding,
-        layout_hash=layout_hash,
-        checksum=digest,
-        n_chunks=len(chunks),
-        total_bytes=payload.nbytes,
-        payload=payload,
-        chunks=chunks,
-    )
+    @property
+    def chunks(self) -> list[memoryview]:
+        """``payload`` split into the manifest's ``n_chunks`` even chunks (zero-copy)."""
+        m = self.manifest
+        return [self.payload[slice(*chunk_span(i, m.n_chunks, m.total_bytes))] for i in range(m.n_chunks)]
 
 
 def _byte_view(data: BytesLike) -> memoryview:
@@ -348,23 +277,32 @@ def _byte_view(data: BytesLike) -> memoryview:
         raise CorruptPayload(f"payload must be contiguous bytes: {exc}") from exc
 
 
-def _as_manifest(m: Manifest | Mapping[str, Any]) -> Manifest:
-    if isinstance(m, Manifest):
-        return m
-    if isinstance(m, Mapping):
-        return Manifest.from_dict(m)
-    raise CorruptPayload(f"expected a manifest, got {type(m).__name__}")
-
-
 # --------------------------------------------------------------------------------------------
-# Arithmetic shared by encoder and decoder. Replicas match the encoder bit for bit because both
-# sides run exactly these float32 operations on exactly the same inputs.
+# Decoding, shared by the encoder and every replica: replicas match the encoder bit for bit
+# because both sides run exactly this function on exactly the same inputs.
 
 
-def _apply_bf16(base: np.ndarray, q: np.ndarray, out: np.ndarray) -> None:
-    """out = base + float32(q); ``out`` must not alias ``base``."""
-    bf16_to_float32(q, out=out)
-    np.add(base, out, out=out)
+def _decode_into(encoding: str, view: memoryview, base: np.ndarray, out: np.ndarray) -> None:
+    """The parameters after a version of `encoding` whose payload is `view`, applied to `base`,
+    into `out` (which must not alias `base`)."""
+    n = base.size
+    if encoding == "full":
+        np.copyto(out, np.frombuffer(view, dtype=_F32, count=n))
+    elif encoding == "full-bf16":
+        bf16_to_float32(np.frombuffer(view, dtype=_U16, count=n), out=out)
+    elif encoding == "delta-bf16":
+        bf16_to_float32(np.frombuffer(view, dtype=_U16, count=n), out=out)
+        np.add(base, out, out=out)
+    else:
+        k = view.nbytes // 8
+        idx = np.frombuffer(view, dtype=_U32, count=k)
+        vals = np.frombuffer(view, dtype=_F32, count=k, offset=4 * k)
+        # Strictly increasing indices are what encoders send; this also rules out
+        # duplicates, whose scatter order would otherwise be ambiguous.
+        if idx[-1] >= n or (k > 1 and not bool(np.all(idx[1:] > idx[:-1]))):
+            raise CorruptPayload("delta-topk indices out of range or not strictly increasing")
+        np.copyto(out, base)
+        out[idx] = np.add(base[idx], vals)
 
 
 def topk_count(numel: int, fraction: float) -> int:
@@ -379,9 +317,10 @@ def topk_count(numel: int, fraction: float) -> int:
 class WeightEncoder:
     """Actor side: encodes successive parameter vectors as versions, with error feedback.
 
-    ``published`` is what every replica holds after the versions encoded so far. Each delta is
-    ``true - published`` at encoding time, so whatever a version fails to transmit (bfloat16
-    rounding, entries outside the top-k) stays in the next delta instead of being lost.
+    ``held`` is what every replica holds after the versions encoded so far (``published``).
+    Each delta is ``true - published`` at encoding time, so whatever a version fails to
+    transmit (bfloat16 rounding, entries outside the top-k) stays in the next delta instead of
+    being lost.
 
     A version is sent ``full`` when it is the first one, every ``snapshot_every`` versions
     (versions 1, 1 + snapshot_every, ...), when ``encode(..., full=True)`` asks for it, when a
@@ -389,6 +328,10 @@ class WeightEncoder:
     and when the delta or its result is not finite (NaN/inf in the parameters, or a delta
     overflowing bfloat16). Full versions copy the parameters exactly, NaNs included, so a
     non-finite state is replicated faithfully and cleared by the next finite one.
+
+    Each version's manifest names ``sender`` and ``base_hash`` (the policy's frozen base) and
+    is signed by ``seal`` (its envelope is the version's ``proof``, kept with the held weights
+    for snapshots).
     """
 
     def __init__(
@@ -401,6 +344,9 @@ class WeightEncoder:
         *,
         start_version: int = 0,
         compression: str = "none",
+        sender: str = "",
+        base_hash: str = "",
+        seal: Callable[[WeightManifest], bytes] | None = None,
     ) -> None:
         # Indices travel as uint32; an empty layout has nothing to replicate.
         for ok, problem in (
@@ -421,19 +367,14 @@ class WeightEncoder:
         self.chunk_bytes = chunk_bytes
         #: "zstd": delta payloads travel compressed (when that is smaller); full ones never do
         self.compression = compression
+        self.sender, self.base_hash, self.seal = sender, base_hash, seal
         self._z = b""
         #: last version encoded (0 before the first encode, or ``start_version`` when resuming)
         self.version = start_version
-        self._fresh = True
-        self._checksum = ""
+        self.held = HeldWeights(layout)
         n = layout.numel
-        self._pub = np.zeros(n, dtype=np.float32)
         # Buffers an encoding does not use are left empty rather than sized for the layout.
-        delta_n = n if encoding != "full" else 0
-        # Second buffer: bf16 computes the candidate result here and swaps it in only once it
-        # is known to be finite; topk uses it as |delta| scratch.
-        self._next = np.zeros(delta_n, dtype=np.float32)
-        self._delta = np.zeros(delta_n, dtype=np.float32)
+        self._delta_buf = np.zeros(n if encoding != "full" else 0, dtype=np.float32)
         self._bf16 = np.zeros(n if encoding == "delta-bf16" else 0, dtype=_U16)
         self._k = topk_count(n, topk_fraction)
         self._topk = np.zeros(2 * self._k if encoding == "delta-topk" else 0, dtype=_U32)
@@ -443,60 +384,46 @@ class WeightEncoder:
         self._full16 = np.zeros(n if self._bf16_model else 0, dtype=_U16)
 
     @classmethod
-    def from_config(cls, layout: ParamLayout, cfg: ReplicationConfig, *, start_version: int = 0) -> "WeightEncoder":
-        """An encoder with the settings of a :class:`ReplicationConfig`."""
-        return cls(
-            layout,
-            cfg.encoding,
-            topk_fraction=cfg.topk_fraction,
-            snapshot_every=cfg.snapshot_every,
-            chunk_bytes=cfg.chunk_bytes,
-            start_version=start_version,
-            compression=cfg.compression,
-        )
+    def from_config(cls, layout: ParamLayout, cfg: ReplicationConfig, **kwargs: Any) -> "WeightEncoder":
+        """An encoder with the settings of a :class:`ReplicationConfig` (`kwargs`: the
+        keyword-only arguments)."""
+        return cls(layout, cfg.encoding, topk_fraction=cfg.topk_fraction, snapshot_every=cfg.snapshot_every,
+                   chunk_bytes=cfg.chunk_bytes, compression=cfg.compression, **kwargs)
 
     @property
     def published(self) -> np.ndarray:
-        """The flat parameters every up-to-date replica holds (read-only by contract).
-
-        The array object may change at each ``encode()``: read the property again afterwards.
-        """
-        return self._pub
-
-    @property
-    def checksum(self) -> str:
-        """:func:`checksum` of ``published``."""
-        return self._checksum
-
-    @property
-    def latest(self) -> int:
-        """Version of ``published`` (what :meth:`snapshot` would serve); -1 before the first encode."""
-        return -1 if self._fresh else self.version
+        """The flat parameters every up-to-date replica holds (``held.active``, read-only)."""
+        return self.held.active
 
     def _wants_full(self, version: int) -> bool:
-        if self.encoding == "full" or self._fresh:
+        if self.encoding == "full" or self.held.version < 0:
             return True
         if (version - 1) % self.snapshot_every == 0:
             return True
         # A top-k payload (8 bytes per entry) at least as large as a full one buys nothing.
         return self.encoding == "delta-topk" and 2 * self._k >= self.layout.numel
 
-    def encode(self, true_flat: np.ndarray, *, full: bool = False) -> EncodedVersion:
-        """Encode the next version from the current true parameters (flat float32)."""
+    def encode(self, true_flat: np.ndarray, *, full: bool = False) -> WeightVersion:
+        """Encode the next version from the current true parameters (flat float32); it is
+        ``published`` (held) once this returns."""
         n = self.layout.numel
         if not isinstance(true_flat, np.ndarray) or true_flat.dtype != np.float32 or true_flat.shape != (n,):
             raise LayoutMismatch(f"expected a float32 vector of {n} elements")
         version = self.version + 1
         payload: memoryview | None = None
         encoding = self.encoding
-        if not (full or self._wants_full(version)):
-            payload = self._encode_bf16(true_flat) if encoding == "delta-bf16" else self._encode_topk(true_flat)
+        new = self.held.staging
+        if not (full or self._wants_full(version)) and (payload := self._delta(true_flat, new)) is not None:
+            # What every replica will hold, computed by the very function they decode with.
+            _decode_into(encoding, payload, self.held.active, new)
+            if not _all_finite(new):
+                payload = None
         if payload is None:
             encoding = "full"
-            np.copyto(self._pub, true_flat)
-            payload = memoryview(self._pub).cast("B")
+            np.copyto(new, true_flat)
+            payload = memoryview(new).cast("B")
             if self._bf16_model:
-                bits = self._pub.view(_U32)
+                bits = new.view(_U32)
                 if not np.any(bits & 0xFFFF):
                     np.right_shift(bits, 16, out=self._full16, casting="unsafe")
                     encoding, payload = "full-bf16", memoryview(self._full16).cast("B")
@@ -505,62 +432,47 @@ class WeightEncoder:
             z = deflate_delta(encoding, payload)
             if len(z) < payload.nbytes:
                 self._z, payload, encoding = z, memoryview(z), f"{encoding}+{ZSTD}"
+        digest = checksum(new)
+        manifest = WeightManifest(
+            sender=self.sender, version=version, base_version=base, encoding=encoding, layout_hash=self.layout.hash,
+            n_chunks=chunk_count(payload.nbytes, self.chunk_bytes), total_bytes=payload.nbytes, checksum=digest,
+            # what a snapshot of this version, served by any relay, must hash to
+            digest=hashlib.sha256(memoryview(new).cast("B")).hexdigest(), numel=n, base_hash=self.base_hash,
+        )
+        proof = self.seal(manifest) if self.seal is not None else b""
         self.version = version
-        self._fresh = False
-        self._checksum = checksum(self._pub)
-        return _encoded(version, base, encoding, self.layout.hash, self._checksum, payload, self.chunk_bytes)
+        self.held.publish(version, digest, proof)
+        return WeightVersion(manifest, payload, proof)
 
-    def _encode_bf16(self, true_flat: np.ndarray) -> memoryview | None:
-        d = self._delta
-        np.subtract(true_flat, self._pub, out=d)
+    def _delta(self, true_flat: np.ndarray, scratch: np.ndarray) -> memoryview | None:
+        """The delta payload ``true - published`` (None when it is not finite)."""
+        d = self._delta_buf
+        np.subtract(true_flat, self.held.active, out=d)
         if not _all_finite(d):
             return None
-        bf16_round_bits(d, out=self._bf16, scratch=self._next.view(np.uint32))
-        _apply_bf16(self._pub, self._bf16, out=self._next)
-        if not _all_finite(self._next):
-            return None
-        self._pub, self._next = self._next, self._pub
-        return memoryview(self._bf16).cast("B")
-
-    def _encode_topk(self, true_flat: np.ndarray) -> memoryview | None:
-        d = self._delta
-        np.subtract(true_flat, self._pub, out=d)
-        if not _all_finite(d):
-            return None
+        if self.encoding == "delta-bf16":
+            return memoryview(bf16_round_bits(d, out=self._bf16, scratch=scratch.view(np.uint32))).cast("B")
         n, k = self.layout.numel, self._k
-        magnitude = np.abs(d, out=self._next)
-        chosen = np.argpartition(magnitude, n - k)[n - k :]
+        chosen = np.argpartition(np.abs(d, out=scratch), n - k)[n - k :]
         chosen.sort()  # ascending indices: cache-friendly scatter, and a cheap validity check
-        idx = self._topk[:k]
-        vals = self._topk[k:].view(_F32)
-        np.copyto(idx, chosen, casting="unsafe")  # < numel < 2**32
-        np.take(d, idx, out=vals)
-        new = np.add(self._pub[idx], vals)
-        if not _all_finite(new):
-            return None
-        self._pub[idx] = new
+        np.copyto(self._topk[:k], chosen, casting="unsafe")  # < numel < 2**32
+        np.take(d, self._topk[:k], out=self._topk[k:].view(_F32))
         return memoryview(self._topk).cast("B")
-
-    def snapshot(self) -> Snapshot:
-        """(version, raw bytes, checksum) of ``published``, for serving catch-up."""
-        if self._fresh:
-            raise ReplicationError("nothing encoded yet")
-        return Snapshot(self.version, self._pub.tobytes(), self._checksum)
 
 
 # --------------------------------------------------------------------------------------------
-# Decoder
+# The weights a node holds
 
 
-class WeightDecoder:
-    """Relay/rollout side: applies versions into a staging buffer, verifies, swaps by reference.
+class HeldWeights:
+    """The newest verified weights a node holds: ``version``, ``checksum``, the flat float32
+    ``active`` vector, and ``proof`` (the actor's signed manifest envelope of that version).
 
-    Two preallocated buffers form a dual pool: ``active`` (what the replica uses) and staging
-    (where the next version is computed). :meth:`apply` decodes into staging and checks the
-    checksum; a failed version leaves ``active`` untouched. :meth:`swap` then makes staging
-    active by swapping references, so a reader of ``active`` sees either the old or the new
-    vector, never a mix. Calling :meth:`apply` while a verified result is still pending promotes
-    it first (two buffers hold at most one pending version).
+    Two preallocated buffers form a dual pool: ``active`` and ``staging``, where the one writer
+    (the encoder, or :meth:`apply` on the receiving lane) computes the next version; it is made
+    active by swapping references under ``lock``. Readers hold ``lock`` while they read
+    ``active`` (the writer only ever writes the other buffer, and swaps only while nobody
+    reads), so a reader sees one version whole, never a mix, and never waits for a decode.
     """
 
     def __init__(self, layout: ParamLayout) -> None:
@@ -573,98 +485,77 @@ class WeightDecoder:
         for buf in self._bufs:
             buf.fill(0.0)
         self._cur = 0
-        #: version held in ``active`` (0: none yet)
-        self.version = 0
-        self._checksum = ""
-        self._pending: tuple[int, str] | None = None
+        #: held by readers of ``active``, and by the writer while it swaps
+        self.lock = threading.Lock()
+        #: (version, checksum) of ``active``, assigned together ((-1, ""): nothing yet)
+        self.id: tuple[int, str] = (-1, "")
+        self.proof = b""
+        #: versions made active so far
+        self.updates = 0
+        #: bumped when a write into staging starts and when it is swapped in: odd while one is
+        #: under way
+        self.seq = 0
 
     @property
-    def active(self) -> np.ndarray:
-        """Flat parameters of ``version`` (zeros before the first version)."""
-        return self._bufs[self._cur]
-
-    @property
-    def staging(self) -> np.ndarray:
-        """The other buffer of the pool: the pending result, or scratch."""
-        return self._bufs[1 - self._cur]
-
-    @property
-    def ready(self) -> bool:
-        """Whether ``active`` holds a verified version."""
-        return self.version > 0
+    def version(self) -> int:
+        return self.id[0]
 
     @property
     def checksum(self) -> str:
         """:func:`checksum` of ``active`` ("" before the first version)."""
-        return self._checksum
+        return self.id[1]
 
     @property
-    def pending_version(self) -> int | None:
-        """Version verified in staging and not yet swapped in, if any."""
-        return None if self._pending is None else self._pending[0]
+    def active(self) -> np.ndarray:
+        """Flat parameters of ``version`` (zeros before the first); read it under ``lock``."""
+        return self._bufs[self._cur]
 
-    def reset(self) -> None:
-        """Forget everything held (e.g. when the actor restarts its version numbering)."""
-        self.version, self._checksum, self._pending = 0, "", None
+    @property
+    def staging(self) -> np.ndarray:
+        """The writer's buffer, where the next version is computed."""
+        return self._bufs[1 - self._cur]
 
-    def swap(self) -> np.ndarray:
-        """Make the pending version active (reference swap) and return ``active``.
-
-        A no-op when nothing is pending.
-        """
-        if self._pending is not None:
-            # Rebind the index before publishing the version: a reader never sees a version
-            # number paired with the other buffer's contents for longer than this one line.
+    def publish(self, version: int, digest: str, proof: bytes = b"") -> None:
+        """Make ``staging`` (holding `version`, whose checksum is `digest`) active."""
+        with self.lock:
             self._cur = 1 - self._cur
-            self.version, self._checksum = self._pending
-            self._pending = None
-        return self.active
+            self.id, self.proof = (version, digest), proof
+            self.updates += 1
 
-    def apply(self, manifest: Manifest | Mapping[str, Any], payload: BytesLike, *, swap: bool = False) -> np.ndarray:
-        """Decode one version into staging, verify it, and return the staging buffer.
+    def apply(self, m: WeightManifest, payload: BytesLike, proof: bytes = b"") -> None:
+        """Decode one version into staging, verify it, and make it active.
+
+        This is where the replicas' promise lives: a version is held only if the decoded
+        parameters hash to the manifest's checksum, the actor's, bit for bit.
 
         Raises :class:`LayoutMismatch` (sender's layout differs), :class:`CorruptPayload`
         (malformed manifest or payload), :class:`StaleVersion` (not newer than what is held),
         :class:`NeedSnapshot` (a delta whose base is not the held version) or
-        :class:`ChecksumMismatch` (result differs from the sender's). On any error ``active``
-        is unchanged and nothing is pending. With ``swap=True`` the result is swapped in.
+        :class:`ChecksumMismatch` (result differs from the sender's). On any error nothing
+        held changes.
         """
-        m = _as_manifest(manifest)
         view = _byte_view(payload)
         self._check(m, view.nbytes)
-        base, comp = split_encoding(m.encoding)
+        encoding, comp = split_encoding(m.encoding)
         if comp:
-            view = inflate_delta(base, view, self.layout.numel)
-            m = dataclasses.replace(m, encoding=base, total_bytes=view.nbytes)
-            self._check_size(m, view.nbytes)
-        self.swap()  # promote a pending result: it is the base of this version
+            view = inflate_delta(encoding, view, self.layout.numel)
+            self._check_size(encoding, view.nbytes)
         if m.version <= self.version:
             raise StaleVersion(f"version {m.version} is not newer than held version {self.version}")
-        if not _is_full(m.encoding) and (not self.ready or m.base_version != self.version):
+        if not _is_full(encoding) and m.base_version != self.version:
             raise NeedSnapshot(have=self.version, base=m.base_version, version=m.version)
         staging = self.staging
-        self._decode_into(m, view, staging)
-        digest = checksum(staging)
-        if digest != m.checksum:
-            raise ChecksumMismatch(f"version {m.version}: decoded checksum {digest} != manifest {m.checksum}")
-        self._pending = (m.version, digest)
-        return self.swap() if swap else staging
+        self.seq += 1
+        try:
+            _decode_into(encoding, view, self.active, staging)
+            digest = checksum(staging)
+            if digest != m.checksum:
+                raise ChecksumMismatch(f"version {m.version}: decoded checksum {digest} != manifest {m.checksum}")
+            self.publish(m.version, digest, proof)
+        finally:
+            self.seq += 1
 
-    def load_snapshot(self, snap: Snapshot) -> np.ndarray:
-        """Apply a locally obtained :class:`Snapshot` (verified) and swap it in."""
-        enc = snap.encode(self.layout.hash, max(1, len(snap.payload)))
-        return self.apply(enc, enc.payload, swap=True)
-
-    def snapshot(self) -> Snapshot:
-        """(version, raw bytes, checksum) of the newest verified version held."""
-        if self._pending is not None:
-            version, digest = self._pending
-            return Snapshot(version, self.staging.tobytes(), digest)
-        if not self.ready:
-            raise ReplicationError("no version held yet")
-        return Snapshot(self.version, self.active.tobytes(), self._checksum)
-
-    def _check(self, m: Manifest, nbytes: int) -> None:
+    def _check(self, m: WeightManifest, nbytes: int) -> None:
         if m.layout_hash != self.layout.hash:
             raise LayoutMismatch(f"sender layout {m.layout_hash} != local layout {self.layout.hash}")
         base, comp = split_encoding(m.encoding)
@@ -681,35 +572,16 @@ class WeightDecoder:
             if nbytes > 4 * self.layout.numel:
                 raise CorruptPayload(f"{m.encoding} payload of {nbytes} bytes is larger than a full one")
             return  # sizes of the inflated payload are checked after inflating
-        self._check_size(m, nbytes)
+        self._check_size(base, nbytes)
 
-    def _check_size(self, m: Manifest, nbytes: int) -> None:
+    def _check_size(self, encoding: str, nbytes: int) -> None:
         n = self.layout.numel
-        want = {"full": 4 * n, "full-bf16": 2 * n, "delta-bf16": 2 * n}.get(m.encoding, nbytes)
+        want = {"full": 4 * n, "full-bf16": 2 * n, "delta-bf16": 2 * n}.get(encoding, nbytes)
         if nbytes != want:
-            raise CorruptPayload(f"{m.encoding} payload must be {want} bytes, got {nbytes}")
-        if m.encoding == "delta-topk" and (nbytes % 8 or nbytes > 4 * n):
+            raise CorruptPayload(f"{encoding} payload must be {want} bytes, got {nbytes}")
+        if encoding == "delta-topk" and (nbytes % 8 or nbytes > 4 * n):
             # Encoders never send a top-k payload larger than a full one.
             raise CorruptPayload(f"delta-topk payload of {nbytes} bytes is not 8*k with 8*k <= {4 * n}")
-
-    def _decode_into(self, m: Manifest, view: memoryview, staging: np.ndarray) -> None:
-        n = self.layout.numel
-        if m.encoding == "full":
-            np.copyto(staging, np.frombuffer(view, dtype=_F32, count=n))
-        elif m.encoding == "full-bf16":
-            bf16_to_float32(np.frombuffer(view, dtype=_U16, count=n), out=staging)
-        elif m.encoding == "delta-bf16":
-            _apply_bf16(self.active, np.frombuffer(view, dtype=_U16, count=n), out=staging)
-        else:
-            k = view.nbytes // 8
-            idx = np.frombuffer(view, dtype=_U32, count=k)
-            vals = np.frombuffer(view, dtype=_F32, count=k, offset=4 * k)
-            # Strictly increasing indices are what encoders send; this also rules out
-            # duplicates, whose scatter order would otherwise be ambiguous.
-            if idx[-1] >= n or (k > 1 and not bool(np.all(idx[1:] > idx[:-1]))):
-                raise CorruptPayload("delta-topk indices out of range or not strictly increasing")
-            np.copyto(staging, self.active)
-            staging[idx] = np.add(self.active[idx], vals)
 
 
 # --------------------------------------------------------------------------------------------
@@ -719,18 +591,15 @@ class WeightDecoder:
 class ChunkAssembler:
     """Reassembles one payload from chunks arriving in any order, into a reusable buffer.
 
-    :meth:`add` returns True only for a chunk seen for the first time, which is exactly when a
-    relay should forward it to its children; duplicates are ignored. The buffer holds
-    ``max_bytes`` (use ``layout.nbytes``: no encoding produces more) and is reused across
-    versions through :meth:`reset`.
+    The buffer holds ``max_bytes`` (use ``layout.nbytes``: no encoding produces more) and is
+    reused across versions through :meth:`reset`.
     """
 
     def __init__(self, n_chunks: int, total_bytes: int, max_bytes: int) -> None:
         if max_bytes < 1:
             raise ValueError(f"max_bytes must be >= 1, got {max_bytes}")
         self.max_bytes = max_bytes
-        self._buf = bytearray(max_bytes)
-        self._view = memoryview(self._buf)
+        self._view = memoryview(bytearray(max_bytes))
         self.reset(n_chunks, total_bytes)
 
     def reset(self, n_chunks: int, total_bytes: int) -> None:
@@ -751,12 +620,8 @@ class ChunkAssembler:
         """Whether every chunk has arrived."""
         return self._received == self.n_chunks
 
-    def missing(self) -> list[int]:
-        """Indices of chunks not received yet (for repair requests)."""
-        return [i for i in range(self.n_chunks) if not self._have[i]]
-
     def add(self, index: int, data: BytesLike) -> bool:
-        """Store chunk ``index``; True if it was new, False for a duplicate.
+        """Store chunk ``index``; True if it was new, False for a duplicate (ignored).
 
         An index out of range or a chunk whose size differs from its span raises
         :class:`ReplicationError`.

@@ -109,10 +109,6 @@ class ParamLayout:
         start = self.offsets[i]
         return start, start + math.prod(self.shapes[i])
 
-    def empty(self) -> np.ndarray:
-        """A new zeroed flat float32 vector of this layout."""
-        return np.zeros(self.numel, dtype=np.float32)
-
 
 def _layout_digest(names: tuple[str, ...], shapes: tuple[tuple[int, ...], ...], dtypes: tuple[str, ...]) -> str:
     # Canonical JSON so the digest depends only on the content, never on Python's repr details.
@@ -165,7 +161,7 @@ def flatten(sd: StateDictLike, layout: ParamLayout, out: np.ndarray | None = Non
     allocated: the tensors are copied straight into it (from any device, converting dtype).
     """
     if out is None:
-        out = layout.empty()
+        out = np.zeros(layout.numel, dtype=np.float32)
     else:
         _check_flat(out, layout)
     tensors = _state_dict(sd)
@@ -180,26 +176,20 @@ def flatten(sd: StateDictLike, layout: ParamLayout, out: np.ndarray | None = Non
     return out
 
 
-def unflatten_into(flat: np.ndarray | torch.Tensor, model_or_state_dict: StateDictLike, layout: ParamLayout) -> None:
+def unflatten_into(flat: np.ndarray, model_or_state_dict: StateDictLike, layout: ParamLayout) -> None:
     """Copy ``flat`` into the existing tensors of a module or state_dict, in place.
 
     No tensor storage is allocated: each slice of ``flat`` is viewed as a tensor
-    (``torch.from_numpy``; a float32 torch vector, e.g. a rollout's staging copy on a GPU, is used
-    as it is) and copied into the target with ``Tensor.copy_``, which converts dtype and moves to
-    the target's device. Tensors outside the layout are left untouched.
+    (``torch.from_numpy``) and copied into the target with ``Tensor.copy_``, which converts
+    dtype and moves to the target's device. Tensors outside the layout are left untouched.
     """
-    if isinstance(flat, torch.Tensor):
-        if flat.dtype != torch.float32 or tuple(flat.shape) != (layout.numel,):
-            raise LayoutMismatch(f"flat vector must be float32 of shape ({layout.numel},), got {flat.dtype} {tuple(flat.shape)}")
-        src = flat
-    else:
-        _check_flat(flat, layout)
-        with warnings.catch_warnings():
-            if not flat.flags.writeable:
-                # A read-only source (e.g. np.frombuffer over bytes) is only read here; torch's
-                # warning about non-writable arrays does not apply.
-                warnings.simplefilter("ignore", UserWarning)
-            src = torch.from_numpy(flat)
+    _check_flat(flat, layout)
+    with warnings.catch_warnings():
+        if not flat.flags.writeable:
+            # A read-only source (e.g. np.frombuffer over bytes) is only read here; torch's
+            # warning about non-writable arrays does not apply.
+            warnings.simplefilter("ignore", UserWarning)
+        src = torch.from_numpy(flat)
     tensors = _state_dict(model_or_state_dict)
     with torch.no_grad():
         for i in range(len(layout.names)):

@@ -298,7 +298,7 @@ class Actor:
                 if self.publisher is not None:
                     self._send(item)
                 # one assignment: status never pairs a version with another version's checksum
-                self._published = (item.version, self.publisher.checksum if self.publisher is not None else "")
+                self._published = self.publisher.held.id if self.publisher is not None else (item.version, "")
                 self.published_version = item.version
             ctx.count()
 
@@ -306,15 +306,16 @@ class Actor:
         """Rank 0: reserve the version number on disk, encode, send, log, checkpoint."""
         assert self.publisher is not None and self._ledger is not None
         self.reserved = reserve_versions(self.ckpt_dir, item.version, self.reserved)
-        enc = self.publisher.encode(item.flat)
-        if enc.version != item.version:
-            raise RuntimeError(f"publisher numbered v{enc.version} for learned v{item.version}")
-        sent = self.publisher.send(enc)
+        v = self.publisher.encode(item.flat)
+        m = v.manifest
+        if m.version != item.version:
+            raise RuntimeError(f"publisher numbered v{m.version} for learned v{item.version}")
+        sent = self.publisher.send(v)
         self.bytes_published += sent
-        kind = "full" if enc.base_version < 0 else "delta"
+        kind = "full" if m.base_version < 0 else "delta"
         self.publish_bytes[f"{kind}_versions"] += 1
         self.publish_bytes[f"{kind}_bytes"] += sent
-        self._ledger.write(f"{enc.version},{enc.checksum},{enc.encoding},{item.env_steps},{time.time():.3f},{os.getpid()}\n")
+        self._ledger.write(f"{m.version},{m.checksum},{m.encoding},{item.env_steps},{time.time():.3f},{os.getpid()}\n")
         if item.optimizer is not None:
             self._checkpoint(item.version, item.env_steps, item.optimizer)
 
@@ -324,9 +325,12 @@ class Actor:
         assert self.publisher is not None
         # What replicates, nothing of a frozen base (loaded from its own checkpoint directory)
         sd = {k: v.detach().clone() for k, v in replicated_tensors(self.policy).items()}
-        unflatten_into(self.publisher.encoder.published, sd, self.layout)
+        held = self.publisher.held
+        with held.lock:
+            unflatten_into(held.active, sd, self.layout)
+            digest = held.checksum
         try:
-            save_checkpoint(self.ckpt_dir, sd, optimizer, version, env_steps, self.publisher.checksum)
+            save_checkpoint(self.ckpt_dir, sd, optimizer, version, env_steps, digest)
         except OSError as err:
             log.warning("checkpoint of v%d failed: %s", version, err)
 
@@ -334,8 +338,7 @@ class Actor:
     def status_extra(self) -> dict[str, Any]:
         lags = self.lags[-1024:]
         acct = self.fabric.accounting
-        published = self._published or (self.published_version,
-                                         self.publisher.checksum if self.publisher is not None else "")
+        published = self._published or (self.published_version, "")
         return {
             "published_version": published[0],
             "inbox_depth": self.inbox.depth(),

@@ -21,7 +21,6 @@ import threading
 import time
 from typing import Any
 
-import numpy as np
 import torch
 
 from ..config import RoleConfig, resolve_device
@@ -29,7 +28,7 @@ from ..fabric import Fabric
 from ..fabric.messages import EvalResult
 from ..learn import make_env_group, make_policy, run_eval_episodes
 from ..learn.policies import policy_base_hash
-from ..replication import ParamLayout, unflatten_into
+from ..replication import HeldWeights, ParamLayout, unflatten_into
 from .runtime import main
 from .swimlane import LaneContext, Swimlane
 from .weightsync import WeightSync
@@ -55,25 +54,18 @@ class Evaluator:
         self.layout = ParamLayout.from_state_dict(self.policy)
         self.policy_version = -1
         self.env_steps = 0
-        #: sync -> eval: the newest verified version (a copy) and its number; replaced, not queued
-        self._latest = np.empty(0, np.float32)
-        self._latest_version = -1
-        self._lock = threading.Lock()
+        #: sync -> eval: the newest verified version (replaced, not queued) and a flag that it changed
+        self.held = HeldWeights(self.layout)
         self._new = threading.Event()
         self.results: list[dict[str, float]] = []
 
     def build(self, sl: Swimlane) -> None:
-        self.weights = WeightSync(  # verified versions from the parent
-            self.fabric, self.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version,
+        self.weights = WeightSync(  # verified versions from the parent -> held
+            self.fabric, self.held, (self.cfg.parent, *self.cfg.ancestors[1:]), lambda _v: self._new.set(),
             base_hash=policy_base_hash(self.policy), base_source=str(self.cfg.task.policy_kwargs.get("checkpoint", "")),
         )
         sl.lane("sync", self._sync)
         sl.lane("eval", self._eval)
-
-    def _on_version(self, version: int, flat: np.ndarray) -> None:
-        with self._lock:
-            self._latest, self._latest_version = flat.copy(), version
-        self._new.set()
 
     def _sync(self, ctx: LaneContext) -> None:
         while ctx.running:
@@ -86,13 +78,13 @@ class Evaluator:
             with ctx.waiting():
                 if not self._new.wait(0.1):
                     continue
-            with self._lock:
-                version, flat = self._latest_version, self._latest
-                self._new.clear()
-            if version // every <= window:
+            self._new.clear()
+            if self.held.version // every <= window:
                 continue
             with ctx.busy():
-                unflatten_into(flat, self.policy, self.layout)
+                with self.held.lock:  # the sync lane swaps in a newer version only after this copy
+                    version = self.held.version
+                    unflatten_into(self.held.active, self.policy, self.layout)
                 self.policy_version = version
                 t0 = time.perf_counter()
                 res = run_eval_episodes(

@@ -8,7 +8,8 @@ Lanes (and what flows between them):
              batches, never during one.
 - ``ship``:  encodes and publishes finished chunks on the data plane and gives them back to
              the pool.
-- ``sync``:  receives weight versions into the staging pool (see weightsync.py).
+- ``sync``:  receives weight versions into the held weights (see weightsync.py); ``infer``
+             installs the newest between two batches (``PolicyPool``).
 
 Where all the rollout's envs share one simulator scene (ManiSkill on a GPU, docs/envs.md) there
 is one group: observations, actions and every recorded step stay tensors on the sim device
@@ -39,12 +40,12 @@ from ..learn import make_env_group, make_policy
 from ..learn.policies import extras_spec, policy_base_hash, sample_actions
 from ..learn.envs import obs_as_dict, obs_to_torch, sim_layout
 from ..learn.grpo import grpo_envs
-from ..replication import ParamLayout, bind_flat, unflatten_into
+from ..replication import HeldWeights, ParamLayout, bind_flat, unflatten_into
 from ..counters import INCARNATION_SHIFT, CounterFile
 from .chunkpool import ChunkPool, DeviceChunk, Shipment, chunk_template
 from .runtime import main
 from .swimlane import LaneContext, Swimlane, sample_percentile
-from .weightsync import WeightSync
+from .weightsync import WeightSync, held_status
 
 log = logging.getLogger("dvla.rollout")
 
@@ -91,73 +92,54 @@ class _Group:
 
 
 class PolicyPool:
-    """Dual-pool weights: `active` (the policy module) serves inference, `staging` (a flat tensor of
-    the *replicated* tensors only, on the policy's device, in its dtype: bf16 for a bf16 model)
-    receives the next version.
+    """The policy module that serves inference (`active`) and the verified weights it installs
+    (`held`, filled by the sync lane: dvla.replication.HeldWeights).
 
-    The sync lane writes `staging` under a lock; the infer lane installs it into `active` between
-    batches (one copy of the replicated tensors: a single flat copy where they are views of one
-    flat tensor, see `bind_flat`). A newer version overwrites an uninstalled one, so sync never
-    waits on inference, and inference never waits on a write (it installs on a later batch).
-    A LoRA policy thus holds its base once and its adapters twice, not the model twice.
+    The infer lane installs the newest held version into `active` between two batches: one copy
+    of the replicated tensors (a single flat copy where they are views of one flat tensor, see
+    `bind_flat`), converting to the policy's device and dtype. It never waits: the sync lane
+    decodes the next version into the held weights' other buffer, and when the held lock is
+    taken (a version being swapped in) the install is put off to the next batch. A newer
+    version replaces an uninstalled one. A LoRA policy holds its base once: only the replicated
+    tensors (adapters, heads) are held again, in the two float32 host buffers.
     """
 
     def __init__(self, policy: torch.nn.Module) -> None:
         self.active = policy
         self.active_version = -1
         self.layout = ParamLayout.from_state_dict(policy)
-        device = next((t.device for t in policy.state_dict().values()), torch.device("cpu"))
+        self.held = HeldWeights(self.layout)
         #: the replicated tensors of `active` as views of one flat tensor (None: per-tensor copies)
         self._bound = bind_flat(policy, self.layout)
-        dtype = self._bound.dtype if self._bound is not None else torch.float32
-        self.staging = torch.zeros(self.layout.numel, dtype=dtype, device=device)
-        self._pending: int | None = None
-        self._lock = threading.Lock()
+        self._installed_updates = 0
         self.swaps = 0
+        #: versions held but replaced by a newer one before they were installed
         self.overwritten = 0
-        #: swaps put off to the next batch because a staging write held the lock
+        #: installs put off to the next batch because the held weights' lock was taken
         self.swap_deferred = 0
-        #: bumped when a staging write starts and when it ends: odd while one is in progress
-        self.stage_seq = 0
-
-    def stage(self, version: int, flat: np.ndarray) -> None:
-        with self._lock:
-            self.stage_seq += 1
-            if self._pending is not None:
-                self.overwritten += 1
-            self._write_staging(flat)
-            self._pending = version
-            self.stage_seq += 1
-
-    def _write_staging(self, flat: np.ndarray) -> None:
-        if flat.dtype != np.float32 or flat.shape != (self.layout.numel,):
-            raise ValueError(f"staged weights: {flat.dtype} {flat.shape}, expected float32 ({self.layout.numel},)")
-        with torch.no_grad():
-            self.staging.copy_(torch.from_numpy(flat))
-
-    @torch.no_grad()
-    def _install(self) -> None:
-        if self._bound is not None:
-            self._bound.copy_(self.staging)
-        else:
-            unflatten_into(self.staging, self.active, self.layout)
 
     def maybe_swap(self) -> bool:
-        """Called between batches; never waits: during a staging write it retries next batch."""
-        if self._pending is None:
+        """Called between batches: install the newest held version if it is newer; never waits."""
+        held = self.held
+        if held.version <= self.active_version:
             return False
-        if not self._lock.acquire(blocking=False):
+        if not held.lock.acquire(blocking=False):
             self.swap_deferred += 1
             return False
         try:
-            if self._pending is None:  # another lane installed it first
+            if held.version <= self.active_version:  # another lane installed it first
                 return False
-            self._install()
-            self.active_version = self._pending
-            self._pending = None
+            with torch.no_grad():
+                if self._bound is not None:
+                    self._bound.copy_(torch.from_numpy(held.active))
+                else:
+                    unflatten_into(held.active, self.active, self.layout)
+            self.overwritten += held.updates - self._installed_updates - 1
+            self._installed_updates = held.updates
+            self.active_version = held.version
             self.swaps += 1
         finally:
-            self._lock.release()
+            held.lock.release()
         return True
 
 
@@ -214,8 +196,6 @@ class Rollout:
         self._lockstep_version = -1  # sync mode: actions of older versions are recomputed
         self._since_version = 0
         self._ready = threading.Event()
-        #: (version, checksum) of the newest verified weights
-        self.held: tuple[int, str] = (-1, "")
 
     @property
     def policy_version(self) -> int:
@@ -227,19 +207,14 @@ class Rollout:
         self.to_sim = sl.queue("actions", len(self.groups))  # Actions for a group
         self.to_ship = sl.queue("chunks", SHIP_QUEUE)  # Shipment: a finished chunk and its pool
         self._count()
-        self.weights = WeightSync(  # verified versions from the parent (ancestors as fallback)
-            self.fabric, self.pool.layout, (self.cfg.parent, *self.cfg.ancestors[1:]), self._on_version,
+        self.weights = WeightSync(  # verified versions from the parent (ancestors as fallback) -> pool.held
+            self.fabric, self.pool.held, (self.cfg.parent, *self.cfg.ancestors[1:]), lambda _v: self._ready.set(),
             base_hash=policy_base_hash(self.pool.active), base_source=str(self.cfg.task.policy_kwargs.get("checkpoint", "")),
         )
         sl.lane("sim", self._sim_random if self.sim_only else self._sim)
         sl.lane("infer", self._infer)
         sl.lane("ship", self._ship)
         sl.lane("sync", self._sync)
-
-    def _on_version(self, version: int, flat: np.ndarray) -> None:
-        self.held = (version, self.weights.decoder.checksum)  # what status reports as held
-        self.pool.stage(version, flat)
-        self._ready.set()
 
     # -- lanes --------------------------------------------------------------------------------
     def _sync(self, ctx: LaneContext) -> None:
@@ -444,8 +419,7 @@ class Rollout:
             "swap_deferred": self.pool.swap_deferred,
             "versions_overwritten": self.pool.overwritten,
             "weights": self.weights.status(),
-            "held_version": self.held[0],
-            "held_checksum": self.held[1],
+            **held_status(self.pool.held),
         }
 
     def close(self) -> None:

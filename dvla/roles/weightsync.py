@@ -1,15 +1,13 @@
 """Weights in the replication tree: `WeightPublisher` (the actor, the root: encode, send, serve
-snapshots) and `WeightSync` (the `sync`/`recv` lane logic shared by rollouts, evaluators and
+snapshots) and `WeightSync` (the receiving lane's logic shared by rollouts, evaluators and
 replicators), with the one snapshot queryable both ends serve (`serve_snapshots`).
 
 - Listens on the parent's weights key; assembles each version's chunks into a reusable buffer;
-  decodes into the staging pool; verifies layout, base version and checksum; only a verified,
-  complete version is handed to `on_version`.
-- A relay (replicator) is given no layout: it learns the size and hash from the first verified
-  manifest (or snapshot proof), never building the model. A receiver holding a model is given
-  its frozen base's content hash and refuses versions made for another base.
+  `HeldWeights.apply` decodes and verifies it (layout, base version, checksum); only a verified,
+  complete version is held and announced to `on_version`.
 - Anything that does not fit (a missed base version, a bad checksum, a fresh start) is repaired by
-  asking the parent's `snapshot` queryable (falling back to further ancestors).
+  asking the parent's `snapshot` queryable (falling back to further ancestors): the held version
+  sent whole, as a full version's chunks, through the same assembler and `apply`.
 - When the parent's liveliness token goes, it re-subscribes to the nearest live ancestor; when
   the parent comes back it moves back (the tree heals).
 """
@@ -20,61 +18,55 @@ import hashlib
 import logging
 import threading
 import time
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable
 
 import numpy as np
 
 from ..config import ReplicationConfig
 from ..fabric import Fabric
 from ..fabric.codec import encode
-from ..fabric.errors import CodecError
-from ..fabric.messages import SnapshotRequest, WeightChunk, WeightManifest, WeightSnapshot, join_snapshot
+from ..fabric.messages import SnapshotRequest, WeightChunk, WeightManifest, WeightSnapshot
 from ..replication import (
-    MANIFEST_FIELDS,
     ChecksumMismatch,
     ChunkAssembler,
-    EncodedVersion,
+    HeldWeights,
     NeedSnapshot,
     ParamLayout,
     ReplicationError,
-    Snapshot,
     StaleVersion,
-    WeightDecoder,
     WeightEncoder,
+    WeightVersion,
+    split_chunks,
 )
 from .swimlane import LaneContext
 
 log = logging.getLogger("dvla.weights")
 
-
-class Fetched(NamedTuple):
-    """What a snapshot fetch brought: the first ancestor that answered, and its reply."""
-
-    parent: str
-    snapshot: WeightSnapshot
+#: verified weight messages waiting for the receiving lane
+INBOX = 64
 
 
 class WeightSync:
-    """Follows one parent (with fallbacks) and yields verified weight versions.
+    """Follows one parent (with fallbacks) and fills `held` with verified weight versions.
 
     `on_message(msg, envelope)` sees every verified manifest and chunk with the signed envelope
-    it came in, before it is assembled (a relay forwards that envelope to its children as is).
+    it came in, before it is assembled (a relay forwards that envelope to its children as is);
+    `on_version(version)` is called once each new version is held.
 
-    ``layout`` None: learnt from the first verified manifest (relays). ``base_hash`` (not None):
-    this node's frozen base checkpoint hash ("" for a policy that replicates whole); a version
-    whose manifest names another is refused, counted under ``refused_base`` and logged once per
-    distinct base, and never applied. ``base_source`` names the local checkpoint in that line.
+    ``held`` None: its layout is learnt from the first verified manifest (relays). ``base_hash``
+    (not None): this node's frozen base checkpoint hash ("" for a policy that replicates whole); a
+    version whose manifest names another is refused, counted under ``refused_base`` and logged
+    once per distinct base, and never applied. ``base_source`` names the local checkpoint there.
     """
 
     def __init__(
         self,
         fabric: Fabric,
-        layout: ParamLayout | None,
+        held: HeldWeights | None,
         parents: tuple[str, ...],
-        on_version: Callable[[int, np.ndarray], None],
+        on_version: Callable[[int], None] | None = None,
         *,
         on_message: Callable[[Any, bytes], None] | None = None,
-        inbox_size: int = 64,
         base_hash: str | None = None,
         base_source: str = "",
     ) -> None:
@@ -84,30 +76,24 @@ class WeightSync:
         self.parents = parents
         self.on_version = on_version
         self.on_message = on_message
-        self.inbox_size = inbox_size
         self.base_hash = base_hash
         self.base_source = base_source
         self._base_logged: set[str] = set()
-        self.layout: ParamLayout | None = None
-        self.decoder: WeightDecoder | None = None
-        self.assembler: ChunkAssembler | None = None
-        self.manifest: WeightManifest | None = None
-        self.max_bytes = 0
+        self.held: HeldWeights | None = None
+        self._assembler: ChunkAssembler | None = None
+        self._manifest: WeightManifest | None = None  # of the version being assembled
         #: how long one snapshot query waits for its reply (a full snapshot of a large model)
         self.fetch_timeout_s = 5.0
-        if layout is not None:
-            self._adopt(layout)
-        self.version = -1
-        #: the actor's signed manifest envelope of `version` (served with snapshots of it)
-        self.proof = b""
-        self._pending_proof: tuple[int, bytes] = (-1, b"")  # manifest envelope of the version being assembled
+        if held is not None:
+            self._adopt(held)
+        self._proof: tuple[int, bytes] = (-1, b"")  # manifest envelope of the version being assembled
         self.counters = {"versions": 0, "snapshots": 0, "rejected": 0, "repairs": 0, "reattach": 0, "refused_base": 0}
         self._alive: set[str] = set(parents)
         self._lock = threading.Lock()
         self._want_snapshot = True
         self._fetch: threading.Thread | None = None
-        #: fetch thread -> lane: the snapshot the finished fetch brought (None: nobody answered)
-        self._fetched: Fetched | None = None
+        #: fetch thread -> lane: (the first ancestor that answered, its replies); None: nobody did
+        self._fetched: tuple[str, list[Any]] | None = None
         self._next_fetch = 0.0
         self._current: str | None = None
         # Only the current parent's key is subscribed: every further subscription would bring
@@ -120,12 +106,19 @@ class WeightSync:
         self._select()
         self._follow()
 
-    def _adopt(self, layout: ParamLayout) -> None:
-        self.layout = layout
-        self.decoder = WeightDecoder(layout)
-        # No encoding produces more than a full version: the assembler buffer is that big, once.
-        self.max_bytes = layout.nbytes
-        self.fetch_timeout_s = 5.0 + layout.nbytes / 25e6
+    def _adopt(self, held: HeldWeights) -> None:
+        self.held = held
+        self.fetch_timeout_s = 5.0 + held.layout.nbytes / 25e6
+
+    @property
+    def version(self) -> int:
+        """The version held (-1: none yet)."""
+        return self.held.version if self.held is not None else -1
+
+    @property
+    def layout_hash(self) -> str:
+        """The layout's hash ("" while a relay has not learnt it)."""
+        return self.held.layout.hash if self.held is not None else ""
 
     def _fits(self, m: WeightManifest) -> bool:
         """Whether a verified manifest is for this node: the same frozen base (when this node
@@ -138,11 +131,11 @@ class WeightSync:
                           m.version, m.sender, m.base_hash or "<none: full policy>", self.base_source or "<none>",
                           self.base_hash or "<none: full policy>")
             return False
-        if self.layout is None:
+        if self.held is None:
             if m.numel < 1:
                 self.counters["rejected"] += 1
                 return False
-            self._adopt(ParamLayout.opaque(m.layout_hash, m.numel))
+            self._adopt(HeldWeights(ParamLayout.opaque(m.layout_hash, m.numel)))
             log.info("weights: layout %s of %d elements learnt from v%d's manifest", m.layout_hash, m.numel, m.version)
         return True
 
@@ -154,7 +147,7 @@ class WeightSync:
         if self._inbox is not None:
             self.fabric.unsubscribe(self._inbox)
         self._inbox = self.fabric.subscribe_ctrl(
-            self.fabric.keys.weights(parent), self.inbox_size, (WeightManifest, WeightChunk),
+            self.fabric.keys.weights(parent), INBOX, (WeightManifest, WeightChunk),
             sign_key=self.fabric.keys.weights_signed(), with_envelope=True,
         )
         self._sub_parent = parent
@@ -188,9 +181,9 @@ class WeightSync:
     def step(self, ctx: LaneContext, timeout: float = 0.1) -> None:
         """One iteration of the receiving lane: catch up if needed, then handle one message.
 
-        A snapshot fetch runs on a helper thread while this lane keeps draining the stream, so
-        a large snapshot in flight never fills the inbox and never holds Zenoh's receive thread
-        (which the snapshot reply itself needs).
+        A snapshot fetch runs on a thread of its own while this lane keeps draining the stream,
+        so a large snapshot in flight never fills the inbox and never holds Zenoh's receive
+        thread (which the snapshot reply itself needs).
         """
         if self._want_snapshot and self._fetch is None and time.monotonic() >= self._next_fetch:
             self._start_fetch()
@@ -207,59 +200,61 @@ class WeightSync:
             if self.on_message is not None:
                 self.on_message(msg, envelope)
             if isinstance(msg, WeightManifest):
-                self._pending_proof = (msg.version, envelope)
+                self._proof = (msg.version, envelope)
             self._handle(msg)
             ctx.count()
 
     def _handle(self, msg: Any) -> None:
         if isinstance(msg, WeightManifest):
             if not self._fits(msg):
-                self.manifest = None
+                self._manifest = None
                 return
-            if msg.total_bytes > self.max_bytes or msg.n_chunks < 1:
+            try:
+                if self._assembler is None:
+                    self._assembler = ChunkAssembler(msg.n_chunks, msg.total_bytes, self.held.layout.nbytes)
+                else:
+                    self._assembler.reset(msg.n_chunks, msg.total_bytes)
+            except ReplicationError as err:
                 self.counters["rejected"] += 1
-                log.warning("weights: manifest v%d from %s rejected (size %d)", msg.version, msg.sender, msg.total_bytes)
+                log.warning("weights: manifest v%d from %s rejected: %s", msg.version, msg.sender, err)
+                self._manifest = None
                 return
-            self.manifest = msg
-            if self.assembler is None:
-                self.assembler = ChunkAssembler(msg.n_chunks, msg.total_bytes, self.max_bytes)
-            else:
-                self.assembler.reset(msg.n_chunks, msg.total_bytes)
+            self._manifest = msg
             return
-        m = self.manifest
-        if m is None or self.assembler is None or msg.version != m.version:
+        m = self._manifest
+        if m is None or msg.version != m.version:
             return  # chunk of a version whose manifest we missed: the next version repairs it
         try:
-            self.assembler.add(msg.index, msg.data)
+            self._assembler.add(msg.index, msg.data)
         except ReplicationError as err:
             self.counters["rejected"] += 1
             log.warning("weights: chunk %d of v%d rejected: %s", msg.index, msg.version, err)
             return
-        if self.assembler.complete:
-            self._apply(m, self.assembler.payload())
-            self.manifest = None
+        if self._assembler.complete:
+            self._manifest = None
+            proof = self._proof[1] if self._proof[0] == m.version else b""
+            self._apply(m, self._assembler.payload(), proof, "stream")
 
-    def _apply(self, m: WeightManifest, payload: Any) -> None:
-        if m.version <= self.version:
-            return
+    def _apply(self, m: WeightManifest, payload: Any, proof: bytes, via: str) -> bool:
+        """Hold one assembled version (stream or snapshot); False (counted) when it does not apply."""
         try:
-            flat = self.decoder.apply(manifest_dict(m), payload, swap=True)
+            self.held.apply(m, payload, proof)
         except StaleVersion:
-            return
+            return False
         except NeedSnapshot:
             self.counters["repairs"] += 1
             self._want_snapshot = True
-            return
+            return False
         except ReplicationError as err:  # a failed checksum among them: a snapshot repairs it
             self.counters["rejected"] += 1
             self.counters["repairs"] += isinstance(err, ChecksumMismatch)
-            log.warning("weights: v%d rejected, asking for a snapshot: %s", m.version, err)
+            log.warning("weights: v%d (%s) rejected, asking for a snapshot: %s", m.version, via, err)
             self._want_snapshot = True
-            return
-        self.version = m.version
-        self.proof = self._pending_proof[1] if self._pending_proof[0] == m.version else b""
-        self.counters["versions"] += 1
-        self.on_version(m.version, flat)
+            return False
+        self.counters["snapshots" if via == "snapshot" else "versions"] += 1
+        if self.on_version is not None:
+            self.on_version(m.version)
+        return True
 
     # -- catch-up -----------------------------------------------------------------------------
     def _start_fetch(self) -> None:
@@ -270,123 +265,129 @@ class WeightSync:
         def fetch() -> None:
             # Parent first, then further ancestors; the first one that answers decides.
             for p in order:
-                replies = self.fabric.query(
-                    self.fabric.keys.snapshot(p), request, expect=WeightSnapshot, timeout=self.fetch_timeout_s
-                )
+                replies = self.fabric.query(self.fabric.keys.snapshot(p), request,
+                                            expect=(WeightSnapshot, WeightChunk), timeout=self.fetch_timeout_s)
                 if replies:
-                    try:
-                        self._fetched = Fetched(p, join_snapshot([snap for _s, snap in replies]))
-                    except CodecError as err:  # missing or disagreeing chunks: ask again shortly
-                        log.warning("weights: snapshot from %s incomplete: %s", p, err)
+                    self._fetched = (p, [msg for _s, msg in replies])
                     return
 
         self._fetch = threading.Thread(target=fetch, name=f"{self.fabric.name}-catchup", daemon=True)
         self._fetch.start()
 
     def _finish_fetch(self) -> None:
-        """Use what the finished fetch brought (on the lane's thread: the decoder is the lane's)."""
+        """Use what the finished fetch brought (on the lane's thread: `held` is the lane's)."""
         self._fetch = None
         if self._fetched is None:
             self._next_fetch = time.monotonic() + 0.5  # nobody answered: try again shortly
             return
-        p, snap = self._fetched.parent, self._fetched.snapshot
-        if snap.version < 0:
-            # The parent holds nothing yet: the stream's first version is a full one.
+        p, replies = self._fetched
+        heads = [r for r in replies if isinstance(r, WeightSnapshot)]
+        if len(heads) != 1:
+            log.warning("weights: snapshot from %s incomplete: %d headers in %d replies", p, len(heads), len(replies))
+            self._next_fetch = time.monotonic() + 0.5
+            return
+        head = heads[0]
+        if head.version < 0 or head.version <= self.version:
+            # Nothing newer (or nothing held yet: the stream's first version is a full one).
             self._want_snapshot = False
             return
-        if snap.version <= self.version:
-            self._want_snapshot = False
-            return
-        if not snap.data:  # header-only although we are behind: it moved on meanwhile; ask again
+        if not head.n_chunks:  # header-only although we are behind: it moved on meanwhile; ask again
             return
         try:
-            m = self._check_proof(p, snap)
+            m = self._check_proof(p, head)
             if not self._fits(m):
                 self._next_fetch = time.monotonic() + 5.0
                 return
-            if snap.layout_hash != self.layout.hash:
-                raise ReplicationError(f"layout {snap.layout_hash} != ours {self.layout.hash}")
-            self.decoder.reset()
-            flat = self.decoder.load_snapshot(Snapshot(snap.version, snap.data, snap.checksum))
+            whole = m.whole(head.n_chunks)
+            asm = ChunkAssembler(whole.n_chunks, whole.total_bytes, self.held.layout.nbytes)
+            for c in replies:
+                if isinstance(c, WeightChunk) and c.version == m.version:
+                    asm.add(c.index, c.data)
+            if not asm.complete:  # replies lost on the way (a query timing out): ask again shortly
+                log.warning("weights: snapshot v%d from %s incomplete", m.version, p)
+                self._next_fetch = time.monotonic() + 0.5
+                return
+            payload = asm.payload()
+            if hashlib.sha256(payload).hexdigest() != m.digest:
+                raise ReplicationError("data does not hash to the actor's digest")
         except ReplicationError as err:
             self.counters["rejected"] += 1
-            log.warning("weights: snapshot v%d from %s rejected: %s", snap.version, p, err)
+            log.warning("weights: snapshot v%d from %s rejected: %s", head.version, p, err)
             self._next_fetch = time.monotonic() + 0.5
             return
-        self.version = snap.version
-        self.proof = snap.manifest
-        self.counters["snapshots"] += 1
-        self._want_snapshot = False
-        log.info("weights: caught up to v%d by snapshot from %s", snap.version, p)
-        self.on_version(snap.version, flat)
+        if self._apply(whole, payload, head.manifest, "snapshot"):
+            self._want_snapshot = False
+            log.info("weights: caught up to v%d by snapshot from %s", m.version, p)
+        else:
+            self._next_fetch = time.monotonic() + 0.5
 
-    def _check_proof(self, parent: str, snap: WeightSnapshot) -> WeightManifest:
+    def _check_proof(self, parent: str, head: WeightSnapshot) -> WeightManifest:
         """A snapshot is applied only if the actor signed its content: its manifest envelope
-        verifies as the actor's, names the same version and layout, and its SHA-256 digest is
-        that of the data (a relay cannot make up weights)."""
-        if not snap.manifest:
-            raise ReplicationError(f"snapshot v{snap.version} from {parent} carries no signed manifest")
-        got = self.fabric.open_signed(self.fabric.keys.weights_signed(), snap.manifest, WeightManifest, fresh=False)
+        verifies as the actor's and names the same version, and the data must hash (SHA-256) to
+        that manifest's digest (a relay cannot make up weights)."""
+        if not head.manifest:
+            raise ReplicationError(f"snapshot v{head.version} from {parent} carries no signed manifest")
+        got = self.fabric.open_signed(self.fabric.keys.weights_signed(), head.manifest, WeightManifest, fresh=False)
         if got is None:
-            raise ReplicationError(f"snapshot v{snap.version} from {parent}: its manifest does not verify as the actor's")
+            raise ReplicationError(f"snapshot v{head.version} from {parent}: its manifest does not verify as the actor's")
         m = got[1]
-        if m.version != snap.version or m.layout_hash != snap.layout_hash:
-            raise ReplicationError(f"snapshot v{snap.version} from {parent} carries the manifest of v{m.version}")
-        if not m.digest or hashlib.sha256(snap.data).hexdigest() != m.digest:
-            raise ReplicationError(f"snapshot v{snap.version} from {parent}: data does not hash to the actor's digest")
+        if m.version != head.version or not m.digest:
+            raise ReplicationError(f"snapshot v{head.version} from {parent} carries the manifest of v{m.version}")
         return m
+
+    def serve(self, sender: str, chunk_bytes: int) -> None:
+        """Answer children's snapshot queries with the version held (a relay)."""
+        serve_snapshots(self.fabric, sender, lambda: self.held, chunk_bytes)
 
     def status(self) -> dict[str, Any]:
         return {"parent": self.parent, "version": self.version, **self.counters}
 
-    @property
-    def layout_hash(self) -> str:
-        """The layout's hash ("" while a relay has not learnt it)."""
-        return self.layout.hash if self.layout is not None else ""
+
+def held_status(held: HeldWeights | None) -> dict[str, Any]:
+    """A role's ``held_version`` and ``held_checksum`` status fields (read together: never a
+    version paired with another version's checksum)."""
+    version, digest = held.id if held is not None else (-1, "")
+    return {"held_version": version, "held_checksum": digest}
 
 
 def serve_snapshots(
-    fabric: Fabric, sender: str, layout_hash: Callable[[], str], lock: threading.Lock, held: Callable[[], int],
-    snapshot: Callable[[], Snapshot], proof: Callable[[], bytes], chunk_bytes: int = 1 << 20,
+    fabric: Fabric, sender: str, held: Callable[[], HeldWeights | None], chunk_bytes: int = 1 << 20,
 ) -> None:
     """Declare ``sender``'s ``snapshot`` queryable (children's catch-up and repair).
 
-    ``held()`` is the version the caller holds (-1: none yet) and ``snapshot()`` builds it in
-    full; both are called under ``lock``, which the caller also holds while it changes what they
-    read, so a reply never mixes two versions; ``proof()`` is the actor's signed manifest
-    envelope of that version. A requester that is up to date (or asks before anything is held)
-    gets a header-only reply and never costs a full copy of the weights; a full snapshot goes as
-    replies of at most `chunk_bytes` of parameters each (within the ctrl plane's message cap),
-    encoded once per version, however many children ask. Requests are answered by one thread
-    of their own from a short queue (never on Zenoh's receive thread; see Fabric.serve).
-    ``layout_hash()`` is read per reply (a relay learns it with its first version).
+    The reply is the version ``held()`` holds, whole: a :class:`WeightSnapshot` header with the
+    actor's signed manifest of it, then its ``full`` payload as ``WeightChunk`` replies of at most
+    `chunk_bytes` (within the ctrl plane's message cap), encoded once per version however many
+    children ask. A requester that is up to date (or asks before anything is held) gets the
+    header alone and never costs a copy of the weights. The held weights are read under their
+    lock, so a reply never mixes two versions. Requests are answered by one thread of their own
+    from a short queue (never on Zenoh's receive thread; see Fabric.serve).
     """
     encoded: dict[int, list[bytes]] = {}
-    step = max(4, chunk_bytes - chunk_bytes % 4)  # whole float32 values per reply
 
     def reply(request: Any) -> Any:
         have = request.have_version if isinstance(request, SnapshotRequest) else -1
-        with lock:
-            version = held()
-            if version < 0 or have >= version:
-                return WeightSnapshot(sender=sender, version=max(version, -1), layout_hash=layout_hash(), checksum="", data=b"")
+        h = held()
+        if h is None or h.version < 0 or have >= h.version:
+            return WeightSnapshot(sender=sender, version=-1 if h is None else h.version, manifest=b"", n_chunks=0)
+        with h.lock:
+            version = h.version
             if version not in encoded:
-                snap = snapshot()
-                data, manifest, now = memoryview(snap.payload), proof(), time.time_ns()
-                n = max(1, -(-len(data) // step))
+                chunks = split_chunks(memoryview(h.active).cast("B"), chunk_bytes)
+                n = len(chunks)
                 encoded.clear()
-                encoded[version] = [encode(WeightSnapshot(
-                    sender=sender, version=snap.version, layout_hash=layout_hash(), checksum=snap.checksum,
-                    data=bytes(data[i * step:(i + 1) * step]), manifest=manifest, index=i, n_chunks=n, created_ns=now,
-                )) for i in range(n)]
+                encoded[version] = [encode(WeightSnapshot(sender=sender, version=version, manifest=h.proof, n_chunks=n))]
+                encoded[version] += [encode(WeightChunk(sender=sender, version=version, index=i, n_chunks=n, data=bytes(c)))
+                                     for i, c in enumerate(chunks)]
             return list(encoded[version])
 
     fabric.serve(fabric.keys.snapshot(sender), reply, SnapshotRequest, worker=True)
 
 
 class WeightPublisher:
-    """The root of the weight tree: encodes each new version (full, or a delta against the last),
-    sends it to the children and answers their snapshot queries with the newest version."""
+    """The root of the weight tree: encodes each new version (full, or a delta against the last)
+    and signs its manifest, sends it to the children, and answers their snapshot queries with the
+    newest version (`held`, what every replica holds once it has it)."""
 
     def __init__(
         self, fabric: Fabric, sender: str, layout: ParamLayout, replication: ReplicationConfig, start_version: int = 0,
@@ -394,59 +395,31 @@ class WeightPublisher:
     ) -> None:
         self.fabric = fabric
         self.sender = sender
-        self.layout = layout
-        #: content hash of the policy's frozen base ("" when it replicates whole)
-        self.base_hash = base_hash
         self.replication = replication
-        self.encoder = WeightEncoder.from_config(layout, replication, start_version=start_version)
-        self._lock = threading.Lock()  # a snapshot being served never sees a half-encoded version
-        #: the signed manifest envelope of the newest encoded version (sent first, and served
-        #: with snapshots as the proof of their content)
-        self._manifest = b""
+        # not signed for the key it travels on: relays forward it unchanged
+        self.encoder = WeightEncoder.from_config(
+            layout, replication, start_version=start_version, sender=sender, base_hash=base_hash,
+            seal=lambda m: fabric.seal(fabric.keys.weights_signed(), m),
+        )
+        #: the newest version encoded, with its signed manifest
+        self.held = self.encoder.held
 
     def serve(self) -> None:
         """Declare the ``snapshot`` queryable: children's catch-up with the newest version."""
-        serve_snapshots(self.fabric, self.sender, lambda: self.layout.hash, self._lock,
-                        lambda: self.encoder.latest, lambda: self.encoder.snapshot(), lambda: self._manifest,
-                        self.replication.chunk_bytes)
+        serve_snapshots(self.fabric, self.sender, lambda: self.held, self.replication.chunk_bytes)
 
-    def renumber(self, start_version: int) -> None:
-        """Continue numbering after `start_version` (the next version is a full one)."""
-        with self._lock:
-            self.encoder = WeightEncoder.from_config(self.layout, self.replication, start_version=start_version)
+    def encode(self, flat: np.ndarray) -> WeightVersion:
+        """Encode the next version from the flat weights; snapshots served from now on are of it."""
+        return self.encoder.encode(flat)
 
-    def encode(self, flat: np.ndarray) -> EncodedVersion:
-        """Encode the next version from the flat weights and sign its manifest (with the SHA-256
-        digest of the weights every replica will hold); snapshots served from now on are of it."""
-        with self._lock:
-            enc = self.encoder.encode(flat)
-            digest = hashlib.sha256(memoryview(self.encoder.published).cast("B")).hexdigest()
-            manifest = WeightManifest(sender=self.sender, digest=digest, numel=self.layout.numel,
-                                      base_hash=self.base_hash, **enc.to_dict())
-            # not signed for the key it travels on: relays forward it unchanged
-            self._manifest = self.fabric.seal(self.fabric.keys.weights_signed(), manifest)
-            return enc
-
-    def send(self, enc: EncodedVersion) -> int:
-        """Sign and publish one encoded version: its manifest, then each chunk in order.
+    def send(self, v: WeightVersion) -> int:
+        """Publish one encoded version: its signed manifest, then each chunk in order.
         Returns the bytes put on the wire."""
         f, key = self.fabric, self.fabric.keys.weights(self.sender)
         signed = f.keys.weights_signed()  # not `key`: relays forward these envelopes unchanged
-        with self._lock:
-            manifest = self._manifest
-        sent = f.publish_sealed(key, manifest, weights=True)
-        for i, data in enumerate(enc.chunks):
-            msg = WeightChunk(sender=self.sender, version=enc.version, index=i, n_chunks=enc.n_chunks, data=bytes(data))
+        sent = f.publish_sealed(key, v.proof, weights=True)
+        m = v.manifest
+        for i, data in enumerate(v.chunks):
+            msg = WeightChunk(sender=self.sender, version=m.version, index=i, n_chunks=m.n_chunks, data=bytes(data))
             sent += f.publish_ctrl(key, msg, weights=True, sign_key=signed)
         return sent
-
-    @property
-    def checksum(self) -> str:
-        """Checksum of the newest encoded version ("" before the first)."""
-        with self._lock:
-            return self.encoder.checksum
-
-
-def manifest_dict(m: WeightManifest) -> dict[str, Any]:
-    """The replication manifest fields of a WeightManifest message (checked by the decoder)."""
-    return {name: getattr(m, name) for name in MANIFEST_FIELDS}

@@ -271,8 +271,7 @@ class Attacker:
         def on_snapshot(q: zenoh.Query) -> None:
             for sender in self.names("actor", "replicator"):
                 key = self.keys.snapshot(sender)
-                snap = WeightSnapshot(sender=sender, version=FORGED_VERSION, layout_hash="0" * 16, checksum="0" * 16,
-                                      data=os.urandom(1024))
+                snap = WeightSnapshot(sender=sender, version=FORGED_VERSION, manifest=os.urandom(256), n_chunks=1)
                 try:
                     q.reply(key, self._forge(key, snap, sender))
                     self.sent.add("forged_snapshot_replies")

@@ -43,6 +43,7 @@ from dvla.fabric import (
     plane_config,
 )
 
+from dvla.fabric.codec import SCHEMA_VERSION
 from dvla.fabric.fabric import UNAUTHENTICATED
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -343,7 +344,7 @@ def test_garbage_and_oversized_data_payloads_are_rejected_and_counted(pair: Pair
         "truncated": good[: len(good) // 2],
         "trailing": good + b"\x00",
         # msgpack whose one string is 2 MiB (> Limits.max_str_len): refused before any copy
-        "oversized-string": msgpack.packb({"v": 2, "t": "traj", "b": {"rollout": "x" * (2 << 20)}}),
+        "oversized-string": msgpack.packb({"v": SCHEMA_VERSION, "t": "traj", "b": {"rollout": "x" * (2 << 20)}}),
         # a bin header that claims 300 MiB (> Limits.max_message_bytes/max_array_bytes)
         "oversized-claim": b"\x83\xa1v\x01\xa1t\xa4traj\xa1b\x81\xa4data\xc6" + (300 << 20).to_bytes(4, "big"),
         "wrong-type": encode(Command(target="all", verb="stop")),
@@ -587,33 +588,44 @@ def test_killed_member_is_seen_gone_within_a_second(pair: Pair) -> None:
 
 
 @pytest.mark.timeout(30)
-def test_a_snapshot_comes_in_chunks_bound_to_one_query(pair: Pair) -> None:
-    """serve_snapshots answers one query with one reply per chunk of parameters (each within the
-    ctrl plane's message cap); the querier joins them; the actor's manifest proves the content."""
+def test_a_snapshot_is_the_held_version_whole_in_chunks_bound_to_one_query(pair: Pair) -> None:
+    """serve_snapshots answers one query with a header carrying the actor's signed manifest, then
+    the held version's full payload as WeightChunks (each within the ctrl plane's message cap);
+    they assemble and apply as the full version of that manifest."""
     import hashlib
-    import threading
 
-    from dvla.fabric.messages import SnapshotRequest, WeightManifest, WeightSnapshot, join_snapshot
-    from dvla.replication import Snapshot
+    from dvla.fabric.messages import SnapshotRequest, WeightChunk, WeightManifest, WeightSnapshot
+    from dvla.replication import ChunkAssembler, HeldWeights, ParamLayout, WeightEncoder
     from dvla.roles.weightsync import serve_snapshots
 
     actor, rollout = pair.actor, pair.rollout
-    data = np.arange(2600, dtype=np.float32).tobytes()  # 10,400 bytes: 11 chunks of 1,000
-    manifest = actor.seal(actor.keys.weights_signed(), WeightManifest(
-        sender=actor.name, version=3, base_version=-1, encoding="full", layout_hash="ab", n_chunks=1,
-        total_bytes=len(data), checksum="c", digest=hashlib.sha256(data).hexdigest()))
-    serve_snapshots(actor, actor.name, lambda: "ab", threading.Lock(), lambda: 3, lambda: Snapshot(3, data, "c"),
-                    lambda: manifest, chunk_bytes=1000)
+    layout = ParamLayout(names=("w",), shapes=((2600,),), dtypes=("float32",))  # 10,400 bytes: 11 chunks of 1,000
+    enc = WeightEncoder(layout, sender=actor.name, seal=lambda m: actor.seal(actor.keys.weights_signed(), m))
+    for _ in range(3):
+        v = enc.encode(np.arange(2600, dtype=np.float32) + enc.version)
+    serve_snapshots(actor, actor.name, lambda: enc.held, chunk_bytes=1000)
     wait_route(actor.ctrl, rollout.ctrl)
     replies = rollout.query(actor.keys.snapshot(actor.name), SnapshotRequest(requester=rollout.name, have_version=-1),
-                            expect=WeightSnapshot, timeout=5.0)
-    assert len(replies) == 11 and {s for s, _ in replies} == {actor.name}
-    whole = join_snapshot([snap for _s, snap in replies])
-    assert whole.version == 3 and whole.data == data and whole.manifest == manifest
+                            expect=(WeightSnapshot, WeightChunk), timeout=5.0)
+    assert len(replies) == 12 and {s for s, _ in replies} == {actor.name}
+    (head,) = [m for _s, m in replies if isinstance(m, WeightSnapshot)]
+    assert head.version == 3 and head.n_chunks == 11 and head.manifest == v.proof
+    proof = rollout.open_signed(rollout.keys.weights_signed(), head.manifest, WeightManifest, fresh=False)[1]
+    whole = proof.whole(head.n_chunks)
+    asm = ChunkAssembler(whole.n_chunks, whole.total_bytes, layout.nbytes)
+    for _s, c in replies:
+        if isinstance(c, WeightChunk):
+            assert len(c.data) <= 1000 and asm.add(c.index, c.data)
+    assert hashlib.sha256(asm.payload()).hexdigest() == proof.digest
+    held = HeldWeights(layout)
+    held.apply(whole, asm.payload())
+    assert held.id == enc.held.id and np.array_equal(held.active, enc.published)
     # Up to date: one header-only reply.
     replies = rollout.query(actor.keys.snapshot(actor.name), SnapshotRequest(requester=rollout.name, have_version=3),
-                            expect=WeightSnapshot, timeout=5.0)
-    assert [(s.version, s.data, s.n_chunks) for _n, s in replies] == [(3, b"", 1)]
+                            expect=(WeightSnapshot, WeightChunk), timeout=5.0)
+    assert [(s.version, s.manifest, s.n_chunks) for _n, s in replies] == [(3, b"", 0)]
+
+
 
 
 def test_a_role_gets_a_zenoh_receive_thread_per_rollout_beside_the_default_ones() -> None:

@@ -1,16 +1,14 @@
-"""The rollout's dual-pool weights: one policy module plus a staging copy of its replicated
-tensors; installing never waits for a staging write."""
+"""The rollout's weights: one policy module that installs the verified weights its sync lane
+holds (HeldWeights); installing never waits for a version being written."""
 
 from __future__ import annotations
 
 import math
-import threading
-import time
 
 import numpy as np
 import torch
 
-from dvla.replication import flatten
+from dvla.replication import WeightEncoder, flatten
 from dvla.roles.rollout import PolicyPool
 
 
@@ -18,42 +16,39 @@ def make_pool() -> PolicyPool:
     return PolicyPool(torch.nn.Linear(3, 2))
 
 
-def test_stage_then_swap_installs_the_staged_weights():
+def hold(pool: PolicyPool, version: int, flat: np.ndarray) -> None:
+    """What the sync lane does: apply a verified version to the pool's held weights."""
+    enc = WeightEncoder(pool.layout, start_version=version - 1)
+    v = enc.encode(np.ascontiguousarray(flat, dtype=np.float32))
+    pool.held.apply(v.manifest, v.payload)
+
+
+def test_hold_then_swap_installs_the_held_weights():
     pool = make_pool()
     flat = np.arange(pool.layout.numel, dtype=np.float32)
-    pool.stage(4, flat)
+    hold(pool, 4, flat)
     assert pool.active_version == -1
     assert pool.maybe_swap() and pool.active_version == 4
     np.testing.assert_array_equal(flatten(pool.active.state_dict(), pool.layout), flat)
-    assert not pool.maybe_swap()  # nothing pending
+    assert not pool.maybe_swap()  # nothing newer
 
 
-def test_swap_does_not_wait_for_a_staging_write(monkeypatch):
+def test_install_never_waits_for_the_writer():
+    """While the next version is written into staging, the installed one is read from active;
+    while the held weights' lock is taken (a version being swapped in), the install is put off."""
     pool = make_pool()
-    pool.stage(1, np.zeros(pool.layout.numel, np.float32))  # pending, not swapped yet
-    writing, release = threading.Event(), threading.Event()
-    real = PolicyPool._write_staging
-
-    def slow_write(*args, **kwargs):
-        writing.set()
-        release.wait(5)
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(PolicyPool, "_write_staging", slow_write)
-    stager = threading.Thread(target=pool.stage, args=(2, np.ones(pool.layout.numel, np.float32)))
-    stager.start()
-    try:
-        assert writing.wait(5)
-        t0 = time.monotonic()
-        assert not pool.maybe_swap()  # version 1 is pending, but staging holds the lock
-        assert time.monotonic() - t0 < 0.5
-        assert pool.swap_deferred == 1 and pool.active_version == -1
-    finally:
-        release.set()
-        stager.join(5)
-    assert pool.maybe_swap() and pool.active_version == 2  # the newer version won
-    assert pool.overwritten == 1
-    np.testing.assert_array_equal(flatten(pool.active.state_dict(), pool.layout), np.ones(pool.layout.numel))
+    hold(pool, 1, np.zeros(pool.layout.numel, np.float32))
+    pool.held.staging[:] = 7.0  # the sync lane decoding version 2, not swapped in yet
+    assert pool.maybe_swap() and pool.active_version == 1
+    np.testing.assert_array_equal(flatten(pool.active.state_dict(), pool.layout), np.zeros(pool.layout.numel))
+    hold(pool, 2, np.ones(pool.layout.numel, np.float32))
+    with pool.held.lock:  # taken: the install is deferred, not waited for
+        assert not pool.maybe_swap()
+        assert pool.swap_deferred == 1 and pool.active_version == 1
+    hold(pool, 3, np.full(pool.layout.numel, 2.0, np.float32))  # replaces 2 before it is installed
+    assert pool.maybe_swap() and pool.active_version == 3
+    assert pool.overwritten == 1 and pool.swaps == 2
+    np.testing.assert_array_equal(flatten(pool.active.state_dict(), pool.layout), np.full(pool.layout.numel, 2.0))
 
 
 def test_sample_is_act_without_the_value():
@@ -76,18 +71,21 @@ def test_sample_is_act_without_the_value():
     assert torch.equal(a, obs[:, :2] * 2) and torch.equal(lp, obs[:, 0]) and extras == {}
 
 
-def test_staging_is_one_flat_copy_and_the_module_still_works():
+def one_storage(module: torch.nn.Module) -> bool:
+    """Whether every floating parameter and buffer of `module` lives in one storage."""
+    tensors = [t for t in [*module.parameters(), *module.buffers()] if t.is_floating_point()]
+    return len({t.untyped_storage().data_ptr() for t in tensors}) == 1
+
+
+def test_the_installed_weights_are_one_flat_tensor_and_the_module_still_works():
     """The module's weights live in one flat tensor: an installed version reaches every parameter
     and buffer in one copy, the module computes with it, and its state_dict reads it back."""
     from dvla.learn.policies import MLPPolicy
 
     pool = PolicyPool(MLPPolicy(5, 2, hidden=(8, 8), obs_norm=True))
-    assert pool._bound is not None
-    lo, hi = pool._bound.data_ptr(), pool._bound.data_ptr() + 4 * pool._bound.numel()
-    tensors = list(pool.active.parameters()) + list(pool.active.buffers())
-    assert all(lo <= t.data_ptr() < hi for t in tensors if t.is_floating_point())  # all inside it
+    assert one_storage(pool.active)
     flat = np.random.default_rng(0).standard_normal(pool.layout.numel).astype(np.float32)
-    pool.stage(1, flat)
+    hold(pool, 1, flat)
     np.testing.assert_array_equal(flatten(pool.active, pool.layout)[:3] != flat[:3], [True] * 3)  # not yet
     assert pool.maybe_swap()
     np.testing.assert_array_equal(flatten(pool.active.state_dict(), pool.layout), flat)
@@ -101,8 +99,8 @@ def test_staging_is_one_flat_copy_and_the_module_still_works():
     assert isinstance(pool.active.actor[0].weight, torch.nn.Parameter)
 
 
-def test_frozen_parameters_are_neither_staged_nor_replicated():
-    """A frozen base (requires_grad False) stays out of the layout and the staging copy: the
+def test_frozen_parameters_are_neither_held_nor_replicated():
+    """A frozen base (requires_grad False) stays out of the layout and the held weights: the
     pool holds the model once plus the trainable tensors."""
     from dvla.replication import ParamLayout
 
@@ -110,18 +108,18 @@ def test_frozen_parameters_are_neither_staged_nor_replicated():
     model[0].requires_grad_(False)
     base = model[0].weight.clone()
     pool = PolicyPool(model)
-    assert pool.layout.names == ("1.weight", "1.bias") and pool.staging.numel() == 64 * 2 + 2
+    assert pool.layout.names == ("1.weight", "1.bias") and pool.held.active.size == 64 * 2 + 2
     assert ParamLayout.from_state_dict(model).hash == pool.layout.hash
-    pool.stage(2, np.ones(pool.layout.numel, np.float32))
+    hold(pool, 2, np.ones(pool.layout.numel, np.float32))
     assert pool.maybe_swap()
     assert torch.equal(model[1].weight, torch.ones(2, 64)) and torch.equal(model[0].weight, base)
 
 
 def test_a_bf16_policy_installs_through_one_flat_bf16_tensor():
     pool = PolicyPool(torch.nn.Linear(4, 3).to(torch.bfloat16))
-    assert pool._bound is not None and pool._bound.dtype == torch.bfloat16
+    assert one_storage(pool.active) and {p.dtype for p in pool.active.parameters()} == {torch.bfloat16}
     flat = (np.arange(pool.layout.numel, dtype=np.float32) / 4).astype(np.float32)  # exact in bf16
-    pool.stage(1, flat)
+    hold(pool, 1, flat)
     assert pool.maybe_swap()
     np.testing.assert_array_equal(flatten(pool.active, pool.layout), flat)
 
@@ -135,7 +133,7 @@ def test_bind_flat_refuses_mixed_dtypes_and_leaves_the_module_alone():
     assert [p.data_ptr() for p in m.parameters()] == before
     pool = PolicyPool(torch.nn.Sequential(torch.nn.Linear(3, 2), torch.nn.Linear(2, 2).to(torch.bfloat16)))
     flat = np.arange(pool.layout.numel, dtype=np.float32)
-    pool.stage(3, flat)  # the per-tensor path
+    hold(pool, 3, flat)  # the per-tensor path
     assert pool.maybe_swap()
     np.testing.assert_array_equal(flatten(pool.active.state_dict(), pool.layout), flat)
 

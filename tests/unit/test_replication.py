@@ -1,9 +1,12 @@
-"""Unit tests of dvla.replication: layout, encodings, chunking, verified decoding and catch-up."""
+"""Unit tests of dvla.replication: layout, encodings, chunking, verified decoding, held weights
+and catch-up."""
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
+import threading
 
 import numpy as np
 import pytest
@@ -11,19 +14,20 @@ import torch
 import zstandard
 
 from dvla.config import ENCODINGS, ReplicationConfig
+from dvla.fabric.codec import decode, encode
+from dvla.fabric.errors import CodecError
 from dvla.replication import (
     ChecksumMismatch,
     ChunkAssembler,
     CorruptPayload,
-    EncodedVersion,
+    HeldWeights,
     LayoutMismatch,
-    Manifest,
     NeedSnapshot,
     ParamLayout,
     ReplicationError,
     StaleVersion,
-    WeightDecoder,
     WeightEncoder,
+    WeightVersion,
     bf16_round_bits,
     bf16_to_float32,
     checksum,
@@ -81,7 +85,7 @@ def test_layout_hash_depends_on_names_shapes_dtypes(layout: ParamLayout) -> None
 def test_flatten_and_unflatten_work_in_place(layout: ParamLayout) -> None:
     src, dst = _mlp(seed=1), _mlp(seed=2)
     dst.steps.fill_(5)
-    buf = layout.empty()
+    buf = np.zeros(layout.numel, np.float32)
     assert flatten(src, layout, out=buf) is buf
     assert np.array_equal(buf, flatten(src.state_dict(), layout))
     ptrs = {name: t.data_ptr() for name, t in dst.state_dict().items()}
@@ -168,9 +172,8 @@ def test_chunk_assembler_rules() -> None:
     payload = np.arange(1000, dtype=np.float32).tobytes()
     chunks = split_chunks(payload, 1024)
     asm = ChunkAssembler(len(chunks), len(payload), max_bytes=8000)
-    buffer_id = id(asm._buf)
     assert asm.add(2, chunks[2]) and not asm.add(2, b"\0" * chunks[2].nbytes)  # duplicate ignored
-    assert asm.missing() == [0, 1, 3] and not asm.complete
+    assert not asm.complete
     with pytest.raises(ReplicationError):
         asm.payload()
     for bad in (-1, 4, True, 1.0):
@@ -183,8 +186,8 @@ def test_chunk_assembler_rules() -> None:
     for i in (0, 1, 3):
         asm.add(i, chunks[i])
     assert asm.complete and bytes(asm.payload()) == payload
-    asm.reset(1, 10)  # reused, not reallocated
-    assert id(asm._buf) == buffer_id and asm.missing() == [0]
+    asm.reset(1, 10)  # the next payload, in the same buffer
+    assert not asm.complete and asm.add(0, bytes(range(10))) and bytes(asm.payload()) == bytes(range(10))
     with pytest.raises(ReplicationError):
         asm.reset(1, 8001)  # larger than the buffer
     with pytest.raises(ReplicationError):
@@ -197,10 +200,11 @@ def test_chunk_assembler_rules() -> None:
 # End-to-end replication
 
 
-def _deliver(ev: EncodedVersion, asm: ChunkAssembler, rng: np.random.Generator) -> memoryview:
+def _deliver(ev: WeightVersion, asm: ChunkAssembler, rng: np.random.Generator) -> memoryview:
     """Send every chunk in a random order, with a few duplicates, as a network would."""
-    asm.reset(ev.n_chunks, ev.total_bytes)
-    order = list(rng.permutation(ev.n_chunks)) + list(rng.integers(0, ev.n_chunks, size=2))
+    n = ev.manifest.n_chunks
+    asm.reset(n, ev.manifest.total_bytes)
+    order = list(rng.permutation(n)) + list(rng.integers(0, n, size=2))
     for i in order:
         asm.add(int(i), bytes(ev.chunks[i]))
     return asm.payload()
@@ -233,7 +237,7 @@ def test_replicas_are_bit_exact_and_gap_is_bounded(
         layout, encoding, topk_fraction=TOPK_FRACTION, snapshot_every=snapshot_every, chunk_bytes=CHUNK_BYTES,
         compression=compression,
     )
-    replicas = [(WeightDecoder(layout), ChunkAssembler(1, 1, layout.nbytes)) for _ in range(2)]
+    replicas = [(HeldWeights(layout), ChunkAssembler(1, 1, layout.nbytes)) for _ in range(2)]
     true = flatten(_mlp(), layout)
     start = true.copy()
     gaps, delta_ratios = [0.0], []
@@ -242,24 +246,26 @@ def test_replicas_are_bit_exact_and_gap_is_bounded(
             _step(true, version, rng)
         before = float(np.linalg.norm(true - enc.published))
         ev = enc.encode(true)
-        assert (ev.version, ev.layout_hash, ev.checksum) == (version, layout.hash, checksum(enc.published))
-        assert all(c.nbytes <= CHUNK_BYTES for c in ev.chunks) and sum(c.nbytes for c in ev.chunks) == ev.total_bytes
+        m = ev.manifest
+        assert (m.version, m.layout_hash, m.checksum) == (version, layout.hash, checksum(enc.published))
+        assert m.digest == hashlib.sha256(enc.published.tobytes()).hexdigest() and m.numel == layout.numel
+        assert all(c.nbytes <= CHUNK_BYTES for c in ev.chunks) and sum(c.nbytes for c in ev.chunks) == m.total_bytes
         expect_full = encoding == "full" or (version - 1) % snapshot_every == 0
-        base, comp = split_encoding(ev.encoding)
+        base, comp = split_encoding(m.encoding)
         assert base == ("full" if expect_full else encoding)
         assert comp == ("zstd" if compression == "zstd" and not expect_full else "")
-        assert ev.base_version == (-1 if expect_full else version - 1)
-        for dec, asm in replicas:
-            out = dec.apply(ev.manifest().to_dict(), _deliver(ev, asm, rng), swap=True)
-            assert out is dec.active and dec.version == version
-            assert np.array_equal(dec.active, enc.published) and dec.checksum == ev.checksum
+        assert m.base_version == (-1 if expect_full else version - 1)
+        for held, asm in replicas:
+            held.apply(decode(encode(m)), _deliver(ev, asm, rng))  # the manifest as it travels
+            assert held.id == enc.held.id == (version, m.checksum)
+            assert np.array_equal(held.active, enc.published)
         gap = float(np.linalg.norm(true - enc.published))
         gaps.append(gap)
         if base == "delta-bf16":
             # Each element is off by at most half a bfloat16 ulp of its delta (2**-9 relative).
             assert gap <= 2.0**-8 * before
         if base != "full":
-            delta_ratios.append(ev.total_bytes / layout.nbytes)
+            delta_ratios.append(m.total_bytes / layout.nbytes)
         else:
             assert gap == 0.0
     # Error feedback: the gap does not accumulate.
@@ -278,37 +284,38 @@ def test_replicas_are_bit_exact_and_gap_is_bounded(
 def test_missed_version_needs_snapshot_then_recovers(layout: ParamLayout, encoding: str) -> None:
     rng = np.random.default_rng(5)
     enc = WeightEncoder(layout, encoding, snapshot_every=1000, chunk_bytes=CHUNK_BYTES)
-    relay, late = WeightDecoder(layout), WeightDecoder(layout)
+    relay, late = HeldWeights(layout), HeldWeights(layout)
     asm = ChunkAssembler(1, 1, layout.nbytes)
     true = flatten(_mlp(), layout)
     for version in range(1, 13):
         _step(true, version, rng)
         ev = enc.encode(true)
         payload = _deliver(ev, asm, rng)
-        relay.apply(ev, payload, swap=True)
+        relay.apply(ev.manifest, payload)
         if version == 6:
             continue  # lost on the way to `late`
         if version < 6:
-            late.apply(ev, payload, swap=True)
+            late.apply(ev.manifest, payload)
             continue
         if version == 7:
             with pytest.raises(NeedSnapshot) as info:
-                late.apply(ev, payload, swap=True)
+                late.apply(ev.manifest, payload)
             assert (info.value.have, info.value.base, info.value.version) == (5, 6, 7)
             assert late.version == 5
-            # Catch up from the relay's snapshot, sent as a chunked full version.
-            snap = relay.snapshot()
-            assert snap.version == 7 and snap.checksum == enc.checksum
-            full = snap.encode(layout.hash, CHUNK_BYTES)
-            assert full.encoding == "full" and full.base_version == -1
-            late.apply(full.manifest(), _deliver(full, asm, rng), swap=True)
+            # Catch up from the relay's held weights, sent whole as a chunked full version.
+            assert relay.id == (7, enc.held.checksum)
+            whole = WeightVersion(ev.manifest.whole(len(split_chunks(relay.active, CHUNK_BYTES))),
+                                  memoryview(relay.active.tobytes()))
+            assert whole.manifest.encoding == "full" and whole.manifest.base_version == -1
+            assert whole.manifest.checksum == ev.manifest.checksum and whole.manifest.digest == ev.manifest.digest
+            late.apply(whole.manifest, _deliver(whole, asm, rng))
         else:
-            late.apply(ev, payload, swap=True)
+            late.apply(ev.manifest, payload)
         assert np.array_equal(late.active, enc.published) and late.version == version
-    # The encoder serves the same snapshot as an up-to-date relay.
-    assert enc.snapshot() == relay.snapshot()
-    fresh = WeightDecoder(layout)
-    fresh.load_snapshot(enc.snapshot())
+    # The encoder holds what an up-to-date relay holds.
+    assert enc.held.id == relay.id and np.array_equal(enc.published, relay.active)
+    fresh = HeldWeights(layout)
+    fresh.apply(ev.manifest.whole(1), enc.published.tobytes())
     assert fresh.version == 12 and np.array_equal(fresh.active, enc.published)
 
 
@@ -316,26 +323,27 @@ def test_missed_version_needs_snapshot_then_recovers(layout: ParamLayout, encodi
 def test_corrupted_chunk_is_rejected_and_active_kept(layout: ParamLayout, encoding: str) -> None:
     rng = np.random.default_rng(9)
     enc = WeightEncoder(layout, encoding, snapshot_every=1000, chunk_bytes=CHUNK_BYTES)
-    dec = WeightDecoder(layout)
+    dec = HeldWeights(layout)
     true = flatten(_mlp(), layout)
-    dec.apply(enc.encode(true).manifest(), enc.snapshot().payload, swap=True)
+    v1 = enc.encode(true)
+    dec.apply(v1.manifest, v1.payload)
     _step(true, 2, rng)
     ev = enc.encode(true)
-    kept, kept_version = dec.active.copy(), dec.version
+    m = ev.manifest
+    kept, kept_id = dec.active.copy(), dec.id
     payload = bytearray(ev.payload)
     # Flip a bit of a value (for top-k: in the value half, so indices stay valid).
-    lo = ev.total_bytes // 2 if encoding == "delta-topk" else 0
-    pos = int(rng.integers(lo, ev.total_bytes))
+    lo = m.total_bytes // 2 if encoding == "delta-topk" else 0
+    pos = int(rng.integers(lo, m.total_bytes))
     payload[pos] ^= 0x10
     chunks = split_chunks(payload, CHUNK_BYTES)
-    asm = ChunkAssembler(ev.n_chunks, ev.total_bytes, layout.nbytes)
+    asm = ChunkAssembler(m.n_chunks, m.total_bytes, layout.nbytes)
     for i in rng.permutation(len(chunks)):
         asm.add(int(i), chunks[i])
     with pytest.raises(ChecksumMismatch):
-        dec.apply(ev.manifest(), asm.payload(), swap=True)
-    assert dec.version == kept_version and dec.pending_version is None
-    assert np.array_equal(dec.active, kept)
-    dec.apply(ev, ev.payload, swap=True)  # the intact payload still applies
+        dec.apply(m, asm.payload())
+    assert dec.id == kept_id and np.array_equal(dec.active, kept)
+    dec.apply(m, ev.payload)  # the intact payload still applies
     assert np.array_equal(dec.active, enc.published)
 
 
@@ -344,54 +352,55 @@ def test_compressed_deltas_shrink_and_damage_is_rejected(layout: ParamLayout, en
     rng = np.random.default_rng(3)
     enc = WeightEncoder(layout, encoding, snapshot_every=1000, chunk_bytes=CHUNK_BYTES, compression="zstd")
     raw = WeightEncoder(layout, encoding, snapshot_every=1000, chunk_bytes=CHUNK_BYTES)
-    dec = WeightDecoder(layout)
+    dec = HeldWeights(layout)
     true = flatten(_mlp(), layout)
-    dec.apply(enc.encode(true), enc.snapshot().payload, swap=True)
+    v1 = enc.encode(true)
+    dec.apply(v1.manifest, v1.payload)
     raw.encode(true)
     true += (1e-3 * rng.standard_normal(true.size)).astype(np.float32)  # an optimiser-sized step
     ev, ev_raw = enc.encode(true), raw.encode(true)
-    assert ev.encoding == f"{encoding}+zstd" and ev.total_bytes < 0.8 * ev_raw.total_bytes
+    m = ev.manifest
+    assert m.encoding == f"{encoding}+zstd" and m.total_bytes < 0.8 * ev_raw.manifest.total_bytes
     kept = dec.active.copy()
-    for pos in (5, ev.total_bytes // 2, ev.total_bytes - 3):
+    for pos in (5, m.total_bytes // 2, m.total_bytes - 3):
         bad = bytearray(ev.payload)
         bad[pos] ^= 0x41
         with pytest.raises((CorruptPayload, ChecksumMismatch)):
-            dec.apply(ev.manifest(), bytes(bad), swap=True)
-        assert np.array_equal(dec.active, kept) and dec.pending_version is None
+            dec.apply(m, bytes(bad))
+        assert np.array_equal(dec.active, kept) and dec.version == 1
     # A payload that inflates beyond any real delta of this layout is refused before it grows.
     bomb = zstandard.ZstdCompressor().compress(bytes(8 * layout.numel))
-    manifest = {**ev.manifest().to_dict(), "total_bytes": len(bomb), "n_chunks": 1}
     with pytest.raises(CorruptPayload, match="inflate|decompress"):
-        dec.apply(manifest, bomb, swap=True)
-    dec.apply(ev, ev.payload, swap=True)
+        dec.apply(dataclasses.replace(m, total_bytes=len(bomb), n_chunks=1), bomb)
+    dec.apply(m, ev.payload)
     assert np.array_equal(dec.active, enc.published) and np.array_equal(enc.published, raw.published)
 
 
 def test_corrupted_topk_index_is_rejected(layout: ParamLayout) -> None:
     enc = WeightEncoder(layout, "delta-topk", snapshot_every=1000)
-    dec = WeightDecoder(layout)
+    dec = HeldWeights(layout)
     true = flatten(_mlp(), layout)
     ev = enc.encode(true)
-    dec.apply(ev, ev.payload, swap=True)
+    dec.apply(ev.manifest, ev.payload)
     true[::3] += 0.01
     ev = enc.encode(true)
     for pos in (3, 4):  # high byte of the first index (out of range); low byte of the second (wrong index)
         payload = bytearray(ev.payload)
         payload[pos] ^= 0xFF
         with pytest.raises(CorruptPayload):
-            dec.apply(ev, payload)
+            dec.apply(ev.manifest, payload)
     assert dec.version == 1
 
 
 def test_layout_mismatch_is_detected(layout: ParamLayout) -> None:
     enc = WeightEncoder(layout, "delta-bf16")
     ev = enc.encode(flatten(_mlp(), layout))
-    other = WeightDecoder(ParamLayout.from_state_dict(_mlp(hidden=96)))
+    other = HeldWeights(ParamLayout.from_state_dict(_mlp(hidden=96)))
     with pytest.raises(LayoutMismatch):
-        other.apply(ev, ev.payload)
-    forged = dict(ev.to_dict(), layout_hash="0" * 32)
+        other.apply(ev.manifest, ev.payload)
+    forged = dataclasses.replace(ev.manifest, layout_hash="0" * 32)
     with pytest.raises(LayoutMismatch):
-        WeightDecoder(layout).apply(forged, ev.payload)
+        HeldWeights(layout).apply(forged, ev.payload)
     with pytest.raises(LayoutMismatch):
         enc.encode(np.zeros(layout.numel + 1, dtype=np.float32))
     assert issubclass(LayoutMismatch, ReplicationError)
@@ -399,58 +408,66 @@ def test_layout_mismatch_is_detected(layout: ParamLayout) -> None:
 
 def test_stale_and_malformed_versions(layout: ParamLayout) -> None:
     enc = WeightEncoder(layout, "delta-bf16")
-    dec = WeightDecoder(layout)
+    dec = HeldWeights(layout)
     true = flatten(_mlp(), layout)
     v1 = enc.encode(true)
-    dec.apply(v1, v1.payload, swap=True)
+    dec.apply(v1.manifest, v1.payload)
     with pytest.raises(StaleVersion):
-        dec.apply(v1, v1.payload)
+        dec.apply(v1.manifest, v1.payload)
     true += 0.01
     v2 = enc.encode(true)
+    m = v2.manifest
     bad = [
-        dict(v2.to_dict(), version=True),
-        dict(v2.to_dict(), base_version=0),
-        dict(v2.to_dict(), encoding="gzip"),
-        dict(v2.to_dict(), total_bytes=v2.total_bytes + 1),
-        {k: v for k, v in v2.to_dict().items() if k != "checksum"},
+        dataclasses.replace(m, version=0),
+        dataclasses.replace(m, base_version=0),
+        dataclasses.replace(m, encoding="gzip"),
+        dataclasses.replace(m, total_bytes=m.total_bytes + 1),
+        dataclasses.replace(m, checksum=""),
     ]
     for manifest in bad:
         with pytest.raises(CorruptPayload):
             dec.apply(manifest, v2.payload)
     with pytest.raises(CorruptPayload):
-        dec.apply(v2, bytes(v2.payload)[:-2])
+        dec.apply(m, bytes(v2.payload)[:-2])
     assert dec.version == 1
-    dec.apply(v2, v2.payload, swap=True)
-    assert Manifest.from_dict(v2.to_dict()) == v2.manifest()
+    # A field of the wrong type never reaches a replica: the codec refuses it (bool is no int).
+    with pytest.raises(CodecError):
+        decode(encode(dataclasses.replace(m, version=True)))
+    dec.apply(decode(encode(m)), v2.payload)
+    assert dec.version == 2
 
 
-def test_pending_result_and_swap(layout: ParamLayout) -> None:
+def test_held_weights_swap_whole_versions_and_readers_never_see_a_mix(layout: ParamLayout) -> None:
+    """The writer decodes into staging while readers read active; a version becomes active by a
+    reference swap, which waits for a reader holding the lock (never the other way round)."""
     enc = WeightEncoder(layout, "delta-topk", snapshot_every=1000)
-    dec = WeightDecoder(layout)
+    held = HeldWeights(layout)
+    assert held.id == (-1, "") and held.updates == 0
     true = flatten(_mlp(), layout)
     v1 = enc.encode(true)
-    staged = dec.apply(v1, v1.payload)
-    assert dec.version == 0 and dec.pending_version == 1 and not dec.ready
-    assert staged is dec.staging and dec.snapshot().version == 1
-    old_active = dec.active
-    assert dec.swap() is staged and dec.active is staged and dec.version == 1
-    assert dec.staging is old_active
-    p1 = enc.published.copy()
+    held.apply(v1.manifest, v1.payload)
+    first, spare = held.active, held.staging
     true[:100] += 1.0
     v2 = enc.encode(true)
-    dec.apply(v2, v2.payload)
+    held.apply(v2.manifest, v2.payload)
+    assert held.active is spare and held.staging is first and held.updates == 2
+    assert np.array_equal(held.active, enc.published)
     true[100:200] -= 1.0
     v3 = enc.encode(true)
-    dec.apply(v3, v3.payload)  # promotes v2 first, then stages v3 on top of it
-    assert dec.version == 2 and dec.pending_version == 3
-    assert not np.array_equal(dec.active, p1)
-    dec.swap()
-    assert np.array_equal(dec.active, enc.published) and dec.swap() is dec.active
+    with held.lock:  # a reader of v2
+        reading = held.active.copy()
+        writer = threading.Thread(target=held.apply, args=(v3.manifest, v3.payload))
+        writer.start()
+        writer.join(0.5)
+        assert writer.is_alive() and held.version == 2 and np.array_equal(held.active, reading)
+        assert np.array_equal(held.staging, enc.published)  # decoded and verified, waiting to swap
+    writer.join(5)
+    assert held.id == enc.held.id == (3, v3.manifest.checksum) and np.array_equal(held.active, enc.published)
 
 
 def test_non_finite_parameters_go_out_as_full(layout: ParamLayout) -> None:
     enc = WeightEncoder(layout, "delta-bf16", snapshot_every=1000)
-    dec = WeightDecoder(layout)
+    dec = HeldWeights(layout)
     true = flatten(_mlp(), layout)
     encodings = []
     for change in (None, "nan", "heal", "small", "huge"):
@@ -463,8 +480,8 @@ def test_non_finite_parameters_go_out_as_full(layout: ParamLayout) -> None:
         elif change == "huge":
             true[9] = 3.4e38  # the delta rounds to bfloat16 infinity
         ev = enc.encode(true)
-        encodings.append(ev.encoding)
-        dec.apply(ev, ev.payload, swap=True)
+        encodings.append(ev.manifest.encoding)
+        dec.apply(ev.manifest, ev.payload)
         assert dec.checksum == checksum(enc.published)
         assert np.array_equal(dec.active, enc.published, equal_nan=True)
     assert encodings == ["full", "full", "full", "delta-bf16", "full"]
@@ -476,29 +493,30 @@ def test_encoder_configuration(layout: ParamLayout) -> None:
     enc = WeightEncoder.from_config(layout, cfg, start_version=41)
     true = flatten(_mlp(), layout)
     # A top-k payload at least as large as a full one is never sent.
-    assert [enc.encode(true).encoding for _ in range(3)] == ["full"] * 3
-    assert enc.version == 44
+    assert [enc.encode(true).manifest.encoding for _ in range(3)] == ["full"] * 3
+    assert enc.version == 44 and enc.held.version == 44
     for kwargs in ({"encoding": "zstd"}, {"topk_fraction": 0.0}, {"snapshot_every": 0}, {"chunk_bytes": 0}):
         with pytest.raises(ValueError):
             WeightEncoder(layout, **{"encoding": "full", **kwargs})
-    with pytest.raises(ReplicationError):
-        WeightEncoder(layout).snapshot()
-    with pytest.raises(ReplicationError):
-        WeightDecoder(layout).snapshot()
+    assert WeightEncoder(layout).held.id == (-1, "")  # nothing published before the first encode
+    # The manifest names the sender and the frozen base, and the seal signs it (the version's proof).
+    sealed = WeightEncoder(layout, sender="actor-0", base_hash="b0", seal=lambda m: encode(m)).encode(true)
+    assert (sealed.manifest.sender, sealed.manifest.base_hash) == ("actor-0", "b0")
+    assert decode(sealed.proof) == sealed.manifest
 
 
 def test_decoded_weights_drive_the_policy(layout: ParamLayout) -> None:
     learner, rollout = _mlp(seed=1), _mlp(seed=2)
     enc = WeightEncoder(layout, "delta-bf16", snapshot_every=1000)
-    dec = WeightDecoder(layout)
-    buf = layout.empty()
+    dec = HeldWeights(layout)
+    buf = np.zeros(layout.numel, np.float32)
     x = torch.randn(16, 64)
     for _ in range(5):
         with torch.no_grad():  # stands in for a learner step
             for param in learner.parameters():
                 param.add_(0.01 * torch.randn_like(param))
         ev = enc.encode(flatten(learner, layout, out=buf))
-        dec.apply(ev, ev.payload, swap=True)
+        dec.apply(ev.manifest, ev.payload)
     unflatten_into(dec.active, rollout, layout)
     published = _mlp(seed=3)
     unflatten_into(enc.published, published, layout)
@@ -558,23 +576,25 @@ def test_a_bf16_models_full_versions_travel_as_bf16_exactly() -> None:
     model = torch.nn.Sequential(torch.nn.Linear(8, 8), torch.nn.Linear(8, 3)).to(torch.bfloat16)
     layout = ParamLayout.from_state_dict(model)
     flat = flatten(model, layout)
-    enc, dec = WeightEncoder(layout, "delta-bf16", snapshot_every=2), WeightDecoder(layout)
+    enc, dec = WeightEncoder(layout, "delta-bf16", snapshot_every=2), HeldWeights(layout)
     v1 = enc.encode(flat)
-    assert v1.encoding == "full-bf16" and v1.total_bytes == 2 * layout.numel and v1.base_version == -1
-    np.testing.assert_array_equal(dec.apply(v1, v1.payload, swap=True), flat)
+    m1 = v1.manifest
+    assert m1.encoding == "full-bf16" and m1.total_bytes == 2 * layout.numel and m1.base_version == -1
+    dec.apply(m1, v1.payload)
+    np.testing.assert_array_equal(dec.active, flat)
     with torch.no_grad():
         for p in model.parameters():
             p.add_(0.01)
     v2 = enc.encode(flatten(model, layout))
-    assert v2.encoding == "delta-bf16"
-    dec.apply(v2, v2.payload, swap=True)
+    assert v2.manifest.encoding == "delta-bf16"
+    dec.apply(v2.manifest, v2.payload)
     np.testing.assert_array_equal(dec.active, enc.published)
     # not bf16-exact: float32 full version
-    v3 = WeightEncoder(layout).encode(flat + np.float32(1e-4))
+    v3 = WeightEncoder(layout).encode(flat + np.float32(1e-4)).manifest
     assert v3.encoding == "full" and v3.total_bytes == 4 * layout.numel
     f32 = ParamLayout.from_state_dict(torch.nn.Linear(8, 3))
-    assert WeightEncoder(f32).encode(np.zeros(f32.numel, np.float32)).encoding == "full"
+    assert WeightEncoder(f32).encode(np.zeros(f32.numel, np.float32)).manifest.encoding == "full"
     # a full-bf16 payload of the wrong size is refused
-    bad = dataclasses.replace(v1.manifest(), total_bytes=4 * layout.numel)
+    bad = dataclasses.replace(m1, total_bytes=4 * layout.numel)
     with pytest.raises(CorruptPayload):
-        WeightDecoder(layout).apply(bad, bytes(4 * layout.numel))
+        HeldWeights(layout).apply(bad, bytes(4 * layout.numel))

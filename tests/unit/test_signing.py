@@ -310,6 +310,6 @@ def test_documented_envelope_vector(monkeypatch):
     payload = encode(Command(target="all", verb="stop", args={}, issued_ns=1_700_000_000_000_000_000))
     env = Signer(secret, "orch", clock=lambda: 1_700_000_000_000_000_000).seal(KEY, payload)
     assert len(env) == 133
-    assert env[-32:].hex() == "2ffd58fed22e2c3f80cc2282ddc74e32d5072c7c707737711093684c697c2b95"
+    assert env[-32:].hex() == "e84478d82a6a0e642e762ea403f5285e248ca22db5041b6244864d07dfd0a875"
     verifier = Verifier(secret, clock=lambda: 1_700_000_000_000_000_000)
     assert opened(verifier, KEY, env) == ("orch", payload)
