@@ -24,7 +24,7 @@ from ..config import TlsConfig, Topology
 from ..fabric import Fabric, TlsFiles, load_secret, new_secret, plane_config
 from ..fabric.identity import Identity, IdentityError
 from ..fabric.messages import Command
-from .accounting import run_accounting
+from ..ledger import reconcile
 from .launcher import Launcher, log_tail
 from .evaljoin import EvalJoin
 from .monitor import Monitor
@@ -344,8 +344,7 @@ class Up:
         res = self.monitor.result()
         res.update(run=self.topo.run, reason=self.reason, exit_code=code,
                    restarts={n: s.restarts for n, s in self.launcher.children.items()},
-                   # remote roles write their counter files on their own hosts
-                   accounting=run_accounting(self.run_dir, counters_complete=self._all_local()))
+                   accounting=reconcile(self.run_dir))
         (self.run_dir / "result.json").write_text(json.dumps(res, indent=1, default=str))
         try:
             plot_run(self.run_dir)
