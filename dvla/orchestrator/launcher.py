@@ -8,6 +8,7 @@ survives even a `kill -9` of `dvla up`.
 from __future__ import annotations
 
 import ctypes
+import errno
 import logging
 import os
 import signal
@@ -18,7 +19,7 @@ import time
 from pathlib import Path
 
 from ..fabric.identity import IDENTITY_ENV, Identity
-from .process import CommandWrapper, Process, Supervised, endpoint_address
+from .process import CommandWrapper, Process, Supervised, endpoint_address, is_local_host
 
 log = logging.getLogger("dvla.launcher")
 
@@ -277,22 +278,78 @@ def _close_stdin(sup: Supervised) -> None:
 
 
 def _wait_listening(sup: Supervised, timeout_s: float) -> bool:
-    """True once a TCP connection to one of `sup`'s ctrl listen endpoints succeeds."""
+    """True once `sup` listens on one of its ctrl endpoints.
+
+    A child on this host must hold the listening socket itself: that *something* accepts on the
+    port is not enough, since another run on the machine may listen there (and this run's leaves
+    would then join that run's planes). A remote child is probed with a TCP connection."""
     addrs = [endpoint_address(locator) for locator in sup.proc.config.ctrl.listen]
     if not addrs:
         return True
+    local = is_local_host(sup.proc.host)
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if sup.popen is not None and sup.popen.poll() is not None:
             return False  # it died; supervision will restart it
-        for addr in addrs:
-            try:
-                with socket.create_connection(addr, timeout=0.5):
-                    return True
-            except OSError:
-                pass
+        if local and sup.popen is not None:
+            if listening_ports(sup.popen.pid) & {port for _host, port in addrs}:
+                return True
+        else:
+            for addr in addrs:
+                try:
+                    with socket.create_connection(addr, timeout=0.5):
+                        return True
+                except OSError:
+                    pass
         time.sleep(0.1)
     return False
+
+
+def listening_ports(pid: int) -> set[int]:
+    """TCP ports process `pid` listens on (read from /proc, in the process's network namespace)."""
+    try:
+        fds = os.listdir(f"/proc/{pid}/fd")
+    except OSError:
+        return set()
+    sockets = set()
+    for fd in fds:
+        try:
+            sockets.add(os.readlink(f"/proc/{pid}/fd/{fd}"))
+        except OSError:
+            pass
+    ports = set()
+    for table in ("tcp", "tcp6"):
+        try:
+            rows = Path(f"/proc/{pid}/net/{table}").read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for row in rows:  # sl local_address rem_address st ... inode
+            f = row.split()
+            if len(f) > 9 and f[3] == "0A" and f"socket:[{f[9]}]" in sockets:  # 0A: LISTEN
+                ports.add(int(f[1].rsplit(":", 1)[1], 16))
+    return ports
+
+
+def busy_ports(processes: list[Process]) -> list[str]:
+    """The listen endpoints of this host's processes that something else already holds, one line
+    each: a second run of one topology on a machine (or a fixed ``base_port`` used twice) would
+    otherwise join the first run's planes."""
+    out = []
+    for p in processes:
+        if p.netns is not None or not is_local_host(p.host):
+            continue  # bound inside a namespace, or on another host
+        for plane in ("ctrl", "data"):
+            for locator in getattr(p.config, plane).listen:
+                host, port = endpoint_address(locator)
+                with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
+                    s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as Zenoh binds: TIME_WAIT is no user
+                    try:
+                        s.bind((host, port))
+                    except OSError as err:
+                        if err.errno == errno.EADDRINUSE:
+                            out.append(f"port {port} ({p.config.name}'s {plane} plane) is in use on this host "
+                                       "(another run?): pass --base-port or change base_port")
+    return out
 
 
 def _signal(sup: Supervised, sig: int) -> None:

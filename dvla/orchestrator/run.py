@@ -25,7 +25,7 @@ from ..fabric import Fabric, TlsFiles, load_secret, new_secret, plane_config
 from ..fabric.identity import Identity, IdentityError
 from ..fabric.messages import Command
 from ..ledger import reconcile
-from .launcher import Launcher, log_tail
+from .launcher import Launcher, busy_ports, log_tail
 from .evaljoin import EvalJoin
 from .monitor import Monitor
 from .netns import NetnsCluster, NetnsWrapper
@@ -211,6 +211,9 @@ class Up:
             raise ValueError(no_wandb)
         self.run_dir, self.continued = prepare_run_dir(opts.runs_root, self.topo.run, opts.resume, opts.fresh)
         self.plan: Plan = make_plan(self.topo, str(self.run_dir), opts.base_port)
+        busy = busy_ports(list(self.plan.processes))
+        if busy:  # else this run's roles would join the planes of whatever listens there
+            raise ValueError(f"{self.topo.source}: {busy[0]}")
         self.secret, self.secret_source = resolve_secret(self.topo, self.run_dir)
         self.operator, self.operator_path = resolve_operator(self.topo.run, self.run_dir)
         self.events: list[str] = [f"continuing {self.run_dir}: {self.continued}"] if self.continued else []
