@@ -81,7 +81,7 @@ class Actor:
             log.info("resumed from checkpoint v%d (%s), %d env steps; numbering continues above v%d",
                      self.resumed.version, self.resumed.checksum, env_steps, start)
         self._first_version = start + 1  # this incarnation's first (checkpointed at once)
-        self.reserved = start  # versions up to here are covered by the high-water mark on disk
+        self.high_water = start  # the persisted high-water mark: no version up to it is numbered again
         self.publisher = WeightPublisher(
             fabric, cfg.name, self.layout, cfg.replication, start, base_hash=policy_base_hash(self.policy)
         ) if self.is_root else None
@@ -99,10 +99,9 @@ class Actor:
         )
         #: newest version learned (the learn lane numbers the next one from here)
         self.policy_version = start
-        #: newest version through the publish lane (published by rank 0; recorded by the others)
-        self.published_version = start
-        #: (version, checksum) of the newest version through the publish lane, for status
-        self._published: tuple[int, str] | None = None
+        #: (version, checksum) of the newest version through the publish lane (published by rank 0;
+        #: recorded by the others); one assignment, so status never pairs a version with another's checksum
+        self.published: tuple[int, str] = (start, "")
         #: newest version whose weights may have left the group: set before rank 0 sends it (a
         #: rollout may act on it at once). Other ranks set it as they record it, which is before
         #: rank 0 can send it: the ranks learn each version in lockstep, and rank 0 still has to
@@ -141,6 +140,10 @@ class Actor:
         sl.lane("publish", self._publish)
         # The first version: the initial (or resumed) weights, so rollouts can act at once.
         self.versions.put(self._new_version(checkpoint=True), threading.Event())
+
+    @property
+    def published_version(self) -> int:
+        return self.published[0]
 
     def _checksum(self, policy: torch.nn.Module) -> str:
         return checksum(self._flat_weights(policy))
@@ -289,15 +292,13 @@ class Actor:
                 self.released_version = item.version  # before sending: see __init__
                 if self.publisher is not None:
                     self._send(item)
-                # one assignment: status never pairs a version with another version's checksum
-                self._published = (item.version, self.publisher.checksum if self.publisher is not None else "")
-                self.published_version = item.version
+                self.published = (item.version, self.publisher.checksum if self.publisher is not None else "")
             ctx.count()
 
     def _send(self, item: "NewVersion") -> None:
         """Rank 0: reserve the version number on disk, encode, send, log, checkpoint."""
         assert self.publisher is not None and self._versions_csv is not None
-        self.reserved = reserve_versions(self.ckpt_dir, item.version, self.reserved)
+        self.high_water = reserve_versions(self.ckpt_dir, item.version, self.high_water)
         enc = self.publisher.encode(item.flat)
         if enc.version != item.version:
             raise RuntimeError(f"publisher numbered v{enc.version} for learned v{item.version}")
@@ -325,8 +326,7 @@ class Actor:
     def status_extra(self) -> dict[str, Any]:
         lags = self.lags[-1024:]
         acct = self.fabric.accounting
-        published = self._published or (self.published_version,
-                                         self.publisher.checksum if self.publisher is not None else "")
+        published = self.published
         return {
             "published_version": published[0],
             "inbox_depth": self.inbox.depth(),

@@ -71,13 +71,22 @@ def test_killed_actor_accounts_its_slots_and_the_gap(tmp_path: Path) -> None:
     (lost,) = acct["lost_by_incarnation"]
     assert (lost["where"], lost["in_actor"], lost["in_transit"], lost["lost"]) == ("actor", 3, 3, 6)
     assert acct["unaccounted"] == 0 and acct["lost_within_bounds"]
+    assert acct["produced"] == 30 == acct["consumed"] + acct["lost"]
 
 
 def test_silent_mid_stream_loss_is_unaccounted(tmp_path: Path) -> None:
     _rollout(tmp_path, "r", 0, 10, 10, True, (0, 100))
     _actor(tmp_path, 0, {"r#0": _src(8, 0, 9, consumed=8)}, True, (0, 101))  # two vanished, nobody killed
     acct = reconcile(tmp_path)
-    assert acct["unaccounted"] == 2 and acct["notes"]
+    assert acct["unaccounted"] == 2 and acct["notes"] == ["r.0.100: 2 chunks missing mid-stream"]
+
+
+def test_chunks_of_a_rollout_without_counter_file_are_named(tmp_path: Path) -> None:
+    _rollout(tmp_path, "r", 0, 4, 4, True, (0, 100))
+    # "q" left no file (its host never sent its results back): its chunks are in no one's produced
+    _actor(tmp_path, 0, {"r#0": _src(4, 0, 3, consumed=4), "q#0": _src(2, 0, 1, consumed=2)}, True, (0, 101))
+    acct = reconcile(tmp_path)
+    assert acct["unaccounted"] == -2 and acct["notes"][0] == "chunks of q#0 received, but it left no counter file"
 
 
 def test_fabric_drops_explain_gaps_and_forgeries_are_foreign(tmp_path: Path) -> None:
