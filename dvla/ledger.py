@@ -1,25 +1,18 @@
-"""The chunk ledger: where every trajectory chunk of a run went, exactly (result.json's ``accounting``).
+"""The chunk ledger: where every trajectory chunk of a run went (result.json's ``accounting``).
 
-    produced = consumed + dropped + rejected + lost + unaccounted,  unaccounted = 0
+    produced = consumed + dropped + rejected + lost, exactly (``unaccounted``: what no kill explains)
 
-One module owns it: what each rollout incarnation produced and shipped (:class:`RolloutLedger`),
-what each actor incarnation did with every chunk it got (:class:`ActorLedger`), the counter files
-both live in (:class:`CounterFile`), and the reconciliation of those files (:func:`reconcile`).
-The fabric's per-plane counters (``dvla/fabric/accounting.py``) stay in the fabric, which imports
-nothing of dvla; the actor copies their per-rollout drops and rejects into its file as input.
+The roles count through it (:class:`RolloutLedger`, :class:`ActorLedger`), into counter files that
+survive a ``kill -9`` (:class:`CounterFile`), and the orchestrator calls :func:`reconcile`. The
+fabric, which imports nothing of dvla, keeps its own per-plane counters (``fabric/accounting.py``);
+the actor copies their per-rollout drops and rejects into its file.
 
-Counter files survive a ``kill -9``: ``RUN_DIR/counters/<role>.<incarnation>.<pid>``, rewritten in
-place with one ``pwrite`` per event and no fsync (the pages belong to the kernel, which keeps them
-when the process dies). A record is JSON padded with spaces to the longest one written so far, so
-a reader never sees a shorter record's leftover tail. Incarnations of one role never overlap in
-time (the launcher restarts a role after it exited), so the n-th file of a role is its n-th
-incarnation. A rollout puts its incarnation in the high bits of each chunk's ``seq``: the actor
-tells incarnations apart without a new wire field, and ``seq`` stays increasing across restarts.
-
-Remote roles send their counter files back when they exit (dvla/orchestrator/ssh.py), so one
-reconciliation covers every run. ``lost`` lists, per killed incarnation, the chunks that died with
-it and the bound its in-flight window puts on them; a missing chunk no kill explains is
-``unaccounted``.
+A counter file, ``RUN_DIR/counters/<role>.<incarnation>.<pid>``, is rewritten in place with one
+``pwrite`` per event and no fsync (the kernel keeps the pages when the process dies), as JSON
+padded to the longest record so far. Incarnations of a role never overlap (the launcher restarts
+a role after it exited), so the n-th file of a role is its n-th incarnation; a rollout puts it in
+the high bits of each chunk's ``seq``, so the actor tells incarnations apart without a wire field.
+Remote roles send their files back when they exit (orchestrator/ssh.py).
 """
 
 from __future__ import annotations
@@ -31,7 +24,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 from .fabric.accounting import Accounting
 from .fabric.fabric import DATA
@@ -234,8 +227,8 @@ def reconcile(run_dir: str | Path) -> dict[str, Any]:
     for peer in books.fabric_drops.keys() | books.fabric_rejects.keys():
         if peer not in by_name:  # traffic under a name no rollout ever had
             books.foreign += books.fabric_drops[peer] + books.fabric_rejects[peer]
-    for src in books.received.keys() - {f"{r['role']}#{r['incarnation']}" for r in rollouts}:
-        books.notes.append(f"chunks of {src} received, but it left no counter file")
+    for src in sorted(books.received.keys() - {f"{r['role']}#{r['incarnation']}" for r in rollouts}):
+        books.note(0, f"chunks of {src} received, but it left no counter file")
 
     produced = sum(r.get("produced", 0) for r in rollouts)
     lost = sum(x["lost"] for x in books.lost)
@@ -245,57 +238,14 @@ def reconcile(run_dir: str | Path) -> dict[str, Any]:
     if unaccounted != books.unaccounted:  # the two ways of counting must agree; say so if they do not
         books.notes.append(f"identity residual {unaccounted} != {books.unaccounted} chunks found missing or held")
     return {
-        "produced": produced,
-        "consumed": books.consumed,
-        "dropped": sum(dropped.values()),
-        "dropped_by_reason": dropped,
-        "rejected": sum(rejected.values()),
-        "rejected_by_reason": rejected,
-        "lost": lost,
-        "lost_by_incarnation": sorted(books.lost, key=lambda x: x["died_ns"]),
+        "produced": produced, "consumed": books.consumed,
+        "dropped": sum(dropped.values()), "dropped_by_reason": dropped,
+        "rejected": sum(rejected.values()), "rejected_by_reason": rejected,
+        "lost": lost, "lost_by_incarnation": sorted(books.lost, key=lambda x: x["died_ns"]),
         "lost_within_bounds": all(0 <= x["lost"] <= x["lost_bound"] for x in books.lost),
-        "foreign_rejected": books.foreign,
-        "unaccounted": unaccounted,
-        "notes": books.notes,
+        "foreign_rejected": books.foreign, "unaccounted": unaccounted, "notes": books.notes,
         "incarnations": {"rollout": len(rollouts), "actor": len(actors)},
     }
-
-
-class _Received(NamedTuple):
-    """What one actor incarnation received of one rollout incarnation (seqs within it)."""
-
-    #: (actor role, incarnation): a rollout feeds one rank, but several actors have incarnation 0
-    actor: tuple[str, int]
-    first: int
-    last: int
-    got: int
-
-
-@dataclass
-class _Missing:
-    """A rollout incarnation's chunks that no actor received, by where they went missing."""
-
-    #: inside an actor's received range: the fabric dropped them or could not decode them
-    inner: int
-    #: ((actor, incarnation), chunks) missing between two actor incarnations: died with the first
-    between: list[tuple[tuple[str, int], int]]
-    #: after the last chunk received: died with the rollout, or with the actor at the end
-    tail: int
-    #: the actor incarnation that received the last chunk (None: none received any)
-    last_actor: tuple[str, int] | None
-
-
-def _missing(produced: int, received: list[_Received]) -> _Missing:
-    if not received:
-        return _Missing(inner=0, between=[], tail=produced, last_actor=None)
-    received = sorted(received)
-    inner = sum(x.last - x.first + 1 - x.got for x in received)
-    # chunks before the first receipt went missing in the absence of an actor: count them with
-    # the first actor incarnation's predecessor (the one that died), else as mid-stream
-    role, inc = received[0].actor
-    between = [((role, inc - 1), received[0].first)] if received[0].first else []
-    between += [(a.actor, b.first - a.last - 1) for a, b in zip(received, received[1:])]
-    return _Missing(inner=inner, between=between, tail=produced - 1 - received[-1].last, last_actor=received[-1].actor)
 
 
 def _tcp_buffer_max(name: str) -> int:
@@ -323,25 +273,30 @@ class _Books:
     lost: list[dict[str, Any]] = field(default_factory=list)
     #: (actor, incarnation) -> its entry in `lost`
     killed_actors: dict[tuple[str, int], dict[str, Any]] = field(default_factory=dict)
-    #: "<rollout>#<incarnation>" -> what each actor incarnation received of it
-    received: dict[str, list[_Received]] = field(default_factory=dict)
+    #: "<rollout>#<incarnation>" -> (first, last, got, (actor, incarnation)) per actor incarnation
+    #: that received of it (a rollout feeds one rank, but every rank has an incarnation 0)
+    received: dict[str, list[tuple[int, int, int, tuple[str, int]]]] = field(default_factory=dict)
     #: rollout name -> chunks the actors' fabric dropped under backpressure / could not decode
     fabric_drops: Counter[str] = field(default_factory=Counter)
     fabric_rejects: Counter[str] = field(default_factory=Counter)
-    #: rejected chunks no rollout produced (forged)
+    #: rejected chunks no rollout produced (forged, or another run's)
     foreign: int = 0
-    #: chunks found missing (or held at a clean exit) that no kill explains
+    #: chunks found missing (or held at a clean exit) that no kill explains, each with a note
     unaccounted: int = 0
     notes: list[str] = field(default_factory=list)
     #: bytes in flight on a link to a killed actor: the sender's Zenoh queue and both TCP buffers
     window: int = field(default_factory=lambda: ZENOH_TX_BYTES + _tcp_buffer_max("tcp_wmem") + _tcp_buffer_max("tcp_rmem"))
 
+    def note(self, unaccounted: int, text: str) -> None:
+        self.unaccounted += unaccounted
+        self.notes.append(text)
+
     def add_actor(self, a: dict[str, Any]) -> None:
         held = 0  # received but never settled (consumed, dropped or rejected)
         own_rejects: Counter[str] = Counter()
         for src, c in a.get("sources", {}).items():
-            self.received.setdefault(src, []).append(_Received((a["role"], a["incarnation"]), c["first"], c["last"], c["got"]))
-            settled = 0
+            self.received.setdefault(src, []).append((c["first"], c["last"], c["got"], (a["role"], a["incarnation"])))
+            held += c["got"]
             for key, n in c.items():
                 kind, _, reason = key.partition(".")
                 if key == "consumed":
@@ -353,16 +308,14 @@ class _Books:
                     own_rejects[src.rsplit("#", 1)[0]] += n
                 else:
                     continue
-                settled += n
-            held += c["got"] - settled
+                held -= n
         for peer, f in a.get("fabric", {}).items():
             self.fabric_drops[peer] += f.get("backpressure", 0)
             # the actor's own rejections (counted above) are in the fabric's count too
             self.fabric_rejects[peer] += f.get("rejected", 0) - own_rejects[peer]
         if a.get("clean"):
             if held:
-                self.unaccounted += held
-                self.notes.append(f"{a['file']}: {held} chunks held at a clean exit")
+                self.note(held, f"{a['file']}: {held} chunks held at a clean exit")
             return
         entry = {"role": a["role"], "incarnation": a["incarnation"], "pid": a["pid"], "where": "actor",
                  "died_ns": a["updated_ns"], "lost": held, "in_actor": held, "in_transit": 0,
@@ -371,52 +324,57 @@ class _Books:
         self.lost.append(entry)
 
     def add_rollout(self, name: str, incarnations: list[dict[str, Any]], mean_bytes: float) -> None:
-        """Place the missing chunks of every incarnation of one rollout."""
-        missing = {r["incarnation"]: _missing(r.get("produced", 0), self.received.get(f"{name}#{r['incarnation']}", []))
-                   for r in incarnations}
+        """Place the missing chunks of every incarnation of one rollout: inside an actor's received
+        range (the fabric dropped them or could not decode them), between two actor incarnations
+        (died with the first), or after the last one received (died with the rollout, or with the
+        actor at the end)."""
+        ranges = {r["incarnation"]: sorted(self.received.get(f"{name}#{r['incarnation']}", [])) for r in incarnations}
+        inner = {i: sum(last - first + 1 - got for first, last, got, _ in rs) for i, rs in ranges.items()}
         # The fabric's drops and rejects of this rollout explain chunks missing inside ranges;
         # rejects beyond those were never produced by it: forged.
-        inner = sum(max(0, m.inner) for m in missing.values())
-        drops = min(self.fabric_drops[name], inner)
-        rejects = min(self.fabric_rejects[name], inner - drops)
+        gaps = sum(max(0, n) for n in inner.values())
+        drops = min(self.fabric_drops[name], gaps)
+        rejects = min(self.fabric_rejects[name], gaps - drops)
         self.dropped["backpressure"] += drops
         self.rejected["undecodable"] += rejects
         self.foreign += self.fabric_drops[name] + self.fabric_rejects[name] - drops - rejects
         explained = drops + rejects
         for r in incarnations:
-            m = missing[r["incarnation"]]
-            take = max(0, min(explained, m.inner))
-            m.inner -= take
+            rs, left = ranges[r["incarnation"]], inner[r["incarnation"]]
+            take = max(0, min(explained, left))
             explained -= take
+            if left - take:
+                self.note(left - take, f"{r['file']}: {left - take} chunks missing mid-stream")
             chunk_bytes = r.get("bytes", 0) / r["shipped"] if r.get("shipped") else mean_bytes
-            if m.inner:
-                self.unaccounted += m.inner
-                self.notes.append(f"{r['file']}: {m.inner} chunks missing mid-stream")
-            for actor, n in m.between:  # died with actor incarnation `actor` (or in its absence)
-                if n and actor in self.killed_actors:
-                    killed = self.killed_actors[actor]
+            # chunks before the first receipt went missing in the absence of an actor: count them
+            # with the first actor incarnation's predecessor (the one that died)
+            between = [((rs[0][3][0], rs[0][3][1] - 1), rs[0][0])] if rs and rs[0][0] else []
+            between += [(a[3], b[0] - a[1] - 1) for a, b in zip(rs, rs[1:])]
+            for actor, n in between:
+                killed = self.killed_actors.get(actor)
+                if n and killed is not None:
                     killed["lost"] += n
                     killed["in_transit"] += n
                     killed["lost_bound"] += _chunks_in(self.window, chunk_bytes)
                 elif n:
-                    self.unaccounted += n
-                    self.notes.append(f"{r['file']}: {n} chunks missing across a clean actor restart")
-            self._place_tail(name, r, m, chunk_bytes)
+                    self.note(n, f"{r['file']}: {n} chunks missing across a clean actor restart")
+            tail = r.get("produced", 0) - 1 - rs[-1][1] if rs else r.get("produced", 0)
+            self._place_tail(name, r, tail, rs[-1][3] if rs else None, chunk_bytes)
 
-    def _place_tail(self, name: str, r: dict[str, Any], m: _Missing, chunk_bytes: float) -> None:
-        """The chunks after the last one received: lost with a killed rollout, or with an actor
-        killed at (about) the time this incarnation ended, else unaccounted."""
+    def _place_tail(self, name: str, r: dict[str, Any], tail: int, last_actor: tuple[str, int] | None,
+                    chunk_bytes: float) -> None:
+        """The `tail` chunks after the last one received (by `last_actor`): lost with a killed
+        rollout, or with an actor killed at (about) the time this incarnation ended, else unaccounted."""
         if not r.get("clean"):
             in_queue = r.get("produced", 0) - r.get("shipped", 0)
             self.lost.append({"role": name, "incarnation": r["incarnation"], "pid": r["pid"], "where": "rollout",
-                              "died_ns": r["updated_ns"], "lost": m.tail, "in_queue": in_queue,
-                              "in_transit": m.tail - in_queue,
+                              "died_ns": r["updated_ns"], "lost": tail, "in_queue": in_queue,
+                              "in_transit": tail - in_queue,
                               "lost_bound": r.get("queue_cap", 0) + 1 + _chunks_in(ZENOH_TX_BYTES, chunk_bytes)})
             return
-        killed = self.killed_actors.get(m.last_actor) if m.last_actor is not None else None
-        if m.tail and killed is not None and killed["died_ns"] >= r["updated_ns"] - 10**9:
-            killed["lost"] += m.tail
-            killed["in_transit"] += m.tail
-        elif m.tail:
-            self.unaccounted += m.tail
-            self.notes.append(f"{r['file']}: {m.tail} chunks missing at the end of a clean incarnation")
+        killed = self.killed_actors.get(last_actor) if last_actor is not None else None
+        if tail and killed is not None and killed["died_ns"] >= r["updated_ns"] - 10**9:
+            killed["lost"] += tail
+            killed["in_transit"] += tail
+        elif tail:
+            self.note(tail, f"{r['file']}: {tail} chunks missing at the end of a clean incarnation")

@@ -18,6 +18,8 @@ import sys
 import time
 from pathlib import Path
 
+import psutil
+
 from ..fabric.identity import IDENTITY_ENV, Identity
 from .process import CommandWrapper, Process, Supervised, endpoint_address, is_local_host
 
@@ -286,7 +288,7 @@ def _wait_listening(sup: Supervised, timeout_s: float) -> bool:
     addrs = [endpoint_address(locator) for locator in sup.proc.config.ctrl.listen]
     if not addrs:
         return True
-    local = is_local_host(sup.proc.host)
+    local = is_local_host(sup.proc.host) and sup.proc.netns is None  # (psutil reads this namespace's tables)
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if sup.popen is not None and sup.popen.poll() is not None:
@@ -306,28 +308,11 @@ def _wait_listening(sup: Supervised, timeout_s: float) -> bool:
 
 
 def listening_ports(pid: int) -> set[int]:
-    """TCP ports process `pid` listens on (read from /proc, in the process's network namespace)."""
+    """TCP ports process `pid` listens on (sockets it holds itself)."""
     try:
-        fds = os.listdir(f"/proc/{pid}/fd")
-    except OSError:
+        return {c.laddr.port for c in psutil.Process(pid).net_connections("tcp") if c.status == psutil.CONN_LISTEN}
+    except psutil.Error:
         return set()
-    sockets = set()
-    for fd in fds:
-        try:
-            sockets.add(os.readlink(f"/proc/{pid}/fd/{fd}"))
-        except OSError:
-            pass
-    ports = set()
-    for table in ("tcp", "tcp6"):
-        try:
-            rows = Path(f"/proc/{pid}/net/{table}").read_text().splitlines()[1:]
-        except OSError:
-            continue
-        for row in rows:  # sl local_address rem_address st ... inode
-            f = row.split()
-            if len(f) > 9 and f[3] == "0A" and f"socket:[{f[9]}]" in sockets:  # 0A: LISTEN
-                ports.add(int(f[1].rsplit(":", 1)[1], 16))
-    return ports
 
 
 def busy_ports(processes: list[Process]) -> list[str]:
