@@ -164,11 +164,7 @@ class ActorLedger:
 
     def settle(self, src: str, what: str) -> None:
         """One chunk of `src` is ``consumed``, ``dropped.<reason>`` or ``rejected.<reason>``."""
-        kind, _, reason = what.partition(".")
-        peer = src.rsplit("#", 1)[0]
-        self.accounting.add(DATA, kind, peer)
-        if reason:
-            self.accounting.add(DATA, what, peer)
+        self.accounting.add(DATA, what, src.rsplit("#", 1)[0])  # the plane's counters: what status shows
         with self._lock:
             c = self._src[src]
             c[what] = c.get(what, 0) + 1

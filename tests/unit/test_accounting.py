@@ -28,6 +28,8 @@ def test_counters_per_plane_and_peer() -> None:
     assert acct.get(DATA, "received", "rollout-0") == 0
     assert acct.get(DATA, "rejected.malformed") == acct.get(DATA, "rejected") == 1
     assert acct.get(DATA, "dropped.stale", "rollout-0") == 3
+    acct.add(DATA, "dropped.shutdown", "rollout-0")  # a reason's counter counts its total in the same step
+    assert acct.get(DATA, "dropped", "rollout-0") == acct.get(DATA, "dropped") == 4
     snap = acct.snapshot()
     assert snap[DATA]["received"] == 2 and snap[DATA]["peers"]["rollout-1"]["received_bytes"] == 100
 
