@@ -18,8 +18,6 @@ import sys
 import time
 from pathlib import Path
 
-import psutil
-
 from ..fabric.identity import IDENTITY_ENV, Identity
 from .process import CommandWrapper, Process, Supervised, endpoint_address, is_local_host
 
@@ -280,39 +278,22 @@ def _close_stdin(sup: Supervised) -> None:
 
 
 def _wait_listening(sup: Supervised, timeout_s: float) -> bool:
-    """True once `sup` listens on one of its ctrl endpoints.
-
-    A child on this host must hold the listening socket itself: that *something* accepts on the
-    port is not enough, since another run on the machine may listen there (and this run's leaves
-    would then join that run's planes). A remote child is probed with a TCP connection."""
+    """True once a TCP connection to one of `sup`'s ctrl listen endpoints succeeds."""
     addrs = [endpoint_address(locator) for locator in sup.proc.config.ctrl.listen]
     if not addrs:
         return True
-    local = is_local_host(sup.proc.host) and sup.proc.netns is None  # (psutil reads this namespace's tables)
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if sup.popen is not None and sup.popen.poll() is not None:
             return False  # it died; supervision will restart it
-        if local and sup.popen is not None:
-            if listening_ports(sup.popen.pid) & {port for _host, port in addrs}:
-                return True
-        else:
-            for addr in addrs:
-                try:
-                    with socket.create_connection(addr, timeout=0.5):
-                        return True
-                except OSError:
-                    pass
+        for addr in addrs:
+            try:
+                with socket.create_connection(addr, timeout=0.5):
+                    return True
+            except OSError:
+                pass
         time.sleep(0.1)
     return False
-
-
-def listening_ports(pid: int) -> set[int]:
-    """TCP ports process `pid` listens on (sockets it holds itself)."""
-    try:
-        return {c.laddr.port for c in psutil.Process(pid).net_connections("tcp") if c.status == psutil.CONN_LISTEN}
-    except psutil.Error:
-        return set()
 
 
 def busy_ports(processes: list[Process]) -> list[str]:
