@@ -209,7 +209,7 @@ def reconcile(run_dir: str | Path) -> dict[str, Any]:
     docs = read_counters(run_dir)
     rollouts = [d for d in docs if d.get("kind") == "rollout"]
     actors = [d for d in docs if d.get("kind") == "actor"]
-    books = _Books()
+    books = _Books(notes=[d["error"] for d in docs if "error" in d])  # unreadable: named, never skipped silently
     for a in actors:  # first: the rollouts' chunks are then looked for in what the actors received
         books.add_actor(a)
     by_name: dict[str, list[dict[str, Any]]] = {}

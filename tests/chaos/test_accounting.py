@@ -96,3 +96,11 @@ def test_fabric_drops_explain_gaps_and_forgeries_are_foreign(tmp_path: Path) -> 
     acct = reconcile(tmp_path)
     assert acct["dropped_by_reason"] == {"backpressure": 1} and acct["rejected_by_reason"] == {"undecodable": 1}
     assert acct["foreign_rejected"] == 20 and acct["unaccounted"] == 0
+
+
+def test_an_unreadable_counter_file_is_named(tmp_path: Path) -> None:
+    _rollout(tmp_path, "r", 0, 3, 3, True, (0, 100))
+    _actor(tmp_path, 0, {"r#0": _src(3, 0, 2, consumed=3)}, True, (0, 101))
+    (tmp_path / "counters" / "r.1.777").write_bytes(b'{"role": "r", "kind": "rol')  # cut short
+    acct = reconcile(tmp_path)
+    assert acct["unaccounted"] == 0 and len(acct["notes"]) == 1 and acct["notes"][0].startswith("r.1.777: ")
