@@ -584,7 +584,7 @@ def run_chaos(topology: Path, profile: Profile, runs_root: Path | None = None, b
         for k in cr.kills:
             detection(k, cr.obs)
         acct = result.get("accounting", {})
-        from dvla.counters import read_counters
+        from dvla.ledger import read_counters
 
         # a killed rollout incarnation that produced anything must be listed with its loss (one
         # killed while still starting has produced nothing, possibly not even its counter file)

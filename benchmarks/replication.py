@@ -260,12 +260,13 @@ def _training_figures(run_dir: Path, exit_code: int, wall_s: float) -> dict[str,
     evals = res.get("evals", [])
     successes = [e.get("success_once") for e in evals if e.get("success_once") is not None]
     pub = extra.get("publish_bytes", {})
+    sent = int(pub.get("full_bytes", 0)) + int(pub.get("delta_bytes", 0))
     return {
         "exit_code": exit_code,
         "wall_s": wall_s,
         "versions": versions,
-        "bytes_published": int(extra["bytes_published"]),
-        "bytes_per_version": int(extra["bytes_published"]) / max(1, versions),
+        "bytes_published": sent,
+        "bytes_per_version": sent / max(1, versions),
         "delta_bytes_per_version": (pub.get("delta_bytes", 0) / pub["delta_versions"]) if pub.get("delta_versions") else None,
         "full_versions": pub.get("full_versions"),
         "env_steps": res.get("env_steps"),

@@ -22,9 +22,8 @@ MAX_OTHER_PEERS = 64
 #: peer under which the fabric counts traffic that fails authentication (never a role name, so the
 #: run's accounting reports it as foreign)
 UNAUTHENTICATED = "<unauthenticated>"
+#: aggregate peer keys, always counted under their own key (neither is a role name)
 RESERVED_PEERS = frozenset({OTHER_PEER, UNAUTHENTICATED})
-"""Aggregate peer keys that are always counted under their own key: :data:`OTHER_PEER` and the
-fabric's ``UNAUTHENTICATED`` (traffic that failed authentication). Like it, none is a role name."""
 
 
 class Accounting:
@@ -64,11 +63,16 @@ class Accounting:
         return peer
 
     def add(self, plane: str, counter: str, peer: str | None = None, n: int = 1, nbytes: int = 0) -> None:
-        """Count `n` messages (of `nbytes` bytes in all, kept as ``<counter>_bytes``)."""
+        """Count `n` messages (of `nbytes` bytes in all, kept as ``<counter>_bytes``). A counter
+        ``<total>.<reason>`` counts its total too, in the same step (a reader never sees them apart)."""
+        names = {counter, counter.partition(".")[0]}
         with self._lock:
-            _bump(self._plane[plane], counter, n, nbytes)
-            if peer is not None:
-                _bump(self._peer[plane][self._key(peer)], counter, n, nbytes)
+            tables = [self._plane[plane]] + ([self._peer[plane][self._key(peer)]] if peer is not None else [])
+            for table in tables:
+                for name in names:
+                    table[name] += n
+                    if nbytes:
+                        table[name + "_bytes"] += nbytes
 
     def sent(self, plane: str, nbytes: int, peer: str | None = None) -> None:
         self.add(plane, "sent", peer, 1, nbytes)
@@ -78,12 +82,10 @@ class Accounting:
 
     def rejected(self, plane: str, reason: str, peer: str | None = None) -> None:
         """A message that failed decoding or verification (never applied)."""
-        self.add(plane, "rejected", peer)
         self.add(plane, f"rejected.{reason}", peer)
 
     def dropped(self, plane: str, reason: str, peer: str | None = None, n: int = 1) -> None:
         """A valid message deliberately not used (stale, backpressure, ...)."""
-        self.add(plane, "dropped", peer, n)
         self.add(plane, f"dropped.{reason}", peer, n)
 
     def get(self, plane: str, counter: str, peer: str | None = None) -> int:
@@ -104,12 +106,6 @@ class Accounting:
                     entry["peers"] = {peer: dict(c) for peer, c in peers.items()}
                 out[plane] = entry
             return out
-
-
-def _bump(counters: dict[str, int], counter: str, n: int, nbytes: int) -> None:
-    counters[counter] += n
-    if nbytes:
-        counters[counter + "_bytes"] += nbytes
 
 
 def _valid_name(peer: str) -> bool:

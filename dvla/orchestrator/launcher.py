@@ -8,6 +8,7 @@ survives even a `kill -9` of `dvla up`.
 from __future__ import annotations
 
 import ctypes
+import errno
 import logging
 import os
 import signal
@@ -18,7 +19,7 @@ import time
 from pathlib import Path
 
 from ..fabric.identity import IDENTITY_ENV, Identity
-from .process import CommandWrapper, Process, Supervised, endpoint_address
+from .process import CommandWrapper, Process, Supervised, endpoint_address, is_local_host
 
 log = logging.getLogger("dvla.launcher")
 
@@ -293,6 +294,28 @@ def _wait_listening(sup: Supervised, timeout_s: float) -> bool:
                 pass
         time.sleep(0.1)
     return False
+
+
+def busy_ports(processes: list[Process]) -> list[str]:
+    """The listen endpoints of this host's processes that something else already holds, one line
+    each: a second run of one topology on a machine (or a fixed ``base_port`` used twice) would
+    otherwise join the first run's planes."""
+    out = []
+    for p in processes:
+        if p.netns is not None or not is_local_host(p.host):
+            continue  # bound inside a namespace, or on another host
+        for plane in ("ctrl", "data"):
+            for locator in getattr(p.config, plane).listen:
+                host, port = endpoint_address(locator)
+                with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
+                    s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as Zenoh binds: TIME_WAIT is no user
+                    try:
+                        s.bind((host, port))
+                    except OSError as err:
+                        if err.errno == errno.EADDRINUSE:
+                            out.append(f"port {port} ({p.config.name}'s {plane} plane) is in use on this host "
+                                       "(another run?): pass --base-port or change base_port")
+    return out
 
 
 def _signal(sup: Supervised, sig: int) -> None:

@@ -24,8 +24,8 @@ from ..config import TlsConfig, Topology
 from ..fabric import Fabric, TlsFiles, load_secret, new_secret, plane_config
 from ..fabric.identity import Identity, IdentityError
 from ..fabric.messages import Command
-from .accounting import run_accounting
-from .launcher import Launcher, log_tail
+from ..ledger import reconcile
+from .launcher import Launcher, busy_ports, log_tail
 from .evaljoin import EvalJoin
 from .monitor import Monitor
 from .netns import NetnsCluster, NetnsWrapper
@@ -211,6 +211,9 @@ class Up:
             raise ValueError(no_wandb)
         self.run_dir, self.continued = prepare_run_dir(opts.runs_root, self.topo.run, opts.resume, opts.fresh)
         self.plan: Plan = make_plan(self.topo, str(self.run_dir), opts.base_port)
+        busy = busy_ports(list(self.plan.processes))
+        if busy:  # else this run's roles would join the planes of whatever listens there
+            raise ValueError(f"{self.topo.source}: {busy[0]}")
         self.secret, self.secret_source = resolve_secret(self.topo, self.run_dir)
         self.operator, self.operator_path = resolve_operator(self.topo.run, self.run_dir)
         self.events: list[str] = [f"continuing {self.run_dir}: {self.continued}"] if self.continued else []
@@ -344,8 +347,7 @@ class Up:
         res = self.monitor.result()
         res.update(run=self.topo.run, reason=self.reason, exit_code=code,
                    restarts={n: s.restarts for n, s in self.launcher.children.items()},
-                   # remote roles write their counter files on their own hosts
-                   accounting=run_accounting(self.run_dir, counters_complete=self._all_local()))
+                   accounting=reconcile(self.run_dir))
         (self.run_dir / "result.json").write_text(json.dumps(res, indent=1, default=str))
         try:
             plot_run(self.run_dir)

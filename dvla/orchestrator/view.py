@@ -32,7 +32,7 @@ def lane_utilisation(s: RoleStatus) -> dict[str, float]:
 
 
 #: version of the JSON document `dvla status --format json` prints (docs/status.md)
-STATUS_SCHEMA = "dvla.status/1"
+STATUS_SCHEMA = "dvla.status/2"
 
 
 def plane_totals(statuses: dict[str, RoleStatus]) -> dict[str, dict[str, int]]:

@@ -34,9 +34,9 @@ from ..learn.group import LearnerGroup
 from ..learn.envs import may_share_scene, probe_spec
 from ..learn.grpo import grpo_batch
 from ..learn.policies import extras_spec, policy_base_hash
+from ..ledger import ActorLedger
 from ..replication import ParamLayout, checksum, flatten, replicated_tensors, unflatten_into
 from .checkpoint import Checkpoint, load_checkpoint, optimizer_tensors, reserve_versions, save_checkpoint
-from ..counters import CounterFile, source_key, split_seq
 from .runtime import main
 from .slots import SlotPool
 from .swimlane import LaneContext, Swimlane, sample_percentile
@@ -81,7 +81,7 @@ class Actor:
             log.info("resumed from checkpoint v%d (%s), %d env steps; numbering continues above v%d",
                      self.resumed.version, self.resumed.checksum, env_steps, start)
         self._first_version = start + 1  # this incarnation's first (checkpointed at once)
-        self.reserved = start  # versions up to here are covered by the high-water mark on disk
+        self.high_water = start  # the persisted high-water mark: no version up to it is numbered again
         self.publisher = WeightPublisher(
             fabric, cfg.name, self.layout, cfg.replication, start, base_hash=policy_base_hash(self.policy)
         ) if self.is_root else None
@@ -99,10 +99,9 @@ class Actor:
         )
         #: newest version learned (the learn lane numbers the next one from here)
         self.policy_version = start
-        #: newest version through the publish lane (published by rank 0; recorded by the others)
-        self.published_version = start
-        #: (version, checksum) of the newest version through the publish lane, for status
-        self._published: tuple[int, str] | None = None
+        #: (version, checksum) of the newest version through the publish lane (published by rank 0;
+        #: recorded by the others); one assignment, so status never pairs a version with another's checksum
+        self.published: tuple[int, str] = (start, "")
         #: newest version whose weights may have left the group: set before rank 0 sends it (a
         #: rollout may act on it at once). Other ranks set it as they record it, which is before
         #: rank 0 can send it: the ranks learn each version in lockstep, and rank 0 still has to
@@ -117,13 +116,13 @@ class Actor:
         #: cumulative:
         #: a reader diffs two readings to get the lag distribution of a window
         self.ingest_lag_counts: dict[int, int] = {}
-        self.bytes_published = 0
-        #: bytes and count of versions sent, split into full versions and deltas
+        #: versions sent and their bytes, full versions and deltas apart
         self.publish_bytes = {"full_versions": 0, "full_bytes": 0, "delta_versions": 0, "delta_bytes": 0}
         #: version -> checksum of this rank's parameters after it (the newest few; equal on every rank)
         self.checksums: dict[int, str] = {}
-        self.receipts = Receipts(CounterFile(cfg.run_dir, cfg.name), fabric, self.slots.n_slots)
-        self._ledger = open(Path(cfg.run_dir) / "versions.csv", "a", buffering=1) if self.is_root else None
+        #: what became of every chunk got, in a counter file that survives a kill -9 (dvla/ledger.py)
+        self.ledger = ActorLedger(cfg.run_dir, cfg.name, fabric.accounting, self.slots.n_slots, INBOX)
+        self._versions_csv = open(Path(cfg.run_dir) / "versions.csv", "a", buffering=1) if self.is_root else None
 
     # -- wiring -------------------------------------------------------------------------------
     def build(self, sl: Swimlane) -> None:
@@ -141,6 +140,10 @@ class Actor:
         sl.lane("publish", self._publish)
         # The first version: the initial (or resumed) weights, so rollouts can act at once.
         self.versions.put(self._new_version(checkpoint=True), threading.Event())
+
+    @property
+    def published_version(self) -> int:
+        return self.published[0]
 
     def _checksum(self, policy: torch.nn.Module) -> str:
         return checksum(self._flat_weights(policy))
@@ -163,10 +166,10 @@ class Actor:
             with ctx.waiting():
                 chunk = self.inbox.get(timeout=0.1)
             if chunk is None:
-                self.receipts.tick()  # the fabric's own drops reach the counter file too
+                self.ledger.tick()  # the fabric's own drops reach the counter file too
                 continue
             with ctx.busy():
-                src = self.receipts.got(chunk)
+                src = self.ledger.got(chunk.rollout, chunk.seq)
                 problem = chunk_problem(chunk, self.obs_spec, self.act_dim, self.released_version, self.extras_spec)
                 if problem is not None:
                     self._reject(chunk, src, *problem)
@@ -174,37 +177,32 @@ class Actor:
                 lag = self.published_version - chunk.policy_version
                 self.ingest_lag_counts[lag] = self.ingest_lag_counts.get(lag, 0) + 1
                 if lag > self.max_lag:
-                    self.fabric.accounting.dropped(DATA, "stale", chunk.rollout)
-                    self.receipts.count(src, "dropped.stale")
+                    self.ledger.settle(src, "dropped.stale")
                     continue
                 slot = self.slots.acquire(ctx.stop)
                 if slot is None:  # stopping while every slot is taken: the inbox is still drained below
-                    self.fabric.accounting.dropped(DATA, "shutdown", chunk.rollout)
-                    self.receipts.count(src, "dropped.shutdown")
+                    self.ledger.settle(src, "dropped.shutdown")
                     break
                 err = self.slots.fill(slot, chunk)
                 if err is not None:
                     self.slots.release(slot)
                     self._reject(chunk, src, "shape", err)
                     continue
-                self.receipts.hold(slot, src)
+                self.ledger.hold(slot, src)
             if not self.filled.put(slot, ctx.stop, stats=ctx.stats):  # stopping with the batch lane full
-                self.fabric.accounting.dropped(DATA, "shutdown", chunk.rollout)
-                self.receipts.release(slot, "dropped.shutdown")
+                self.ledger.release(slot, "dropped.shutdown")
                 self.slots.release(slot)
                 break
             ctx.count()
         # Shutdown: chunks still arriving or queued are counted, never silently lost. Rollouts
         # are stopped first, so a short quiet period catches their last chunks.
         while (chunk := self.inbox.get(timeout=0.5)) is not None:
-            self.fabric.accounting.dropped(DATA, "shutdown", chunk.rollout)
-            self.receipts.count(self.receipts.got(chunk), "dropped.shutdown")
+            self.ledger.settle(self.ledger.got(chunk.rollout, chunk.seq), "dropped.shutdown")
 
     def _reject(self, chunk: TrajectoryChunk, src: str, reason: str, detail: str) -> None:
         """Count a chunk that must not reach the learner; log the 1st, 10th, 100th, ... per sender
         and reason (the counters count every one)."""
-        self.fabric.accounting.rejected(DATA, reason, chunk.rollout)
-        self.receipts.count(src, f"rejected.{reason}")
+        self.ledger.settle(src, f"rejected.{reason}")
         key = (chunk.rollout, reason)
         if key not in self._rejections and len(self._rejections) >= 1024:  # bounded: the rest together
             key = (OTHER_PEER, reason)
@@ -229,8 +227,7 @@ class Actor:
                 for s in held:
                     # Re-check lag: a chunk may have aged while waiting for its batch.
                     if self.published_version - self.slots.version(s) > self.max_lag:
-                        self.fabric.accounting.dropped(DATA, "stale", self.slots.rollout(s))
-                        self.receipts.release(s, "dropped.stale")
+                        self.ledger.release(s, "dropped.stale")
                         self.slots.release(s)
                     else:
                         keep.append(s)
@@ -240,8 +237,7 @@ class Actor:
                 keep.sort(key=self.slots.order)  # the same batch whatever the arrival order
                 batch = Trajectories.of(self.slots.stack(keep, self.device))
                 for s in keep:
-                    self.fabric.accounting.add(DATA, "consumed", self.slots.rollout(s))
-                    self.receipts.release(s, "consumed")
+                    self.ledger.release(s, "consumed")
                     self.lags.append(self.published_version - self.slots.version(s))
                     self.slots.release(s)
                 del self.lags[:-4096]
@@ -250,8 +246,7 @@ class Actor:
         while (slot := self.filled.get_nowait()) is not None:
             held.append(slot)
         for s in held:  # never-learned slots at shutdown are counted, not lost
-            self.fabric.accounting.dropped(DATA, "shutdown", self.slots.rollout(s))
-            self.receipts.release(s, "dropped.shutdown")
+            self.ledger.release(s, "dropped.shutdown")
             self.slots.release(s)
 
     def _learn(self, ctx: LaneContext) -> None:
@@ -298,24 +293,22 @@ class Actor:
                 if self.publisher is not None:
                     self._send(item)
                 # one assignment: status never pairs a version with another version's checksum
-                self._published = self.publisher.held.id if self.publisher is not None else (item.version, "")
-                self.published_version = item.version
+                self.published = self.publisher.held.id if self.publisher is not None else (item.version, "")
             ctx.count()
 
     def _send(self, item: "NewVersion") -> None:
         """Rank 0: reserve the version number on disk, encode, send, log, checkpoint."""
-        assert self.publisher is not None and self._ledger is not None
-        self.reserved = reserve_versions(self.ckpt_dir, item.version, self.reserved)
+        assert self.publisher is not None and self._versions_csv is not None
+        self.high_water = reserve_versions(self.ckpt_dir, item.version, self.high_water)
         v = self.publisher.encode(item.flat)
         m = v.manifest
         if m.version != item.version:
             raise RuntimeError(f"publisher numbered v{m.version} for learned v{item.version}")
         sent = self.publisher.send(v)
-        self.bytes_published += sent
         kind = "full" if m.base_version < 0 else "delta"
         self.publish_bytes[f"{kind}_versions"] += 1
         self.publish_bytes[f"{kind}_bytes"] += sent
-        self._ledger.write(f"{m.version},{m.checksum},{m.encoding},{item.env_steps},{time.time():.3f},{os.getpid()}\n")
+        self._versions_csv.write(f"{m.version},{m.checksum},{m.encoding},{item.env_steps},{time.time():.3f},{os.getpid()}\n")
         if item.optimizer is not None:
             self._checkpoint(item.version, item.env_steps, item.optimizer)
 
@@ -338,7 +331,7 @@ class Actor:
     def status_extra(self) -> dict[str, Any]:
         lags = self.lags[-1024:]
         acct = self.fabric.accounting
-        published = self._published or (self.published_version, "")
+        published = self.published
         return {
             "published_version": published[0],
             "inbox_depth": self.inbox.depth(),
@@ -349,7 +342,6 @@ class Actor:
             "policy_lag_mean": float(np.mean(lags)) if lags else 0.0,
             "policy_lag_p99": sample_percentile(lags, 0.99),
             "policy_lag_counts": {str(k): v for k, v in sorted(dict(self.ingest_lag_counts).items())},
-            "bytes_published": self.bytes_published,
             "updates_refused_nonfinite": self.learner.updates_refused_nonfinite,
             "rank": self.group.rank,
             "world_size": self.group.world_size,
@@ -369,10 +361,10 @@ class Actor:
         # optimizer state belongs to it and the run's end is checkpointed.
         if self.publisher is not None and self.published_version == self.policy_version > self._first_version:
             self._checkpoint(self.published_version, self.env_steps, optimizer_tensors(self.learner.optimizer))
-        if self._ledger is not None:
-            self._ledger.close()
+        if self._versions_csv is not None:
+            self._versions_csv.close()
         self.group.close()
-        self.receipts.close(clean=not self.failed)
+        self.ledger.close(clean=not self.failed)
 
 
 @dataclass
@@ -456,71 +448,6 @@ def _listen_address(cfg: RoleConfig) -> str | None:
 
 #: decoded chunks the data-plane inbox holds before backpressure
 INBOX = 64
-
-
-class Receipts:
-    """What this actor incarnation did with each rollout incarnation's chunks, in a counter file
-    that survives a kill (counters.py): got (out of the inbox), then exactly one of consumed,
-    dropped.<reason> or rejected.<reason>; a chunk got but not yet settled is in a slot (or
-    between lanes) and dies with the process. The fabric's own per-rollout drops and rejects
-    (backpressure, undecodable) are copied along, so the orchestrator can reconcile exactly."""
-
-    def __init__(self, file: CounterFile, fabric: Fabric, n_slots: int) -> None:
-        self.file = file
-        self.fabric = fabric
-        self.n_slots = n_slots
-        self._lock = threading.Lock()
-        self._src: dict[str, dict[str, int]] = {}
-        self._slot: dict[int, str] = {}
-        self._last_tick = 0.0
-        self._write(clean=False)
-
-    def got(self, chunk: TrajectoryChunk) -> str:
-        src = source_key(chunk.rollout, chunk.seq)
-        index = split_seq(chunk.seq)[1]
-        with self._lock:
-            c = self._src.setdefault(src, {"got": 0, "first": index, "last": index})
-            c["got"] += 1
-            c["first"] = min(c["first"], index)
-            c["last"] = max(c["last"], index)
-        return src
-
-    def hold(self, slot: int, src: str) -> None:
-        with self._lock:
-            self._slot[slot] = src
-        self._write()
-
-    def count(self, src: str, what: str) -> None:
-        with self._lock:
-            c = self._src[src]
-            c[what] = c.get(what, 0) + 1
-        self._write()
-
-    def release(self, slot: int, what: str) -> None:
-        with self._lock:
-            src = self._slot.pop(slot)
-            c = self._src[src]
-            c[what] = c.get(what, 0) + 1
-        self._write()
-
-    def tick(self) -> None:
-        now = time.monotonic()
-        if now - self._last_tick >= 0.5:
-            self._last_tick = now
-            self._write()
-
-    def _write(self, clean: bool = False) -> None:
-        with self._lock:  # snapshot and write together: a newer record is never overwritten by an older one
-            peers = self.fabric.accounting.snapshot().get(DATA, {}).get("peers", {})
-            fabric = {p: {"received": c.get("received", 0), "rejected": c.get("rejected", 0),
-                          "backpressure": c.get("dropped.backpressure", 0)} for p, c in peers.items()}
-            sources = {k: dict(v) for k, v in self._src.items()}
-            self.file.write({"kind": "actor", "sources": sources, "fabric": fabric, "inbox_cap": INBOX,
-                             "slots": self.n_slots, "clean": clean})
-
-    def close(self, clean: bool = True) -> None:
-        self._write(clean=clean)
-        self.file.close()
 
 
 if __name__ == "__main__":

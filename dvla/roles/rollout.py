@@ -40,8 +40,8 @@ from ..learn import make_env_group, make_policy
 from ..learn.policies import extras_spec, policy_base_hash, sample_actions
 from ..learn.envs import obs_as_dict, obs_to_torch, sim_layout
 from ..learn.grpo import grpo_envs
+from ..ledger import RolloutLedger
 from ..replication import HeldWeights, ParamLayout, bind_flat, unflatten_into
-from ..counters import INCARNATION_SHIFT, CounterFile
 from .chunkpool import ChunkPool, DeviceChunk, Shipment, chunk_template
 from .runtime import main
 from .swimlane import LaneContext, Swimlane, sample_percentile
@@ -177,13 +177,10 @@ class Rollout:
             g.chunk = g.chunks.take(threading.Event())
             if g.envs.on_device:
                 g.dev = DeviceChunk(template, g.envs.device)
-        # Counters that survive a kill -9 (counters.py); the incarnation goes in seq's high bits.
-        self.counters = CounterFile(cfg.run_dir, cfg.name)
-        self.seq = self.counters.incarnation << INCARNATION_SHIFT
-        self.chunks_produced = 0
+        #: chunks produced and shipped, in a counter file that survives a kill -9 (dvla/ledger.py)
+        self.ledger = RolloutLedger(cfg.run_dir, cfg.name, SHIP_QUEUE)
+        self.seq = self.ledger.first_seq
         self.env_steps = 0
-        self.chunks_shipped = 0
-        self.bytes_shipped = 0
         self.episodes = 0
         self.successes = 0
         #: returns and lengths of the most recent finished training episodes (status, TensorBoard)
@@ -206,7 +203,6 @@ class Rollout:
         self.to_infer = sl.queue("obs", len(self.groups))  # group ids whose obs await actions
         self.to_sim = sl.queue("actions", len(self.groups))  # Actions for a group
         self.to_ship = sl.queue("chunks", SHIP_QUEUE)  # Shipment: a finished chunk and its pool
-        self._count()
         self.weights = WeightSync(  # verified versions from the parent (ancestors as fallback) -> pool.held
             self.fabric, self.pool.held, (self.cfg.parent, *self.cfg.ancestors[1:]), lambda _v: self._ready.set(),
             base_hash=policy_base_hash(self.pool.active), base_source=str(self.cfg.task.policy_kwargs.get("checkpoint", "")),
@@ -342,8 +338,7 @@ class Rollout:
         g.versions = []
         # Produced = handed to the ship lane; a chunk finished while stopping never is.
         if self.to_ship.put(Shipment(chunk, g.chunks), ctx.stop, stats=ctx.stats):
-            self.chunks_produced += 1
-            self._count()
+            self.ledger.add_produced()
         else:
             g.chunks.give(chunk)
         nxt = g.chunks.take(ctx.stop)  # never waits with a full-size pool (chunkpool.py)
@@ -387,17 +382,10 @@ class Rollout:
 
     def _publish(self, shipment: Shipment) -> None:
         try:
-            self.bytes_shipped += self.fabric.publish_traj(shipment.chunk)  # encoded: the arrays are free again
+            nbytes = self.fabric.publish_traj(shipment.chunk)  # encoded: the arrays are free again
         finally:
             shipment.pool.give(shipment.chunk)
-        self.chunks_shipped += 1
-        self._count()
-
-    def _count(self, clean: bool = False) -> None:
-        self.counters.write({
-            "kind": "rollout", "produced": self.chunks_produced, "shipped": self.chunks_shipped,
-            "bytes": self.bytes_shipped, "queue_cap": SHIP_QUEUE, "clean": clean,
-        })
+        self.ledger.add_shipped(nbytes)
 
     # -- status -------------------------------------------------------------------------------
     def status_extra(self) -> dict[str, Any]:
@@ -406,8 +394,8 @@ class Rollout:
             # envs per group; one_scene: they share one simulator scene stepped as a batch
             "env_groups": [g.envs.n for g in self.groups],
             "one_scene": bool(self.groups[0].envs.on_device),
-            "chunks_produced": self.chunks_shipped,
-            "bytes_produced": self.bytes_shipped,
+            "chunks_shipped": self.ledger.shipped,
+            "bytes_shipped": self.ledger.bytes_shipped,
             "episodes": self.episodes,
             "train_success_rate": self.successes / self.episodes if self.episodes else 0.0,
             # copies first: the sim lane appends while status runs (list() of a deque is atomic)
@@ -427,8 +415,7 @@ class Rollout:
         # are joined, the fabric is still open).
         while hasattr(self, "to_ship") and (chunk := self.to_ship.get_nowait()) is not None:
             self._publish(chunk)
-        self._count(clean=True)
-        self.counters.close()
+        self.ledger.close()
         for g in self.groups:
             g.envs.close()
 

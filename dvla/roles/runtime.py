@@ -155,7 +155,7 @@ class RoleHost:
             env_steps=int(self.role.env_steps),
             steps_per_s=float(self.steps_per_s()),
             lanes=_lane_floats(self.swimlane.stats()),
-            planes=_ints(self.fabric.accounting.snapshot()),
+            planes=self.fabric.accounting.snapshot(),  # ints only
             extra={**self.role.status_extra(), "placement": {**self.placement, "lanes": self.swimlane.affinity()}},
             time_ns=time.time_ns(),
         )
@@ -211,10 +211,6 @@ def _lane_floats(stats: dict[str, dict[str, Any]]) -> dict[str, dict[str, float]
         lane: {k: float(v) for k, v in st.items() if isinstance(v, (int, float))}
         for lane, st in stats.items()
     }
-
-
-def _ints(d: dict[str, Any]) -> dict[str, Any]:
-    return {k: (_ints(v) if isinstance(v, dict) else int(v)) for k, v in d.items()}
 
 
 def main(role_factory: Any, argv: list[str] | None = None) -> int:

@@ -84,9 +84,13 @@ def test_up_tiny_end_to_end(tmp_path: Path) -> None:
         assert set(s["lanes"]) == set(ROLE_LANES[s["kind"]]), (s["name"], list(s["lanes"]))
     actor_version = summaries["actor-node0-0"]["extra"]["published_version"]
     assert actor_version >= 3
+    shipped = [summaries[name]["extra"]["chunks_shipped"] for name in ("rollout-node0-0", "rollout-node0-1")]
+    # every rollout shipped; their status counts all the books' produced chunks but those flushed
+    # as they closed (at most one each)
+    assert min(shipped) > 0 and 0 <= acct["produced"] - sum(shipped) <= len(shipped), (shipped, acct)
+    assert acct["incarnations"] == {"rollout": 2, "actor": 1} and acct["lost"] == 0
     for name in ("rollout-node0-0", "rollout-node0-1"):
         s = summaries[name]
-        assert s["extra"]["chunks_produced"] > 0
         assert s["policy_version"] >= 2, f"{name} never advanced past its first version"
         assert s["error"] is None
 
@@ -222,4 +226,4 @@ def test_up_with_one_scene_per_rollout(tmp_path: Path, kind: str, monkeypatch: p
     for name in ("rollout-node0-0", "rollout-node0-1"):
         s = json.loads((run_dir / "summaries" / f"{name}.json").read_text())
         assert s["error"] is None and s["extra"]["one_scene"] is True and s["extra"]["env_groups"] == [n], s["extra"]
-        assert s["extra"]["chunks_produced"] > 0 and s["extra"]["episodes"] > 0 and s["policy_version"] >= 2
+        assert s["extra"]["chunks_shipped"] > 0 and s["extra"]["episodes"] > 0 and s["policy_version"] >= 2

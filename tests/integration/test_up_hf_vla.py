@@ -83,7 +83,7 @@ def test_a_hf_vla_family_trains_through_dvla_up(tmp_path: Path, family: str, pol
         assert s["extra"]["weights"]["refused_base"] == 0
         # per env step: two 32x32x3 images (obs, final_obs), the extras, and ~650 bytes of tokens,
         # proprio, scalars, next_obs (one image per chunk of 10 steps) and headers
-        per_step = s["extra"]["bytes_produced"] / s["env_steps"]
+        per_step = s["extra"]["bytes_shipped"] / s["env_steps"]
         assert 2 * 32 * 32 * 3 + per_step_extras < per_step < 2 * 32 * 32 * 3 + per_step_extras + 1000, per_step
     ev = summaries["evaluator-node0-0"]
     assert ev["extra"]["evals"] >= 1 and ev["policy_version"] >= 1

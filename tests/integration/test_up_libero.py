@@ -45,7 +45,7 @@ def test_up_libero_trains_and_evaluates_per_task(tmp_path: Path) -> None:
     summaries = {p.stem: json.loads(p.read_text()) for p in (run_dir / "summaries").glob("*.json")}
     assert summaries["actor-node0-0"]["extra"]["published_version"] >= 3
     rollout = summaries["rollout-node0-0"]
-    assert rollout["error"] is None and rollout["extra"]["chunks_produced"] > 0
+    assert rollout["error"] is None and rollout["extra"]["chunks_shipped"] > 0
     assert rollout["policy_version"] >= 2, "no version after the first reached the rollout"
 
     with open(run_dir / "evals.csv") as f:

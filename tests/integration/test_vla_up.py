@@ -59,7 +59,7 @@ def test_local_vla_end_to_end(tmp_path: Path) -> None:
         assert s["infer_ms_p50"] > 0 and s["infer_ms_p99"] >= s["infer_ms_p50"]
         # Per env step a chunk carries the 64x64x3 image twice (obs, final_obs) plus small
         # arrays: about 25 kB as uint8; float32 images would be four times that.
-        per_step = s["bytes_produced"] / summaries[name]["env_steps"]
+        per_step = s["bytes_shipped"] / summaries[name]["env_steps"]
         assert 2 * 64 * 64 * 3 < per_step < 3 * 64 * 64 * 3, per_step
     with open(run_dir / "metrics.csv") as f:
         rows = list(csv.DictReader(f))

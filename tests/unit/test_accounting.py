@@ -1,10 +1,17 @@
-"""dvla.fabric.accounting: per-message counters written from many threads must add up exactly."""
+"""The chunk ledger (dvla/ledger.py) as the roles keep it, and its input, the fabric's per-plane
+counters (dvla/fabric/accounting.py): counts written from many threads add up exactly, and what a
+rollout and an actor record reconciles to ``produced = consumed + dropped + rejected + lost``
+with nothing unaccounted."""
 
 from __future__ import annotations
 
+import os
 import threading
 
-from dvla.fabric.accounting import Accounting
+from pathlib import Path
+
+from dvla.fabric.accounting import UNAUTHENTICATED, Accounting
+from dvla.ledger import INCARNATION_SHIFT, ActorLedger, RolloutLedger, reconcile
 
 DATA = "data"
 
@@ -21,6 +28,8 @@ def test_counters_per_plane_and_peer() -> None:
     assert acct.get(DATA, "received", "rollout-0") == 0
     assert acct.get(DATA, "rejected.malformed") == acct.get(DATA, "rejected") == 1
     assert acct.get(DATA, "dropped.stale", "rollout-0") == 3
+    acct.add(DATA, "dropped.shutdown", "rollout-0")  # a reason's counter counts its total in the same step
+    assert acct.get(DATA, "dropped", "rollout-0") == acct.get(DATA, "dropped") == 4
     snap = acct.snapshot()
     assert snap[DATA]["received"] == 2 and snap[DATA]["peers"]["rollout-1"]["received_bytes"] == 100
 
@@ -93,3 +102,81 @@ def test_peers_are_bounded_and_totals_stay_exact() -> None:
     status = RoleStatus(name="actor-0", kind="actor", node="n", rack="r", pid=1, state="running",
                         policy_version=0, env_steps=0, steps_per_s=0.0, planes=flood.snapshot())
     assert encode(status)
+
+
+def _ship(run: Path, name: str, chunks: int, nbytes: int = 1000) -> RolloutLedger:
+    """A rollout incarnation that produced and shipped `chunks`, then exited cleanly."""
+    r = RolloutLedger(run, name, queue_cap=8)
+    for _ in range(chunks):
+        r.add_produced()
+        r.add_shipped(nbytes)
+    r.close()
+    return r
+
+
+def test_what_the_roles_record_closes_the_books_exactly(tmp_path: Path) -> None:
+    acct = Accounting(known_peers=["rollout-a"])
+    r = _ship(tmp_path, "rollout-a", 12)
+    a = ActorLedger(tmp_path, "actor-0", acct, slots=4, inbox_cap=64)
+    fates = ["consumed"] * 6 + ["dropped.stale"] * 2 + ["rejected.nonfinite", "dropped.shutdown", "fabric"] + ["consumed"]
+    for i, fate in enumerate(fates):
+        seq = r.first_seq + i
+        acct.received(DATA, 1000, "rollout-a")
+        if fate == "fabric":  # the inbox was full: the fabric dropped it, the actor never got it
+            acct.dropped(DATA, "backpressure", "rollout-a")
+            continue
+        src = a.got("rollout-a", seq)
+        if fate == "consumed":  # through a slot, as ingest and batch do
+            a.hold(i % 4, src)
+            a.release(i % 4, fate)
+        else:
+            a.settle(src, fate)
+    for _ in range(3):  # another run's chunks on this run's key: refused by the envelope check
+        acct.received(DATA, 1000, UNAUTHENTICATED)
+        acct.rejected(DATA, "key_id", UNAUTHENTICATED)
+    a.close()
+    books = reconcile(tmp_path)
+    assert {k: books[k] for k in ("produced", "consumed", "dropped", "rejected", "lost", "unaccounted")} == {
+        "produced": 12, "consumed": 7, "dropped": 4, "rejected": 1, "lost": 0, "unaccounted": 0}
+    assert books["dropped_by_reason"] == {"stale": 2, "shutdown": 1, "backpressure": 1}
+    assert books["rejected_by_reason"] == {"nonfinite": 1}
+    assert books["foreign_rejected"] == 3 and books["notes"] == []
+    assert books["incarnations"] == {"rollout": 1, "actor": 1}
+    # every settlement reached the plane counters status shows, under the rollout's name
+    assert (acct.get(DATA, "consumed", "rollout-a"), acct.get(DATA, "dropped.stale", "rollout-a"),
+            acct.get(DATA, "rejected.nonfinite", "rollout-a"), acct.get(DATA, "dropped", "rollout-a")) == (7, 2, 1, 4)
+
+
+def test_a_killed_actor_takes_its_slots_and_the_next_incarnation_numbers_on(tmp_path: Path) -> None:
+    acct = Accounting()
+    r = _ship(tmp_path, "rollout-a", 10)
+    a = ActorLedger(tmp_path, "actor-0", acct, slots=4, inbox_cap=64)
+    for i in range(10):
+        src = a.got("rollout-a", r.first_seq + i)
+        a.hold(i % 4, src)
+        if i < 7:
+            a.release(i % 4, "consumed")
+    # killed with three chunks in its slots: no close(), the file keeps its last record
+    r2 = RolloutLedger(tmp_path, "rollout-a", queue_cap=8)  # the rollout restarted, shipping nothing yet
+    assert r2.first_seq == 1 << INCARNATION_SHIFT  # the second incarnation, in seq's high bits
+    r2.close()
+    books = reconcile(tmp_path)
+    (lost,) = books["lost_by_incarnation"]
+    assert (lost["role"], lost["where"], lost["lost"], lost["in_actor"], lost["lost_bound"]) == ("actor-0", "actor", 3, 3, 4 + 2 + 64)
+    assert books["produced"] == 10 == books["consumed"] + books["lost"] and books["unaccounted"] == 0
+    assert books["lost_within_bounds"]
+
+
+def test_a_chunk_held_at_a_clean_exit_is_unaccounted_and_named(tmp_path: Path) -> None:
+    r = _ship(tmp_path, "rollout-a", 2)
+    a = ActorLedger(tmp_path, "actor-0", Accounting(), slots=4, inbox_cap=64)
+    a.settle(a.got("rollout-a", r.first_seq), "consumed")
+    a.hold(0, a.got("rollout-a", r.first_seq + 1))  # never released, yet the actor exits cleanly
+    a.close()
+    books = reconcile(tmp_path)
+    assert books["unaccounted"] == 1 and books["notes"] == ["actor-0.0.%d: 1 chunks held at a clean exit" % os.getpid()]
+
+
+def test_an_empty_run_has_empty_books(tmp_path: Path) -> None:
+    books = reconcile(tmp_path)
+    assert (books["produced"], books["unaccounted"], books["incarnations"]) == (0, 0, {"rollout": 0, "actor": 0})
