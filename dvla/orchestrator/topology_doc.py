@@ -1,4 +1,5 @@
-"""docs/topology.md, generated from the schema in dvla/config.py and its `#:` field comments.
+"""docs/topology.md, generated from the schema in dvla/config.py: its fields, defaults, ranges
+and `#:` field comments.
 
     python -m dvla.orchestrator.topology_doc > docs/topology.md
 
@@ -16,7 +17,8 @@ import typing
 from typing import Any
 
 from .. import config
-from .topology import MAX_DEPTH, MAX_FILE_BYTES, MAX_SHOWN, MAX_VALUES
+from ..config import MAX_SHOWN
+from .topology import MAX_DEPTH, MAX_FILE_BYTES
 
 HEADER = """# Topology files
 
@@ -41,8 +43,8 @@ FOOTER = """Roles: `actor` (exactly one publishes weights: the first), `rollout`
 
 #: what the loader refuses whatever the schema says (a topology file is input like any other)
 LIMITS = (f"\nA topology file is input like any other, checked before anything starts: at most {MAX_FILE_BYTES} bytes, "
-          f"nested at most {MAX_DEPTH} levels, at most {MAX_VALUES} values once YAML aliases are expanded (an alias "
-          "of a list or mapping inside itself is refused); `.nan` and `.inf` are refused in every number; rack and node "
+          f"nested at most {MAX_DEPTH} levels, without YAML anchors, aliases or merge keys (`&`, `*`, `<<`); `.nan` and "
+          "`.inf` are refused in every number; rack and node "
           "names are one Zenoh key chunk (1 to 64 of letters, digits, `_`, `.`, `-`, starting with a letter or digit, "
           "and so are the process names `<role>-<node>-<index>` made from them); `host` and `address` are a DNS name "
           "or an IP address (IPv6 bare or in brackets; nothing starting with `-`; the login user goes in `ssh.user`); "
@@ -104,12 +106,13 @@ def _sections(cls: type, path: str) -> list[str]:
             continue
         nested, suffix = _nested(hints[f.name])
         meaning = comments.get(f.name, "")
-        rows.append(f"| `{f.name}` | {_default(f, nested)} | {meaning} |")
+        allowed = f.metadata.get("range")
+        rows.append(f"| `{f.name}` | {_default(f, nested)} | {f'`{allowed.describe(f.name)}`' if allowed else ''} | {meaning} |")
         if nested is not None:
             sub = f"{path}.{f.name}{suffix}" if path else f"{f.name}{suffix}"
             below.extend(_sections(nested, sub))
     title = path or "top level"
-    table = [f"## `{title}`", "", "| key | default | meaning |", "|---|---|---|", *rows, ""]
+    table = [f"## `{title}`", "", "| key | default | range | meaning |", "|---|---|---|---|", *rows, ""]
     return table + below
 
 
