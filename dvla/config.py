@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import json
+import math
 import os
 import re
 import types
@@ -56,7 +57,7 @@ class Range(NamedTuple):
     note: str = ""
 
     def holds(self, v: float) -> bool:
-        return (v > self.low if self.open_low else v >= self.low) and (self.high is None or v <= self.high)
+        return math.isfinite(v) and (v > self.low if self.open_low else v >= self.low) and (self.high is None or v <= self.high)
 
     def describe(self, name: str) -> str:
         if self.high is None:
@@ -86,12 +87,13 @@ def rule(default: Any = dataclasses.MISSING, *, factory: Any = dataclasses.MISSI
     return field(default=default, default_factory=factory, metadata=meta)
 
 
-def check_ranges(obj: Any) -> None:
-    """Raise ValueError naming the first field of ``obj`` outside its range."""
+def range_problems(obj: Any) -> Problems:
+    """(field, message) for each field of ``obj`` outside its range (a config built in code, or
+    changed by a command-line flag)."""
     for f in dataclasses.fields(obj):
         allowed, value = f.metadata.get("range"), getattr(obj, f.name)
         if allowed is not None and value is not None and not allowed.holds(value):
-            raise ValueError(f"{f.name}: {value!r} is out of range (expected {allowed.describe(f.name)})")
+            yield f.name, f"{value!r} is out of range (expected {allowed.describe(f.name)})"
 
 
 def _nonempty(problem: str) -> Callable[[Any], str | None]:
@@ -233,7 +235,8 @@ class PPOConfig:
     micro_batch: int | None = rule(None, ge=1)
 
     def __post_init__(self) -> None:
-        check_ranges(self)  # a config built in code (tests, scripts/tune_ppo.py) too
+        for name, message in range_problems(self):  # a config built in code (tests, scripts/tune_ppo.py)
+            raise ValueError(f"{name}: {message}")
 
     def problems(self) -> Problems:
         if self.batch_steps < self.minibatches:

@@ -21,6 +21,7 @@ import dataclasses
 import difflib
 import functools
 import importlib
+import json
 import math
 import os
 import re
@@ -103,16 +104,8 @@ class TopologyError(ValueError):
         super().__init__("\n".join(str(p) for p in self.problems))
 
 
-class _Invalid:
-    """Marks a value that could not be read (its problem is already reported)."""
-
-    __slots__ = ()
-
-    def __repr__(self) -> str:
-        return "<invalid>"
-
-
-INVALID: Any = _Invalid()
+#: a value that could not be read (its problem is already reported)
+INVALID: Any = object()
 
 
 def _one_line(text: str, limit: int) -> str:
@@ -222,18 +215,15 @@ def _unwrap_optional(hint: Any) -> tuple[Any, bool]:
     return rest[0], True
 
 
+_SCALARS = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+
+
 def _describe_hint(hint: Any) -> str:
     """What a value of this type looks like, for "expected ..." messages."""
     inner, nullable = _unwrap_optional(hint)
     origin = typing.get_origin(inner)
-    if inner is bool:
-        text = "true or false"
-    elif inner is int:
-        text = "an integer"
-    elif inner is float:
-        text = "a number"
-    elif inner is str:
-        text = "a string"
+    if inner in _SCALARS:
+        text = _SCALARS[inner]
     elif origin is Literal:
         text = "one of " + ", ".join(str(a) for a in typing.get_args(inner))
     elif origin is tuple:
@@ -285,7 +275,7 @@ def _read(node: Node, hint: Any, path: str, ctx: _Context) -> Any:
         return _read_dict(node, hint, inner, path, ctx)
     if origin is Literal:
         return _read_literal(node, hint, inner, path, ctx)
-    if inner in (bool, int, float, str):
+    if inner in _SCALARS:
         return _read_scalar(node, hint, inner, path, ctx)
     raise TypeError(f"unsupported type in the topology schema at {path}: {hint!r}")
 
@@ -628,20 +618,11 @@ def load_topology(path: str | os.PathLike[str]) -> Topology:
     return parse_topology(text, source)
 
 
-def _plain(value: Any) -> Any:
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {name: _plain(getattr(value, name)) for name in _yaml_fields(type(value))}
-    if isinstance(value, (tuple, list)):
-        return [_plain(v) for v in value]
-    if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
-    return value
-
-
 def topology_to_dict(topo: Topology) -> dict[str, Any]:
     """The topology as plain dicts, lists and scalars, every default filled in (``source`` left out:
     the loader sets it)."""
-    return _plain(topo)
+    plain = json.loads(json.dumps(dataclasses.asdict(topo)))  # tuples become lists
+    return {k: v for k, v in plain.items() if k not in LOADER_OWNED}
 
 
 def dump_topology_yaml(topo: Topology) -> str:
