@@ -972,12 +972,19 @@ class RoleConfig:
         return _from_plain(RoleConfig, json.loads(text))
 
 
+def unwrap_optional(hint: Any) -> tuple[Any, bool]:
+    """``X | None`` -> (X, True); anything else -> (hint, False)."""
+    if typing.get_origin(hint) not in (typing.Union, types.UnionType):
+        return hint, False
+    (inner,) = [a for a in typing.get_args(hint) if a is not type(None)]  # the schema has no other unions
+    return inner, True
+
+
 def _from_plain(hint: Any, value: Any) -> Any:
     """A value of type `hint` rebuilt from its `dataclasses.asdict` JSON form (trusted input)."""
-    if typing.get_origin(hint) in (typing.Union, types.UnionType):  # X | None
-        if value is None:
-            return None
-        hint = next(a for a in typing.get_args(hint) if a is not type(None))
+    hint = unwrap_optional(hint)[0]
+    if value is None:
+        return None
     if dataclasses.is_dataclass(hint):
         hints = typing.get_type_hints(hint)
         return hint(**{name: _from_plain(hints[name], v) for name, v in value.items()})

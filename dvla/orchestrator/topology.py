@@ -26,10 +26,9 @@ import math
 import os
 import re
 import sys
-import types
 import typing
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator, Literal, Union
+from typing import Any, Callable, Iterator, Literal
 
 import yaml
 from yaml.events import AliasEvent
@@ -47,6 +46,7 @@ from dvla.config import (
     libero_assets_problem,
     show,
     unknown_value,
+    unwrap_optional,
 )
 
 from .process import is_local_host
@@ -65,7 +65,6 @@ MAX_DEPTH = 64
 MAX_PROBLEMS = 100
 
 _TAG = "tag:yaml.org,2002:"
-_NONE_TYPE = type(None)
 #: plain scalars like ``3e-4`` are strings to YAML 1.1 but numbers to everyone writing them
 _EXPONENT_FLOAT_RE = re.compile(r"[-+]?(?:\d[\d_]*\.?[\d_]*|\.\d[\d_]*)[eE][-+]?\d+")
 
@@ -205,22 +204,12 @@ def _yaml_fields(cls: type) -> dict[str, dataclasses.Field]:
     return {f.name: f for f in dataclasses.fields(cls) if f.name not in skip}
 
 
-def _unwrap_optional(hint: Any) -> tuple[Any, bool]:
-    """``X | None`` -> (X, True); anything else -> (hint, False)."""
-    if typing.get_origin(hint) not in (Union, types.UnionType):
-        return hint, False
-    rest = [a for a in typing.get_args(hint) if a is not _NONE_TYPE]
-    if len(rest) != 1:
-        raise TypeError(f"unsupported union in the topology schema: {hint!r}")
-    return rest[0], True
-
-
 _SCALARS = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
 
 
 def _describe_hint(hint: Any) -> str:
     """What a value of this type looks like, for "expected ..." messages."""
-    inner, nullable = _unwrap_optional(hint)
+    inner, nullable = unwrap_optional(hint)
     origin = typing.get_origin(inner)
     if inner in _SCALARS:
         text = _SCALARS[inner]
@@ -261,7 +250,7 @@ def _mismatch(node: Node, hint: Any, path: str, ctx: _Context, advice: str = "")
 
 def _read(node: Node, hint: Any, path: str, ctx: _Context) -> Any:
     """Read ``node`` as a value of type ``hint``; report problems and return INVALID on failure."""
-    inner, nullable = _unwrap_optional(hint)
+    inner, nullable = unwrap_optional(hint)
     if nullable and isinstance(node, ScalarNode) and node.tag == _TAG + "null":
         return None
     origin = typing.get_origin(inner)

@@ -12,7 +12,6 @@ import dataclasses
 import inspect
 import re
 import sys
-import types
 import typing
 from typing import Any
 
@@ -75,18 +74,11 @@ def field_comments(cls: type) -> dict[str, str]:
 def _nested(hint: Any) -> tuple[type | None, str]:
     """(dataclass type inside the hint, path suffix): X -> (X, ""), tuple[X, ...] -> (X, "[]"),
     X | None -> (X, "")."""
-    origin = typing.get_origin(hint)
+    hint = config.unwrap_optional(hint)[0]
     if dataclasses.is_dataclass(hint):
         return hint, ""
-    if origin is tuple:
-        args = [a for a in typing.get_args(hint) if a is not Ellipsis]
-        if len(args) == 1 and dataclasses.is_dataclass(args[0]):
-            return args[0], "[]"
-    if origin in (typing.Union, types.UnionType):
-        inner = [a for a in typing.get_args(hint) if a is not type(None)]
-        if len(inner) == 1:
-            return _nested(inner[0])
-    return None, ""
+    item = typing.get_args(hint)[0] if typing.get_origin(hint) is tuple else None
+    return (item, "[]") if dataclasses.is_dataclass(item) else (None, "")
 
 
 def _default(f: dataclasses.Field, nested: type | None) -> str:
