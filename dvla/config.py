@@ -109,12 +109,6 @@ def _printable(value: str) -> str | None:
 RUN_ID_RE = re.compile(r"[a-z0-9][a-z0-9_-]{0,39}")
 
 
-def _run_id_problem(run: str) -> str | None:
-    if RUN_ID_RE.fullmatch(run):
-        return None
-    return f"invalid run id {show(run)} (expected 1 to 40 of a-z, 0-9, '_', '-', starting with a letter or digit)"
-
-
 def key_chunk_problem(what: str, value: str) -> str | None:
     """Why ``value`` cannot be one Zenoh key chunk (rack, node and process names), or None."""
     from dvla.fabric.keys import check_name
@@ -496,7 +490,7 @@ def env_group_sizes(envs_per_rollout: int, one_scene: bool = False) -> list[int]
 def grpo_layout_problems(task: Any) -> list[tuple[str, str]]:
     """``(task key, message)`` for each setting that breaks GRPO's layout (dvla/learn/grpo.py):
     one chunk = one whole episode, every env group made of whole groups. Empty unless
-    ``task.algorithm`` is "grpo". ``task`` is a TaskConfig or anything with its attributes."""
+    ``task.algorithm`` is "grpo"."""
     if task.algorithm != "grpo":
         return []
     out = []
@@ -806,7 +800,8 @@ class Topology:
     """A validated topology file."""
 
     #: run id; keys, run directory and process names derive from it
-    run: str = rule(check=_run_id_problem)
+    run: str = rule(check=lambda run: None if RUN_ID_RE.fullmatch(run) else (
+        f"invalid run id {show(run)} (expected 1 to 40 of a-z, 0-9, '_', '-', starting with a letter or digit)"))
     #: the file it was read from (for messages)
     source: str = "<memory>"
     #: master seed

@@ -34,20 +34,8 @@ import yaml
 from yaml.events import AliasEvent
 from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 
-from dvla.config import (
-    LIBERO_ASSETS_ENV,
-    LIBERO_ASSETS_FIX,
-    LIBERO_ENV,
-    LOCAL_HOSTS,
-    Problems,
-    TaskConfig,
-    Topology,
-    cut,
-    libero_assets_problem,
-    show,
-    unknown_value,
-    unwrap_optional,
-)
+from dvla.config import (LIBERO_ASSETS_ENV, LIBERO_ASSETS_FIX, LIBERO_ENV, LOCAL_HOSTS, Problems, TaskConfig, Topology, cut,
+                         libero_assets_problem, show, unknown_value, unwrap_optional)
 
 from .process import is_local_host
 

@@ -17,7 +17,7 @@ from typing import Any
 
 from .. import config
 from ..config import MAX_SHOWN
-from .topology import MAX_DEPTH, MAX_FILE_BYTES
+from .topology import LOADER_OWNED, MAX_DEPTH, MAX_FILE_BYTES
 
 HEADER = """# Topology files
 
@@ -50,9 +50,6 @@ LIMITS = (f"\nA topology file is input like any other, checked before anything s
           "a `module:Class` policy must import on the machine running `dvla plan`/`dvla up` (with the working "
           f"directory on the path, as the roles import it). Values quoted in messages are cut to {MAX_SHOWN} "
           "characters.\n")
-
-#: fields of the schema that are not keys of the file (filled in by the loader)
-INTERNAL = {(config.Topology, "source")}
 
 
 def field_comments(cls: type) -> dict[str, str]:
@@ -94,7 +91,7 @@ def _sections(cls: type, path: str) -> list[str]:
     comments = field_comments(cls)
     rows, below = [], []
     for f in dataclasses.fields(cls):
-        if (cls, f.name) in INTERNAL:
+        if cls is config.Topology and f.name in LOADER_OWNED:
             continue
         nested, suffix = _nested(hints[f.name])
         meaning = comments.get(f.name, "")
