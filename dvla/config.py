@@ -329,12 +329,13 @@ class LiberoConfig:
     #: suite: libero_spatial, libero_object, libero_goal, libero_10 or libero_90
     suite: LiberoSuite = "libero_spatial"
     #: task ids within the suite (0 .. 9; 0 .. 89 for libero_90) (None: every task of the suite)
-    task_ids: tuple[int, ...] | None = rule(None, check=_nonempty("empty list (expected task ids of the suite, or null for every task)"))
+    task_ids: tuple[int, ...] | None = rule(
+        None, check=_nonempty("empty list (expected task ids of the suite, or null for every task)"))
     #: directory holding LIBERO's assets (articulated_objects/, scenes/, textures/, ...),
     #: relative to the topology file (None: the DVLA_LIBERO_ASSETS environment variable); it must
     #: exist at that path on every host that runs LIBERO envs
     assets: str | None = rule(None, nonempty="a directory, or null for $DVLA_LIBERO_ASSETS", path=True,
-                              check=lambda path: libero_assets_problem(path))
+                              check=libero_assets_problem)
     #: also render the wrist camera (robot0_eye_in_hand) beside the agent view
     wrist_camera: bool = True
     #: MuJoCo's offscreen GL backend: "egl" (Mesa's EGL on CPU machines, the NVIDIA driver on

@@ -468,7 +468,8 @@ def _libero_assets_problems(task: TaskConfig) -> Problems:
         return
     path = os.environ.get(LIBERO_ASSETS_ENV)
     if not path:
-        yield "libero.assets", f"not set and {LIBERO_ASSETS_ENV} is empty (expected LIBERO's assets directory; {LIBERO_ASSETS_FIX})"
+        yield "libero.assets", (f"not set and {LIBERO_ASSETS_ENV} is empty (expected LIBERO's assets directory; "
+                                f"{LIBERO_ASSETS_FIX})")
     elif problem := libero_assets_problem(os.path.abspath(os.path.expanduser(path))):
         yield "libero.assets", f"{LIBERO_ASSETS_ENV}: {problem}"
 
@@ -485,7 +486,8 @@ def _checkpoint_problems(topo: Topology) -> Problems:
         return
     path = task.policy_kwargs.get("checkpoint")
     if not isinstance(path, str) or not path:
-        yield "task.policy_kwargs", f"policy {task.policy!r} needs policy_kwargs.checkpoint: a local checkpoint directory (docs/policies.md)"
+        yield "task.policy_kwargs", (f"policy {task.policy!r} needs policy_kwargs.checkpoint: a local checkpoint "
+                                     "directory (docs/policies.md)")
         return
     if any(node.host not in LOCAL_HOSTS for _rack, node in topo.nodes()) and not os.path.exists(path):
         return
