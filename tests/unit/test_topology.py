@@ -407,3 +407,13 @@ def test_a_hf_policys_checkpoint_is_checked_before_anything_starts(tmp_path: Pat
     # the right family loads
     ok = MINIMAL + f"task:\n  obs_mode: rgb\n  policy: vla-flow\n  policy_kwargs: {{checkpoint: {flow}}}\n"
     assert parse_topology(ok, "t.yaml").task.policy == "vla-flow"
+
+
+def test_the_schemas_policy_list_is_the_registry() -> None:
+    """A topology may name exactly the registered policies (besides "module:Class")."""
+    from dvla.config import POLICY_OBS
+    from dvla.learn.policies import registered_policies
+
+    assert sorted(POLICY_OBS) == registered_policies()
+    (problem,) = _problems(MINIMAL + "task:\n  policy: mpl\n")
+    assert problem.path == "task.policy" and "did you mean 'mlp'?" in problem.message
