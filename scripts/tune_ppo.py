@@ -68,7 +68,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="clip the ratio against the behaviour policy (default: decoupled PPO)")
     # Decoupled PPO used to be opt-in; the flag is accepted so older command lines still run.
     p.add_argument("--decoupled", action="store_true", help=argparse.SUPPRESS)
-    p.add_argument("--is-clip", type=float, default=2.0, help="truncation of the decoupled IS weight")
+    p.add_argument("--is-clip", type=float, default=d.is_clip, help="truncation of the decoupled IS weight")
     p.add_argument("--obs-norm", action="store_true", help="running observation normalisation")
     p.add_argument("--init-log-std", type=float, default=-0.5)
     p.add_argument("--terminations", choices=("reset", "bootstrap", "ignore"), default="bootstrap",

@@ -157,8 +157,8 @@ BATCH_KEYS = ("obs", "actions", "logprobs", "advantages", "returns")
 class PPOLearner:
     """Clipped-surrogate PPO on batches of (possibly stale) transitions.
 
-    With ``decoupled=False`` the ratio is against the behaviour log-probs in the batch. With
-    ``decoupled=True`` (the default) the clip is instead applied to the ratio against the policy
+    With ``cfg.decoupled`` false the ratio is against the behaviour log-probs in the batch. With
+    ``cfg.decoupled`` true (the default) the clip is instead applied to the ratio against the policy
     at the start of the update (the "proximal" policy), and the staleness is corrected by an
     importance weight proximal/behaviour truncated at ``is_clip`` (decoupled PPO, Hilton et al.
     2021): with lag 0 both are the same objective; with stale data the trust region no longer
@@ -193,9 +193,9 @@ class PPOLearner:
     ):
         self.policy = policy
         self.cfg = cfg
-        # Config fields win when present; the keywords override them (used by the tuning tool).
-        self.decoupled = bool(getattr(cfg, "decoupled", True)) if decoupled is None else decoupled
-        self.is_clip = float(getattr(cfg, "is_clip", 2.0)) if is_clip is None else is_clip
+        # the keywords override the config's fields (scripts/tune_ppo.py compares both objectives)
+        self.decoupled = cfg.decoupled if decoupled is None else decoupled
+        self.is_clip = cfg.is_clip if is_clip is None else is_clip
         self.device = torch.device(device)
         #: what the optimizer updates: parameters that require grad (a frozen base does not)
         self._trainable = [p for p in policy.parameters() if p.requires_grad]

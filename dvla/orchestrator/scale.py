@@ -21,7 +21,7 @@ from typing import Any
 
 import simpy
 
-from ..config import RackConfig, SimulateConfig, Topology
+from ..config import RackConfig, SimulateConfig, Topology, range_problems
 from .plan import Plan, make_plan
 from .simulate import BroadcastPrediction, HostCosts, link_rate, max_min_rates, path_links, simulate_broadcast
 
@@ -97,19 +97,8 @@ def _bad(key: str, text: str) -> ScaleError:
 
 def check_inputs(cfg: SimulateConfig, topo: Topology) -> None:
     """Raises ScaleError naming the key and its flag when the model cannot describe the cluster."""
-    for key in ("nodes", "racks"):
-        v = getattr(cfg, key)
-        if v is not None and v < 1:
-            raise _bad(key, f"must be >= 1, got {v}")
-    for key in ("env_steps_per_s", "step_bytes", "learner_steps_per_s", "trainable_fraction", "node_memory_gib",
-                "process_gbit", "params"):
-        v = getattr(cfg, key)
-        if v is not None and not (math.isfinite(v) and v > 0):
-            raise _bad(key, f"must be a positive number, got {v}")
-    if cfg.trainable_fraction > 1:
-        raise _bad("trainable_fraction", f"must be at most 1, got {cfg.trainable_fraction}")
-    if not (math.isfinite(cfg.hop_latency_s) and cfg.hop_latency_s >= 0):
-        raise _bad("hop_latency_s", f"must be >= 0, got {cfg.hop_latency_s}")
+    for key, message in range_problems(cfg):  # the flags override the topology's keys
+        raise _bad(key, message)
     if cfg.nodes is not None and cfg.racks is not None and cfg.racks > cfg.nodes:
         raise _bad("racks", f"{cfg.racks} racks cannot hold {cfg.nodes} nodes")
     if cfg.node_memory_gib is not None:

@@ -1,4 +1,5 @@
-"""docs/topology.md, generated from the schema in dvla/config.py and its `#:` field comments.
+"""docs/topology.md, generated from the schema in dvla/config.py: its fields, defaults, ranges
+and `#:` field comments.
 
     python -m dvla.orchestrator.topology_doc > docs/topology.md
 
@@ -11,12 +12,12 @@ import dataclasses
 import inspect
 import re
 import sys
-import types
 import typing
 from typing import Any
 
 from .. import config
-from .topology import MAX_DEPTH, MAX_FILE_BYTES, MAX_SHOWN, MAX_VALUES
+from ..config import MAX_SHOWN
+from .topology import LOADER_OWNED, MAX_DEPTH, MAX_FILE_BYTES
 
 HEADER = """# Topology files
 
@@ -41,17 +42,14 @@ FOOTER = """Roles: `actor` (exactly one publishes weights: the first), `rollout`
 
 #: what the loader refuses whatever the schema says (a topology file is input like any other)
 LIMITS = (f"\nA topology file is input like any other, checked before anything starts: at most {MAX_FILE_BYTES} bytes, "
-          f"nested at most {MAX_DEPTH} levels, at most {MAX_VALUES} values once YAML aliases are expanded (an alias "
-          "of a list or mapping inside itself is refused); `.nan` and `.inf` are refused in every number; rack and node "
+          f"nested at most {MAX_DEPTH} levels, without YAML anchors, aliases or merge keys (`&`, `*`, `<<`); `.nan` and "
+          "`.inf` are refused in every number; rack and node "
           "names are one Zenoh key chunk (1 to 64 of letters, digits, `_`, `.`, `-`, starting with a letter or digit, "
           "and so are the process names `<role>-<node>-<index>` made from them); `host` and `address` are a DNS name "
           "or an IP address (IPv6 bare or in brackets; nothing starting with `-`; the login user goes in `ssh.user`); "
           "a `module:Class` policy must import on the machine running `dvla plan`/`dvla up` (with the working "
           f"directory on the path, as the roles import it). Values quoted in messages are cut to {MAX_SHOWN} "
           "characters.\n")
-
-#: fields of the schema that are not keys of the file (filled in by the loader)
-INTERNAL = {(config.Topology, "source")}
 
 
 def field_comments(cls: type) -> dict[str, str]:
@@ -73,18 +71,11 @@ def field_comments(cls: type) -> dict[str, str]:
 def _nested(hint: Any) -> tuple[type | None, str]:
     """(dataclass type inside the hint, path suffix): X -> (X, ""), tuple[X, ...] -> (X, "[]"),
     X | None -> (X, "")."""
-    origin = typing.get_origin(hint)
+    hint = config.unwrap_optional(hint)[0]
     if dataclasses.is_dataclass(hint):
         return hint, ""
-    if origin is tuple:
-        args = [a for a in typing.get_args(hint) if a is not Ellipsis]
-        if len(args) == 1 and dataclasses.is_dataclass(args[0]):
-            return args[0], "[]"
-    if origin in (typing.Union, types.UnionType):
-        inner = [a for a in typing.get_args(hint) if a is not type(None)]
-        if len(inner) == 1:
-            return _nested(inner[0])
-    return None, ""
+    item = typing.get_args(hint)[0] if typing.get_origin(hint) is tuple else None
+    return (item, "[]") if dataclasses.is_dataclass(item) else (None, "")
 
 
 def _default(f: dataclasses.Field, nested: type | None) -> str:
@@ -100,16 +91,17 @@ def _sections(cls: type, path: str) -> list[str]:
     comments = field_comments(cls)
     rows, below = [], []
     for f in dataclasses.fields(cls):
-        if (cls, f.name) in INTERNAL:
+        if cls is config.Topology and f.name in LOADER_OWNED:
             continue
         nested, suffix = _nested(hints[f.name])
         meaning = comments.get(f.name, "")
-        rows.append(f"| `{f.name}` | {_default(f, nested)} | {meaning} |")
+        allowed = f.metadata.get("range")
+        rows.append(f"| `{f.name}` | {_default(f, nested)} | {f'`{allowed.describe(f.name)}`' if allowed else ''} | {meaning} |")
         if nested is not None:
             sub = f"{path}.{f.name}{suffix}" if path else f"{f.name}{suffix}"
             below.extend(_sections(nested, sub))
     title = path or "top level"
-    table = [f"## `{title}`", "", "| key | default | meaning |", "|---|---|---|", *rows, ""]
+    table = [f"## `{title}`", "", "| key | default | range | meaning |", "|---|---|---|---|", *rows, ""]
     return table + below
 
 

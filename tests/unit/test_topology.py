@@ -138,31 +138,15 @@ def test_problems_are_sorted_by_line() -> None:
     assert [(p.line, p.path) for p in problems] == [(1, "seed"), (2, "base_port"), (3, "run")]
 
 
-def test_anchors_aliases_and_merge_keys() -> None:
-    text = """\
-run: m
-racks:
-  - name: r0
-    nodes:
-      - &worker
-        name: n0
-        roles: &just_rollout
-          - role: rollout
-      - <<: *worker
-        name: n1
-        roles: [{role: actor}]
-      - name: n2
-        roles: *just_rollout
-      - <<: *worker
-        name: n3
-        rolez: []
-"""
-    (problem,) = _problems(text)
-    assert (problem.line, problem.path) == (16, "racks[0].nodes[3].rolez")
-    assert "did you mean 'roles'?" in problem.message
-    topo = parse_topology(text.replace("        rolez: []\n", ""))
-    assert [n.name for _, n in topo.nodes()] == ["n0", "n1", "n2", "n3"]
-    assert [n.roles[0].role for _, n in topo.nodes()] == ["rollout", "actor", "rollout", "rollout"]
+def test_anchors_aliases_and_merge_keys_are_refused() -> None:
+    """No topology needs them, and a few aliases make a small file stand for 10^9 values."""
+    text = MINIMAL.replace("      - name: n0\n", "      - &worker\n        name: n0\n")
+    assert [str(p) for p in _problems(text)] == ["t.yaml:5: <yaml>: YAML anchors and aliases are refused (write the value out)"]
+    text = MINIMAL.replace("roles:\n", "roles: *just_rollout\n")
+    assert "anchors and aliases are refused" in _problems(text)[0].message
+    text = MINIMAL + "task:\n  <<: {env: PushCube-v1}\n"
+    ((line, path, message),) = [(p.line, p.path, p.message) for p in _problems(text)]
+    assert (line, path) == (10, "task") and message.startswith("merge keys ('<<') are refused")
 
 
 # ------------------------------------------------------------------------------------------
@@ -423,3 +407,13 @@ def test_a_hf_policys_checkpoint_is_checked_before_anything_starts(tmp_path: Pat
     # the right family loads
     ok = MINIMAL + f"task:\n  obs_mode: rgb\n  policy: vla-flow\n  policy_kwargs: {{checkpoint: {flow}}}\n"
     assert parse_topology(ok, "t.yaml").task.policy == "vla-flow"
+
+
+def test_the_schemas_policy_list_is_the_registry() -> None:
+    """A topology may name exactly the registered policies (besides "module:Class")."""
+    from dvla.config import POLICY_OBS
+    from dvla.learn.policies import registered_policies
+
+    assert sorted(POLICY_OBS) == registered_policies()
+    (problem,) = _problems(MINIMAL + "task:\n  policy: mpl\n")
+    assert problem.path == "task.policy" and "did you mean 'mlp'?" in problem.message

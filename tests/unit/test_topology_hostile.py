@@ -12,14 +12,13 @@ from pathlib import Path
 
 import pytest
 
+from dvla.config import MAX_SHOWN, host_problem
 from dvla.orchestrator.topology import (
     MAX_DEPTH,
     MAX_FILE_BYTES,
     MAX_PROBLEMS,
-    MAX_SHOWN,
     Problem,
     TopologyError,
-    host_problem,
     load_topology,
     parse_topology,
 )
@@ -81,25 +80,11 @@ def test_alias_bomb_is_refused_quickly() -> None:
     start = time.monotonic()
     p = _one(text)
     assert time.monotonic() - start < 2.0
-    assert p.path == "<yaml>" and "more than 100000 values once aliases are expanded" in p.message
-
-
-def test_nesting_through_aliases_is_bounded_too() -> None:
-    """Each anchor nests 50 levels and holds the previous one: 2,000 levels once expanded."""
-    lines = ["a0: &a0 " + "[" * 50 + "1" + "]" * 50]
-    lines += [f"a{i}: &a{i} " + "[" * 50 + f"*a{i - 1}" + "]" * 50 for i in range(1, 40)]
-    p = _one(MINIMAL + "task:\n  policy_kwargs:\n" + "".join(f"    {line}\n" for line in lines))
-    assert p.path == "<yaml>" and f"nested deeper than {MAX_DEPTH} levels once aliases are expanded" in p.message
+    assert (p.line, p.path) == (9, "<yaml>") and "anchors and aliases are refused" in p.message
 
 
 def test_recursive_alias_is_refused() -> None:
-    assert "(a cycle)" in _one(_with_kwargs("&loop [1, *loop]")).message
-
-
-def test_anchors_within_the_limits_still_work() -> None:
-    text = MINIMAL.replace("roles: [{role: actor}, {role: rollout}]", "roles: &roles [{role: actor}, {role: rollout}]")
-    text += "  - name: r1\n    nodes:\n      - name: n1\n        roles: *roles\n"
-    assert [n.name for _r, n in parse_topology(text).nodes()] == ["n0", "n1"]
+    assert "anchors and aliases are refused" in _one(_with_kwargs("&loop [1, *loop]")).message
 
 
 def test_huge_file_is_refused_unread(tmp_path: Path) -> None:

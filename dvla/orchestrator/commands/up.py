@@ -9,6 +9,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from ...config import BudgetConfig, range_problems
 from ..netns import NetnsError
 from ..run import ORCHESTRATOR_LOG, ExitCode, Up, UpOptions, install_sigint, start_detached
 from ..ssh import SshError
@@ -40,10 +41,9 @@ def up(
     An existing run directory is continued (from its last checkpoint); --fresh starts over."""
     if mode is not None and mode not in ("async", "sync"):
         raise fail(f"--mode: expected async or sync, got {mode!r}")
-    if max_env_steps is not None and max_env_steps < 1:
-        raise fail(f"--max-env-steps: expected a positive integer, got {max_env_steps}")
-    if until_success is not None and not 0 < until_success <= 1:
-        raise fail(f"--until-success: expected a value in (0, 1], got {until_success}")
+    for key, message in range_problems(BudgetConfig(max_env_steps=max_env_steps, until_success=until_success,
+                                                    max_wall_s=max_wall_s)):
+        raise fail(f"--{key.replace('_', '-')}: {message}")
     topo = topology_or_exit(topology)
     opts = UpOptions(
         max_env_steps=max_env_steps, until_success=until_success, max_wall_s=max_wall_s,
