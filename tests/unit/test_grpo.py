@@ -76,7 +76,8 @@ def test_episode_baseline_is_the_default_of_group_advantages_and_the_step_one_of
     assert task.grpo_baseline == "step"
     want = torch.tensor([[0.0, 0.0], [1.0, -1.0], [1.0, -1.0]])
     obs = {"state": torch.zeros(3, 2, 1)}
-    b = Trajectories(obs, torch.zeros(3, 2, 1), torch.zeros(3, 2), rewards, term, trunc, obs, {"state": torch.zeros(2, 1)})
+    b = Trajectories(obs=obs, actions=torch.zeros(3, 2, 1), logprobs=torch.zeros(3, 2), rewards=rewards, terminated=term,
+                     truncated=trunc, success=term, next_obs={"state": torch.zeros(2, 1)}, final_obs=obs)
     batch = grpo_batch(b, task)  # what the actor trains on: advantages [T*N], no critic
     torch.testing.assert_close(batch["advantages"].reshape(3, 2), want)
     assert (batch["returns"] == 0).all() and (batch["values"] == 0).all() and batch["obs"].shape == (6, 1)

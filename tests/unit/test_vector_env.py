@@ -12,11 +12,10 @@ import pytest
 import torch
 
 from dvla.config import TaskConfig
-from dvla.learn.envs import EnvSetupError, make_env_group, may_share_scene, run_eval_episodes, sim_layout
+from dvla.learn.envs import EnvSetupError, chunk_envs, env_groups, make_env_group, run_eval_episodes, sim_layout
 from dvla.learn.policies import make_policy
-from dvla.learn.spec import ArraySpec
-from dvla.learn.vector_env import VectorEnvGroup
-from dvla.roles.chunkpool import DeviceChunk, chunk_template
+from dvla.learn.spec import ArraySpec, ChunkSpec
+from dvla.learn.vector_env import DeviceChunk, VectorEnvGroup
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "plugin_env"))
 from batched_reach import BatchedReach  # noqa: E402
@@ -117,8 +116,10 @@ def test_action_chunks_are_refused() -> None:
 
 
 def test_device_chunk_copies_a_recorded_chunk_to_the_host() -> None:
-    host = chunk_template("r", 2, 3, {"state": ArraySpec((4,), "float32")}, 2, {"chain": ArraySpec((2, 2), "float32")})
-    dev = DeviceChunk(host, "cpu")
+    spec = ChunkSpec(obs={"state": ArraySpec((4,), "float32")}, act_dim=2, extras={"chain": ArraySpec((2, 2), "float32")},
+                     T=2, N=5)
+    host = spec.zeros(3)
+    dev = DeviceChunk(spec, 3, "cpu")
     dev.obs["state"][1] = torch.arange(12, dtype=torch.float32).reshape(3, 4)
     dev.success[0] = torch.tensor([True, False, True])
     dev.extras["chain"][1, 2] = 7.0
@@ -127,6 +128,7 @@ def test_device_chunk_copies_a_recorded_chunk_to_the_host() -> None:
     assert host.obs["state"][1].tolist() == np.arange(12).reshape(3, 4).tolist()
     assert host.success.tolist() == [[True, False, True], [False, False, False]]
     assert host.extras["chain"][1, 2].tolist() == [[7.0, 7.0], [7.0, 7.0]] and host.next_obs["state"].min() == 2.0
+    assert spec.problem(host) is None
 
 
 # --- which group: ManiSkill's rule -------------------------------------------------------------
@@ -150,10 +152,16 @@ def test_device_chunk_copies_a_recorded_chunk_to_the_host() -> None:
     ],
 )
 def test_sim_layout_follows_maniskills_rule(kw: dict, n: int, cuda: bool, expected: tuple) -> None:
-    task = TaskConfig(**kw)
+    task = TaskConfig(**kw, envs_per_rollout=n)
     assert sim_layout(task, n, cuda) == expected
-    if expected[1]:  # the actor sizes its slots for a scene wherever one may be chosen
-        assert may_share_scene(TaskConfig(**kw, envs_per_rollout=n))
+    # the rollout's groups on that machine: one scene, or two halves; a chunk holds one group
+    sizes, one_scene = env_groups(task, cuda)
+    assert one_scene == expected[1] and sizes == ([n] if one_scene or n < 2 else [n // 2, n - n // 2])
+    # the actor's slots hold the largest chunk a rollout may ship on any machine
+    fewest, most = chunk_envs(task)
+    assert fewest <= min(sizes) and most >= max(sizes)
+    if expected[1]:
+        assert most == n
 
 
 def test_a_scene_of_several_cpu_envs_is_refused_with_the_fix() -> None:
@@ -161,3 +169,20 @@ def test_a_scene_of_several_cpu_envs_is_refused_with_the_fix() -> None:
         sim_layout(TaskConfig(env_batching="scene"), 4, cuda=False)
     with pytest.raises(EnvSetupError, match="grpo"):
         make_env_group(TASK, 4, 0, group_size=2)
+
+
+@pytest.mark.parametrize(
+    "kw, expected",
+    [
+        ({}, (8, 16)),  # auto: two halves without CUDA, one scene of 16 with it
+        ({"env_batching": "loop"}, (8, 8)),
+        ({"env_batching": "scene"}, (16, 16)),  # a machine without CUDA cannot run it at all
+        ({"sim_backend": "physx_cuda"}, (16, 16)),
+        ({"sim_backend": "physx_cpu"}, (8, 8)),
+        ({"algorithm": "grpo", "group_size": 4, "max_episode_steps": 25}, (8, 8)),
+        ({"envs_per_rollout": 1}, (1, 1)),
+        ({"envs_per_rollout": 5, "env_batching": "loop"}, (2, 3)),
+    ],
+)
+def test_chunk_envs_bounds_every_chunk_a_rollout_of_the_task_may_ship(kw: dict, expected: tuple) -> None:
+    assert chunk_envs(TaskConfig(**{"envs_per_rollout": 16, **kw})) == expected
