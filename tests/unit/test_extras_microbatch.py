@@ -160,6 +160,7 @@ def test_frozen_parameters_are_not_optimised_or_restored() -> None:
     policy.critic.requires_grad_(False)
     frozen = [p.detach().clone() for p in policy.critic.parameters()]
     learner = PPOLearner(policy, PPOConfig(minibatches=2, update_epochs=1, batch_steps=16, target_kl=None), seed=0)
-    assert len(learner._trainable) == len(list(policy.parameters())) - len(frozen)
+    optimised = [p for group in learner.optimizer.param_groups for p in group["params"]]
+    assert len(optimised) == len(list(policy.parameters())) - len(frozen)
     learner.update(_batch(16, 2))
     assert all(torch.equal(f, p) for f, p in zip(frozen, policy.critic.parameters()))

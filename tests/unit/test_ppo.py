@@ -46,7 +46,7 @@ def test_gae_hand_computed_torch():
     r, v, nv, term, end, expected = _gae_case()
     t = torch.as_tensor
     adv, ret = compute_gae(t(r), t(v), t(nv), t(term), t(end), GAMMA, LAM)
-    assert isinstance(adv, torch.Tensor)
+    assert isinstance(adv, torch.Tensor) and adv.dtype == torch.float32  # torch in, torch out, dtype kept
     np.testing.assert_allclose(adv.numpy(), expected, rtol=1e-6)
     np.testing.assert_allclose(ret.numpy(), expected + v, rtol=1e-6)
 
@@ -68,7 +68,7 @@ def test_grpo_advantages():
     adv = grpo_advantages(np.array([1.0, 3.0, 10.0, 10.0, 5.0]), np.array([7, 7, 2, 2, 9]))
     np.testing.assert_allclose(adv, [-1.0, 1.0, 0.0, 0.0, 0.0], atol=1e-6)
     t = grpo_advantages(torch.tensor([0.0, 2.0, 4.0]), torch.tensor([1, 1, 1]))
-    assert isinstance(t, torch.Tensor)
+    assert isinstance(t, torch.Tensor) and t.dtype == torch.float32  # torch in, torch out, dtype kept
     std = np.std([0.0, 2.0, 4.0])
     np.testing.assert_allclose(t.numpy(), [-2 / std, 0.0, 2 / std], rtol=1e-5)
     with pytest.raises(ValueError):

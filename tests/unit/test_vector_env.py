@@ -23,8 +23,9 @@ from batched_reach import BatchedReach  # noqa: E402
 TASK = TaskConfig(env="batched_reach:make", env_batching="scene", max_episode_steps=6)
 
 
-def group(n: int = 4, seed: int = 3, task: TaskConfig = TASK, **kw) -> VectorEnvGroup:
-    return VectorEnvGroup(task, n, seed, venv=BatchedReach(n, task.max_episode_steps), **kw)
+def group(n: int = 4, seed: int = 3, task: TaskConfig = TASK, scene: BatchedReach | None = None, **kw) -> VectorEnvGroup:
+    """A one-scene group over ``scene`` (the batched env the test holds), or a fresh one."""
+    return VectorEnvGroup(task, n, seed, venv=scene or BatchedReach(n, task.max_episode_steps), **kw)
 
 
 def test_outputs_are_tensors_with_the_env_axis_first() -> None:
@@ -40,9 +41,9 @@ def test_outputs_are_tensors_with_the_env_axis_first() -> None:
 
 
 def test_ended_episodes_are_reset_and_their_last_observation_kept() -> None:
-    g = group(n=3)
+    scene = BatchedReach(3, TASK.max_episode_steps)
+    g = group(n=3, scene=scene)
     g.reset()
-    scene = g._venv
     # env 1 sits on its goal: it succeeds and terminates at once; the others keep going
     scene.pos[1] = scene.goal[1]
     before = scene._obs().clone()
@@ -56,9 +57,10 @@ def test_ended_episodes_are_reset_and_their_last_observation_kept() -> None:
 
 
 def test_time_limit_truncates_every_env_and_ignore_terminations_plays_on() -> None:
-    g = group(n=2, ignore_terminations=True)
+    scene = BatchedReach(2, TASK.max_episode_steps)
+    g = group(n=2, scene=scene, ignore_terminations=True)
     g.reset()
-    g._venv.pos[0] = g._venv.goal[0]
+    scene.pos[0] = scene.goal[0]
     for t in range(6):
         res = g.step(torch.zeros(2, 2))
         assert not res.terminated.any()
@@ -69,29 +71,32 @@ def test_time_limit_truncates_every_env_and_ignore_terminations_plays_on() -> No
 def test_success_reward_counts_the_first_success_of_an_episode_only() -> None:
     from dataclasses import replace
 
-    g = group(n=2, task=replace(TASK, reward="success"), ignore_terminations=True)
+    scene = BatchedReach(2, TASK.max_episode_steps)
+    g = group(n=2, task=replace(TASK, reward="success"), scene=scene, ignore_terminations=True)
     g.reset()
-    g._venv.pos[0] = g._venv.goal[0]
+    scene.pos[0] = scene.goal[0]
     rewards = [g.step(torch.zeros(2, 2)).reward.tolist() for _ in range(3)]
     assert rewards == [[1.0, 0.0], [0.0, 0.0], [0.0, 0.0]]
 
 
 def test_actions_are_clipped_to_the_action_space() -> None:
-    g = group(n=1)
+    scene = BatchedReach(1, TASK.max_episode_steps)
+    g = group(n=1, scene=scene)
     g.reset()
-    start = g._venv.pos.clone()
+    start = scene.pos.clone()
     g.step(torch.full((1, 2), 50.0))
-    assert torch.allclose(g._venv.pos, torch.clamp(start + 0.2, -1, 1))
+    assert torch.allclose(scene.pos, torch.clamp(start + 0.2, -1, 1))
 
 
 def test_a_seed_replays_the_run_and_the_global_rng_is_left_alone() -> None:
     def play(seed: int) -> list[torch.Tensor]:
-        g = group(n=4, seed=seed)
+        scene = BatchedReach(4, TASK.max_episode_steps)
+        g = group(n=4, seed=seed, scene=scene)
         out = [g.reset()]
         rng = np.random.default_rng(0)
         for _ in range(20):  # ends and resets episodes at different steps
             out.append(g.step(rng.uniform(-1, 1, (4, 2)).astype(np.float32)).next_obs)
-        assert g._venv.resets > 2
+        assert scene.resets > 2
         return out
 
     state = torch.get_rng_state()
