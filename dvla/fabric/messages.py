@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -136,19 +136,13 @@ class ArraySpec:
     vocab: int | None = None
 
 
-#: a chunk's per-step fields, in the order of :class:`TrajectoryChunk`; the four named in
-#: ``KEYED`` are dicts of arrays (name -> array), the others one array each
+#: a chunk's per-step fields in :class:`TrajectoryChunk` order; the ``KEYED`` ones are dicts of arrays
 STEP_FIELDS = ("obs", "actions", "logprobs", "rewards", "terminated", "truncated", "success", "next_obs",
                "final_obs", "extras")
 KEYED = ("obs", "next_obs", "final_obs", "extras")
 
-#: where one array of a chunk sits: (field,) or (field, key) for the keyed fields
+#: where one array of a chunk sits: (field,), or (field, key) in a keyed field
 ArrayPath = tuple[str, ...]
-
-
-def path_name(path: ArrayPath) -> str:
-    """``actions``, ``obs['rgb']``: how messages name an array of a chunk."""
-    return path[0] if len(path) == 1 else f"{path[0]}[{path[1]!r}]"
 
 
 def chunk_arrays(chunk: Any) -> dict[ArrayPath, Any]:
@@ -157,16 +151,12 @@ def chunk_arrays(chunk: Any) -> dict[ArrayPath, Any]:
     out: dict[ArrayPath, Any] = {}
     for f in STEP_FIELDS:
         value = getattr(chunk, f)
-        if f in KEYED:
-            out.update({(f, k): a for k, a in value.items()})
-        else:
-            out[(f,)] = value
+        out |= {(f, k): a for k, a in value.items()} if f in KEYED else {(f,): value}
     return out
 
 
 def nest(arrays: dict[ArrayPath, Any]) -> dict[str, Any]:
-    """The per-step fields of a chunk from its arrays by path (:func:`chunk_arrays`' inverse):
-    the keyed fields as dicts, empty where no path names them."""
+    """A chunk's per-step fields from its arrays by path (the inverse of :func:`chunk_arrays`)."""
     out: dict[str, Any] = {f: {} for f in KEYED}
     for path, array in arrays.items():
         if len(path) == 1:
@@ -176,20 +166,23 @@ def nest(arrays: dict[ArrayPath, Any]) -> dict[str, Any]:
     return out
 
 
+def _name(path: ArrayPath) -> str:
+    return path[0] if len(path) == 1 else f"{path[0]}[{path[1]!r}]"
+
+
 @dataclass(frozen=True, kw_only=True)
 class ChunkSpec:
-    """The shape of a run's trajectory chunks: T steps of up to N envs, each step holding the
-    observations ``obs`` declares, ``act_dim`` float32 actions, float32 log-prob and reward,
-    bool terminated / truncated / success and the policy's ``extras``; ``next_obs`` holds one
-    observation per env. Built once from the task and the policy (one for the whole run); it
-    allocates a rollout's chunks (:meth:`zeros`), the actor's slots and the learner's batch
-    (:meth:`layout`), and says what is wrong with a received chunk (:meth:`problem`)."""
+    """The shape of a run's trajectory chunks, T steps of up to N envs: per step the observations
+    ``obs`` declares, ``act_dim`` float32 actions, float32 log-prob and reward, bool terminated,
+    truncated and success flags, the policy's ``extras``; one ``next_obs`` per env. Built once
+    from the task and the policy, it allocates the rollout's chunks (:meth:`zeros`), the actor's
+    slots and the learner's batch (:meth:`layout`) and checks a received chunk (:meth:`problem`)."""
 
     #: observation name -> per-env spec (the keys of obs, next_obs and final_obs)
     obs: dict[str, ArraySpec]
-    #: action values per step (float32)
+    #: float32 action values per step
     act_dim: int
-    #: the policy's per-step extras (docs/policies.md), name -> spec; empty for Gaussian policies
+    #: the policy's per-step extras (docs/policies.md); empty for Gaussian policies
     extras: dict[str, ArraySpec] = field(default_factory=dict)
     #: steps per chunk
     T: int
@@ -198,8 +191,7 @@ class ChunkSpec:
 
     @classmethod
     def implied_by(cls, chunk: TrajectoryChunk) -> ChunkSpec:
-        """The spec a chunk's own ``actions`` and ``obs``/``extras`` arrays imply (their per-step
-        shapes and dtypes; T and N from ``actions``)."""
+        """The spec of a chunk's own ``actions`` [T, N, A] and ``obs`` / ``extras`` arrays."""
         def specs(arrays: dict[str, np.ndarray]) -> dict[str, ArraySpec]:
             return {k: ArraySpec(a.shape[2:], a.dtype.name) for k, a in arrays.items()}
 
@@ -208,63 +200,58 @@ class ChunkSpec:
 
     def layout(self, n: int | None = None) -> dict[ArrayPath, tuple[tuple[int, ...], ArraySpec]]:
         """Every array of a chunk of ``n`` envs (N by default), in :data:`STEP_FIELDS` order:
-        path -> (leading axes: (T, n), or (n,) for ``next_obs``; per-step spec)."""
-        tn = (self.T, self.N if n is None else n)
-        flag, scalar = ArraySpec((), "bool"), ArraySpec((), "float32")
-        out: dict[ArrayPath, tuple[tuple[int, ...], ArraySpec]] = {("obs", k): (tn, s) for k, s in self.obs.items()}
-        out[("actions",)] = (tn, ArraySpec((self.act_dim,), "float32"))
-        out |= {(f,): (tn, scalar) for f in ("logprobs", "rewards")}
-        out |= {(f,): (tn, flag) for f in ("terminated", "truncated", "success")}
-        out |= {("next_obs", k): (tn[1:], s) for k, s in self.obs.items()}
-        out |= {("final_obs", k): (tn, s) for k, s in self.obs.items()}
-        return out | {("extras", k): (tn, s) for k, s in self.extras.items()}
-
-    def fields(self, make: Callable[[tuple[int, ...], str], Any], n: int | None = None) -> dict[str, Any]:
-        """A chunk's per-step fields for ``n`` envs (N by default), each array ``make(shape,
-        dtype name)``; the keyed fields are dicts."""
-        return nest({path: make((*lead, *s.shape), s.dtype) for path, (lead, s) in self.layout(n).items()})
+        path -> (shape: (T, n, *per-step), (n, *per-step) for ``next_obs``; per-step spec)."""
+        t, n = self.T, self.N if n is None else n
+        f32, flag = ArraySpec((), "float32"), ArraySpec((), "bool")
+        specs = {("obs", k): s for k, s in self.obs.items()} | {("actions",): ArraySpec((self.act_dim,), "float32")}
+        specs |= {(f,): f32 for f in ("logprobs", "rewards")} | {(f,): flag for f in ("terminated", "truncated", "success")}
+        specs |= {(f, k): s for f in ("next_obs", "final_obs") for k, s in self.obs.items()}
+        specs |= {("extras", k): s for k, s in self.extras.items()}
+        return {p: ((n, *s.shape) if p[0] == "next_obs" else (t, n, *s.shape), s) for p, s in specs.items()}
 
     def zeros(self, n: int | None = None) -> TrajectoryChunk:
         """A chunk of ``n`` envs (N by default) whose arrays are all zero, each its own."""
-        n = self.N if n is None else n
-        return TrajectoryChunk(rollout="", seq=0, policy_version=0, env_steps=self.T * n, created_ns=0,
-                               **self.fields(np.zeros, n))
+        arrays = {path: np.zeros(shape, s.dtype) for path, (shape, s) in self.layout(n).items()}
+        return TrajectoryChunk(rollout="", seq=0, policy_version=0, env_steps=self.T * (self.N if n is None else n),
+                               created_ns=0, **nest(arrays))
+
+    def nbytes(self, n: int | None = None) -> int:
+        """Array bytes of a chunk of ``n`` envs (N by default)."""
+        return sum(math.prod(shape) * np.dtype(s.dtype).itemsize for shape, s in self.layout(n).values())
 
     def mismatch(self, chunk: TrajectoryChunk, n: int) -> tuple[str, str] | None:
-        """``(reason, detail)`` for the first array of ``chunk`` that is not where, or not what,
-        a chunk of ``n`` envs of this spec holds (``schema``: keys, ``type``: dtype, ``shape``)."""
+        """``(reason, detail)`` for the first array of ``chunk`` that is not where or what a chunk
+        of ``n`` envs of this spec holds (``schema``: keys, ``type``: dtype, ``shape``)."""
         for f in KEYED:
             want = self.extras if f == "extras" else self.obs
             if getattr(chunk, f).keys() != want.keys():
                 return "schema", f"{f} keys {sorted(getattr(chunk, f))} != {sorted(want)}"
         arrays = chunk_arrays(chunk)
-        for path, (lead, s) in self.layout(n).items():
-            a = arrays[path]
-            if a.shape != (*lead, *s.shape):
-                return "shape", f"{path_name(path)}: shape {a.shape}, expected {(*lead, *s.shape)}"
-            if a.dtype != np.dtype(s.dtype):
-                return "type", f"{path_name(path)}: dtype {a.dtype}, expected {s.dtype}"
+        for path, (shape, s) in self.layout(n).items():
+            if arrays[path].shape != shape:
+                return "shape", f"{_name(path)}: shape {arrays[path].shape}, expected {shape}"
+            if arrays[path].dtype != np.dtype(s.dtype):
+                return "type", f"{_name(path)}: dtype {arrays[path].dtype}, expected {s.dtype}"
         return None
 
     def problem(self, chunk: TrajectoryChunk) -> tuple[str, str] | None:
-        """``(reason, detail)`` when ``chunk`` (already decoded, so self-consistent) must not
-        reach a learner of this spec, else None: ``shape`` (T, more than N envs, keys, per-step
-        shapes or dtypes other than declared), ``nonfinite`` (NaN or inf in a float array),
-        ``out_of_range`` (token ids outside their ``vocab``). One pass over each float or
-        token array; images are not read."""
+        """``(reason, detail)`` when a decoded (so self-consistent) ``chunk`` must not reach a
+        learner of this spec, else None: ``shape`` (T, more than N envs, keys, per-step shapes or
+        dtypes), ``nonfinite`` (NaN or inf in a float array), ``out_of_range`` (token ids outside
+        their ``vocab``). One pass over each float and token array; images are not read."""
         t, n = chunk.horizon, chunk.num_envs
         if t != self.T or not 1 <= n <= self.N:
             return "shape", f"T={t}, N={n}: chunks of this run hold T={self.T}, N<={self.N}"
         mismatch = self.mismatch(chunk, n)
         if mismatch is not None:
             return "shape", mismatch[1]
-        specs = {path: s for path, (_, s) in self.layout(n).items()}
+        layout = self.layout(n)
         for path, a in chunk_arrays(chunk).items():
-            vocab = specs[path].vocab
+            vocab = layout[path][1].vocab
             if a.dtype.kind == "f" and not np.isfinite(a).all():
-                return "nonfinite", f"{path_name(path)} holds NaN or inf"
+                return "nonfinite", f"{_name(path)} holds NaN or inf"
             if vocab is not None and a.size and (a.min() < 0 or a.max() >= vocab):
-                return "out_of_range", f"{path_name(path)} holds ids outside [0, {vocab})"
+                return "out_of_range", f"{_name(path)} holds ids outside [0, {vocab})"
         return None
 
 

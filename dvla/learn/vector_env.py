@@ -31,7 +31,7 @@ import torch
 
 from dvla.config import TaskConfig
 
-from ..fabric.messages import TrajectoryChunk, chunk_arrays
+from ..fabric.messages import TrajectoryChunk, chunk_arrays, nest
 from .spec import ArraySpec, ChunkSpec, ObsSpec, StepResult, structured_spec
 
 __all__ = ["VectorEnvGroup", "make_vector_env", "DeviceChunk"]
@@ -39,12 +39,13 @@ __all__ = ["VectorEnvGroup", "make_vector_env", "DeviceChunk"]
 
 class DeviceChunk(SimpleNamespace):
     """A trajectory chunk's per-step fields for ``n`` envs (``obs``, ``actions``, ... ``extras``,
-    as :meth:`ChunkSpec.fields` lays them out) as zero tensors on ``device``: a one-scene group
-    records every step here with tensors that are already there, then :meth:`copy_to` copies
-    them into the host chunk that is shipped, one copy per array and chunk."""
+    laid out by ``spec``) as zero tensors on ``device``: a one-scene group records every step
+    here with tensors that are already there, then :meth:`copy_to` copies them into the host
+    chunk that is shipped, one copy per array and chunk."""
 
     def __init__(self, spec: ChunkSpec, n: int, device: torch.device | str) -> None:
-        super().__init__(**spec.fields(lambda shape, dtype: torch.zeros(shape, dtype=getattr(torch, dtype), device=device), n))
+        super().__init__(**nest({path: torch.zeros(shape, dtype=getattr(torch, s.dtype), device=device)
+                                 for path, (shape, s) in spec.layout(n).items()}))
 
     def copy_to(self, chunk: TrajectoryChunk) -> None:
         """Copy every recorded tensor into ``chunk``'s arrays (in place)."""

@@ -28,10 +28,11 @@ class SlotPool:
             t = torch.zeros((n_slots, *shape), dtype=getattr(torch, dtype))
             return t.pin_memory() if pin else t
 
-        self.n_slots = n_slots
-        #: path -> the env axis of that array in one slot (0 for next_obs, 1 for [T, N, ...])
-        self._env_axis = {path: len(lead) - 1 for path, (lead, _) in spec.layout().items()}
-        self._arrays = {path: alloc((*lead, *s.shape), s.dtype) for path, (lead, s) in spec.layout().items()}
+        self.n_slots, self.T = n_slots, spec.T
+        layout = spec.layout()
+        self._arrays = {path: alloc(shape, s.dtype) for path, (shape, s) in layout.items()}
+        #: path -> env axis within a slot: the last axis before the per-step shape ([T, N, ...], next_obs [N, ...])
+        self._env_axis = {path: len(shape) - len(s.shape) - 1 for path, (shape, s) in layout.items()}
         self._n = [0] * n_slots
         self._version = [0] * n_slots
         self._rollout = [""] * n_slots
@@ -61,7 +62,7 @@ class SlotPool:
         self._seq[slot] = c.seq
 
     def steps(self, slot: int) -> int:
-        return self._arrays[("rewards",)].shape[1] * self._n[slot]
+        return self.T * self._n[slot]
 
     def version(self, slot: int) -> int:
         return self._version[slot]

@@ -29,8 +29,9 @@ def test_zeros_is_a_chunk_of_the_spec_for_any_env_count_up_to_N() -> None:
         c = SPEC.zeros(n)
         assert (c.horizon, c.num_envs, c.env_steps) == (3, n, 3 * n)
         assert {p: (a.shape, a.dtype.name) for p, a in chunk_arrays(c).items()} == {
-            p: ((*lead, *s.shape), s.dtype) for p, (lead, s) in SPEC.layout(n).items()}
+            p: (shape, s.dtype) for p, (shape, s) in SPEC.layout(n).items()}
         assert not any(a.any() for a in chunk_arrays(c).values())
+        assert SPEC.nbytes(n) == sum(a.nbytes for a in chunk_arrays(c).values())  # what the data plane's cap counts
         c.validate()  # the wire's check: the arrays agree with each other
         assert SPEC.problem(c) is None  # the learner's: they are what the run declared
         implied = ChunkSpec.implied_by(c)  # what the wire sees: shapes and dtypes, no vocabularies
