@@ -16,6 +16,7 @@ hint shapes it understands may be used (``str``, ``int``, ``float``, ``bool``, `
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -130,8 +131,9 @@ class ArraySpec:
 
     #: per-env shape, e.g. (64, 64, 3)
     shape: tuple[int, ...]
-    #: numpy dtype name: "float32", "uint8", "int32" or "bool"
-    dtype: str
+    #: numpy dtype name: "float32", "uint8", "int32" or "bool" (the spec a chunk implies holds
+    #: its arrays' dtypes as they are)
+    dtype: str | np.dtype
     #: token arrays: ids lie in [0, vocab) (None for other arrays)
     vocab: int | None = None
 
@@ -166,6 +168,10 @@ def nest(arrays: dict[ArrayPath, Any]) -> dict[str, Any]:
     return out
 
 
+#: a dtype from its name, parsed once (the wire checks every array of every chunk)
+_dtype = functools.lru_cache(maxsize=64)(np.dtype)
+
+
 def _name(path: ArrayPath) -> str:
     return path[0] if len(path) == 1 else f"{path[0]}[{path[1]!r}]"
 
@@ -193,7 +199,7 @@ class ChunkSpec:
     def implied_by(cls, chunk: TrajectoryChunk) -> ChunkSpec:
         """The spec of a chunk's own ``actions`` [T, N, A] and ``obs`` / ``extras`` arrays."""
         def specs(arrays: dict[str, np.ndarray]) -> dict[str, ArraySpec]:
-            return {k: ArraySpec(a.shape[2:], a.dtype.name) for k, a in arrays.items()}
+            return {k: ArraySpec(a.shape[2:], a.dtype) for k, a in arrays.items()}
 
         t, n, a = chunk.actions.shape
         return cls(obs=specs(chunk.obs), act_dim=a, extras=specs(chunk.extras), T=t, N=n)
@@ -230,7 +236,7 @@ class ChunkSpec:
         for path, (shape, s) in self.layout(n).items():
             if arrays[path].shape != shape:
                 return "shape", f"{_name(path)}: shape {arrays[path].shape}, expected {shape}"
-            if arrays[path].dtype != np.dtype(s.dtype):
+            if arrays[path].dtype != _dtype(s.dtype):
                 return "type", f"{_name(path)}: dtype {arrays[path].dtype}, expected {s.dtype}"
         return None
 
