@@ -149,10 +149,10 @@ def _bytes_per_step(cfg: FamilyBenchConfig, rec: dict) -> dict[str, float]:
     import dataclasses
 
     from dvla.fabric.codec import encode
-    from dvla.roles.chunkpool import chunk_template
+    from dvla.fabric.messages import ChunkSpec
 
     T, n = min(cfg.chunk_steps, len(rec["actions"])), cfg.envs
-    c = chunk_template("bench", T, n, rec["obs_spec"], rec["act_dim"], rec["extras_spec"])
+    c = ChunkSpec(obs=rec["obs_spec"], act_dim=rec["act_dim"], extras=rec["extras_spec"], T=T, N=n).zeros()
     for t in range(T):
         for k, v in rec["obs"][t].items():
             c.obs[k][t] = v

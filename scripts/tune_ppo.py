@@ -109,7 +109,7 @@ def side_by_side(chunks: list[dict[str, np.ndarray]]) -> Trajectories:
            for k in chunks[0]}
     for k in ("obs", "final_obs", "next_obs"):
         out[k] = {"state": out[k].float()}
-    return Trajectories.of(out)
+    return Trajectories(**out)
 
 
 class ChunkSampler:
@@ -131,6 +131,7 @@ class ChunkSampler:
             "rewards": np.empty((T, g.n), np.float32),
             "terminated": np.empty((T, g.n), bool),
             "truncated": np.empty((T, g.n), bool),
+            "success": np.empty((T, g.n), bool),
             "final_obs": np.empty((T, g.n, g.obs_dim), np.float32),
         }
         for t in range(T):
@@ -142,6 +143,7 @@ class ChunkSampler:
             out["rewards"][t] = res.reward
             out["terminated"][t] = res.terminated
             out["truncated"][t] = res.truncated
+            out["success"][t] = res.success
             out["final_obs"][t] = res.final_obs
             self._track(res)
             self.obs = res.next_obs

@@ -3,6 +3,8 @@
 This module owns the message *types*: one frozen, keyword-only dataclass per message, each with
 a class-level ``TYPE_TAG`` naming it on the wire, and a ``validate()`` that checks invariants a
 type hint cannot express (array shapes agreeing, enumerated strings, non-negative counters).
+:class:`ChunkSpec` is the one description of a trajectory chunk's arrays: it checks a chunk on
+the wire (the shape its own arrays imply) and in the learner (the run's), and allocates chunks.
 How messages become bytes is :mod:`dvla.fabric.codec`'s job; the byte layout is documented in
 ``docs/wire-format.md``. Nothing here depends on the rest of dvla, so other RL code can reuse
 these types as-is.
@@ -14,6 +16,7 @@ hint shapes it understands may be used (``str``, ``int``, ``float``, ``bool``, `
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -48,25 +51,12 @@ def _require(ok: bool, reason: str, detail: str) -> None:
         raise CodecError(reason, detail)
 
 
-# Checks below run on every encode/decode: build error text only on failure (formatting a
-# dtype costs more than the check).
-_F32 = np.dtype(np.float32)
-_BOOL = np.dtype(np.bool_)
-
-
-def _check_array(name: str, arr: np.ndarray, shape: tuple[int, ...], dtype: np.dtype) -> None:
-    if arr.shape != shape:
-        raise CodecError("shape", f"{name}: shape {arr.shape}, expected {shape}")
-    if arr.dtype != dtype:
-        raise CodecError("type", f"{name}: dtype {arr.dtype}, expected {dtype}")
-
-
 @dataclass(frozen=True, kw_only=True, eq=False)
 class TrajectoryChunk(Message):
     """T consecutive steps of N parallel environments, sent by a rollout to the learner.
 
     Arrays are time-major: ``[T, N, ...]``. Equality is identity (arrays make field-wise
-    ``==`` ambiguous).
+    ``==`` ambiguous). What each array holds is :class:`ChunkSpec`'s to say.
     """
 
     TYPE_TAG: ClassVar[str] = "traj"
@@ -118,35 +108,157 @@ class TrajectoryChunk(Message):
         return int(self.actions.shape[1])
 
     def validate(self) -> None:
-        """Check that every array agrees on T and N and has its documented dtype."""
-        actions = self.actions
-        if actions.ndim != 3:
-            raise CodecError("shape", f"actions: ndim {actions.ndim}, expected 3 [T, N, A]")
-        t, n = actions.shape[:2]
-        _check_array("actions", actions, actions.shape, _F32)
-        for name in ("logprobs", "rewards", "terminated", "truncated", "success"):
-            _check_array(name, getattr(self, name), (t, n), _F32 if name in ("logprobs", "rewards") else _BOOL)
+        """Check that every array agrees with the chunk's own ``actions`` [T, N, A] and ``obs``:
+        the :class:`ChunkSpec` the chunk implies (reasons ``schema``: keys; ``type``: dtypes;
+        ``shape``)."""
         if self.seq < 0:
             raise CodecError("schema", f"seq {self.seq} < 0")
-        if self.env_steps != t * n:
-            raise CodecError("shape", f"env_steps {self.env_steps} != T*N = {t * n}")
-        self._validate_obs(t, n)
-
-    def _validate_obs(self, t: int, n: int) -> None:
+        if self.actions.ndim != 3:
+            raise CodecError("shape", f"actions: ndim {self.actions.ndim}, expected 3 [T, N, A]")
         if not self.obs:
             raise CodecError("schema", "obs is empty")
-        keys = self.obs.keys()
-        for name, other in (("next_obs", self.next_obs), ("final_obs", self.final_obs)):
-            if other.keys() != keys:
-                raise CodecError("schema", f"{name} keys {sorted(other)} != obs keys {sorted(keys)}")
-        for key, arr in self.obs.items():
-            if arr.ndim < 2 or arr.shape[:2] != (t, n):
-                raise CodecError("shape", f"obs[{key!r}]: shape {arr.shape}, expected (T={t}, N={n}, ...)")
-            _check_array(f"final_obs[{key!r}]", self.final_obs[key], arr.shape, arr.dtype)
-            _check_array(f"next_obs[{key!r}]", self.next_obs[key], arr.shape[1:], arr.dtype)
-        for key, arr in self.extras.items():
-            if arr.ndim < 2 or arr.shape[:2] != (t, n):
-                raise CodecError("shape", f"extras[{key!r}]: shape {arr.shape}, expected (T={t}, N={n}, ...)")
+        t, n, _ = self.actions.shape
+        mismatch = ChunkSpec.implied_by(self).mismatch(self, n)
+        if mismatch is not None:
+            raise CodecError(*mismatch)
+        if self.env_steps != t * n:
+            raise CodecError("shape", f"env_steps {self.env_steps} != T*N = {t * n}")
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """Shape (without the leading time and env axes) and dtype of one per-step array."""
+
+    #: per-env shape, e.g. (64, 64, 3)
+    shape: tuple[int, ...]
+    #: numpy dtype name: "float32", "uint8", "int32" or "bool" (the spec a chunk implies holds
+    #: its arrays' dtypes as they are)
+    dtype: str | np.dtype
+    #: token arrays: ids lie in [0, vocab) (None for other arrays)
+    vocab: int | None = None
+
+
+#: a chunk's per-step fields in :class:`TrajectoryChunk` order; the ``KEYED`` ones are dicts of arrays
+STEP_FIELDS = ("obs", "actions", "logprobs", "rewards", "terminated", "truncated", "success", "next_obs",
+               "final_obs", "extras")
+KEYED = ("obs", "next_obs", "final_obs", "extras")
+
+#: where one array of a chunk sits: (field,), or (field, key) in a keyed field
+ArrayPath = tuple[str, ...]
+
+
+def chunk_arrays(chunk: Any) -> dict[ArrayPath, Any]:
+    """Every per-step array of ``chunk`` (a :class:`TrajectoryChunk`, or anything with its
+    per-step fields, e.g. tensors on a device) by its path, in :data:`STEP_FIELDS` order."""
+    out: dict[ArrayPath, Any] = {}
+    for f in STEP_FIELDS:
+        value = getattr(chunk, f)
+        out |= {(f, k): a for k, a in value.items()} if f in KEYED else {(f,): value}
+    return out
+
+
+def nest(arrays: dict[ArrayPath, Any]) -> dict[str, Any]:
+    """A chunk's per-step fields from its arrays by path (the inverse of :func:`chunk_arrays`)."""
+    out: dict[str, Any] = {f: {} for f in KEYED}
+    for path, array in arrays.items():
+        if len(path) == 1:
+            out[path[0]] = array
+        else:
+            out[path[0]][path[1]] = array
+    return out
+
+
+#: a dtype from its name, parsed once (the wire checks every array of every chunk)
+_dtype = functools.lru_cache(maxsize=64)(np.dtype)
+
+
+def _name(path: ArrayPath) -> str:
+    return path[0] if len(path) == 1 else f"{path[0]}[{path[1]!r}]"
+
+
+@dataclass(frozen=True, kw_only=True)
+class ChunkSpec:
+    """The shape of a run's trajectory chunks, T steps of up to N envs: per step the observations
+    ``obs`` declares, ``act_dim`` float32 actions, float32 log-prob and reward, bool terminated,
+    truncated and success flags, the policy's ``extras``; one ``next_obs`` per env. Built once
+    from the task and the policy, it allocates the rollout's chunks (:meth:`zeros`), the actor's
+    slots and the learner's batch (:meth:`layout`) and checks a received chunk (:meth:`problem`)."""
+
+    #: observation name -> per-env spec (the keys of obs, next_obs and final_obs)
+    obs: dict[str, ArraySpec]
+    #: float32 action values per step
+    act_dim: int
+    #: the policy's per-step extras (docs/policies.md); empty for Gaussian policies
+    extras: dict[str, ArraySpec] = field(default_factory=dict)
+    #: steps per chunk
+    T: int
+    #: the most envs one chunk holds (a chunk may hold fewer)
+    N: int
+
+    @classmethod
+    def implied_by(cls, chunk: TrajectoryChunk) -> ChunkSpec:
+        """The spec of a chunk's own ``actions`` [T, N, A] and ``obs`` / ``extras`` arrays."""
+        def specs(arrays: dict[str, np.ndarray]) -> dict[str, ArraySpec]:
+            return {k: ArraySpec(a.shape[2:], a.dtype) for k, a in arrays.items()}
+
+        t, n, a = chunk.actions.shape
+        return cls(obs=specs(chunk.obs), act_dim=a, extras=specs(chunk.extras), T=t, N=n)
+
+    def layout(self, n: int | None = None) -> dict[ArrayPath, tuple[tuple[int, ...], ArraySpec]]:
+        """Every array of a chunk of ``n`` envs (N by default), in :data:`STEP_FIELDS` order:
+        path -> (shape: (T, n, *per-step), (n, *per-step) for ``next_obs``; per-step spec)."""
+        t, n = self.T, self.N if n is None else n
+        f32, flag = ArraySpec((), "float32"), ArraySpec((), "bool")
+        specs = {("obs", k): s for k, s in self.obs.items()} | {("actions",): ArraySpec((self.act_dim,), "float32")}
+        specs |= {(f,): f32 for f in ("logprobs", "rewards")} | {(f,): flag for f in ("terminated", "truncated", "success")}
+        specs |= {(f, k): s for f in ("next_obs", "final_obs") for k, s in self.obs.items()}
+        specs |= {("extras", k): s for k, s in self.extras.items()}
+        return {p: ((n, *s.shape) if p[0] == "next_obs" else (t, n, *s.shape), s) for p, s in specs.items()}
+
+    def zeros(self, n: int | None = None) -> TrajectoryChunk:
+        """A chunk of ``n`` envs (N by default) whose arrays are all zero, each its own."""
+        arrays = {path: np.zeros(shape, s.dtype) for path, (shape, s) in self.layout(n).items()}
+        return TrajectoryChunk(rollout="", seq=0, policy_version=0, env_steps=self.T * (self.N if n is None else n),
+                               created_ns=0, **nest(arrays))
+
+    def nbytes(self, n: int | None = None) -> int:
+        """Array bytes of a chunk of ``n`` envs (N by default)."""
+        return sum(math.prod(shape) * np.dtype(s.dtype).itemsize for shape, s in self.layout(n).values())
+
+    def mismatch(self, chunk: TrajectoryChunk, n: int) -> tuple[str, str] | None:
+        """``(reason, detail)`` for the first array of ``chunk`` that is not where or what a chunk
+        of ``n`` envs of this spec holds (``schema``: keys, ``type``: dtype, ``shape``)."""
+        for f in KEYED:
+            want = self.extras if f == "extras" else self.obs
+            if getattr(chunk, f).keys() != want.keys():
+                return "schema", f"{f} keys {sorted(getattr(chunk, f))} != {sorted(want)}"
+        arrays = chunk_arrays(chunk)
+        for path, (shape, s) in self.layout(n).items():
+            if arrays[path].shape != shape:
+                return "shape", f"{_name(path)}: shape {arrays[path].shape}, expected {shape}"
+            if arrays[path].dtype != _dtype(s.dtype):
+                return "type", f"{_name(path)}: dtype {arrays[path].dtype}, expected {s.dtype}"
+        return None
+
+    def problem(self, chunk: TrajectoryChunk) -> tuple[str, str] | None:
+        """``(reason, detail)`` when a decoded (so self-consistent) ``chunk`` must not reach a
+        learner of this spec, else None: ``shape`` (T, more than N envs, keys, per-step shapes or
+        dtypes), ``nonfinite`` (NaN or inf in a float array), ``out_of_range`` (token ids outside
+        their ``vocab``). One pass over each float and token array; images are not read."""
+        t, n = chunk.horizon, chunk.num_envs
+        if t != self.T or not 1 <= n <= self.N:
+            return "shape", f"T={t}, N={n}: chunks of this run hold T={self.T}, N<={self.N}"
+        mismatch = self.mismatch(chunk, n)
+        if mismatch is not None:
+            return "shape", mismatch[1]
+        layout = self.layout(n)
+        for path, a in chunk_arrays(chunk).items():
+            vocab = layout[path][1].vocab
+            if a.dtype.kind == "f" and not np.isfinite(a).all():
+                return "nonfinite", f"{_name(path)} holds NaN or inf"
+            if vocab is not None and a.size and (a.min() < 0 or a.max() >= vocab):
+                return "out_of_range", f"{_name(path)} holds ids outside [0, {vocab})"
+        return None
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -98,22 +98,13 @@ def plane_config(
     return conf
 
 
-def traj_chunk_bytes(*, chunk_steps: int, n_envs: int, obs_bytes: int, act_dim: int) -> int:
-    """Array bytes of one trajectory chunk of ``chunk_steps`` steps of ``n_envs`` envs whose
-    observation takes ``obs_bytes`` per env (all obs keys): ``obs`` and ``final_obs`` [T, N],
-    ``next_obs`` [N], float32 actions [T, N, A], log-probs and rewards [T, N], three bool flags."""
-    t, n = chunk_steps, n_envs
-    return t * n * (2 * obs_bytes + 4 * act_dim + 4 + 4 + 3) + n * obs_bytes
-
-
 def plane_max_message_size(largest_bytes: int, *, headroom: float = 1.25, overhead: int = 64 << 10,
                            floor: int = 1 << 20) -> int:
     """A `max_message_size` for a plane whose largest legitimate payload is ``largest_bytes``:
     with ``headroom`` for what the estimate leaves out, ``overhead`` bytes for the codec's
     framing and the signed envelope, and never below ``floor`` (status and small messages).
 
-    Data plane: the largest trajectory chunk (:func:`traj_chunk_bytes` with the larger env
-    group). Control plane: the larger of one weight chunk (``replication.chunk_bytes``) and a
+    Data plane: the largest trajectory chunk (``ChunkSpec.nbytes``). Control plane: the larger of one weight chunk (``replication.chunk_bytes``) and a
     full snapshot reply (4 bytes per replicated parameter, ``ParamLayout.numel``).
     """
     if largest_bytes < 0:

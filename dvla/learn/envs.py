@@ -32,15 +32,15 @@ from typing import Any, Callable
 
 import numpy as np
 
-from dvla.config import LIBERO_ENV, TaskConfig
+from dvla.config import LIBERO_ENV, TaskConfig, env_group_sizes
 
 from ..stats import wilson_interval
-from .spec import ArraySpec, EnvSetupError, ObsSpec, StepResult, structured_spec
+from .spec import ArraySpec, ChunkSpec, EnvSetupError, ObsSpec, StepResult, structured_spec
 
 __all__ = [
     "make_env", "EnvSetupError", "ArraySpec", "ObsSpec", "EnvGroup", "StepResult", "run_eval_episodes",
     "obs_as_dict", "obs_to_torch", "probe_spec", "make_env_group", "sim_layout", "is_maniskill",
-    "may_share_scene",
+    "env_groups", "chunk_envs", "chunk_spec",
 ]
 
 
@@ -112,13 +112,33 @@ def sim_layout(task: TaskConfig, n: int, cuda: bool | None = None, batching: str
     return backend, scene
 
 
-def may_share_scene(task: TaskConfig) -> bool:
-    """Whether a rollout of ``task`` puts all its envs in one simulator scene on a CUDA node
-    (:func:`sim_layout` there, for its ``envs_per_rollout`` envs)."""
-    try:
-        return sim_layout(task, task.envs_per_rollout, cuda=True)[1]
-    except EnvSetupError:  # a layout the topology check refuses
-        return False
+def env_groups(task: TaskConfig, cuda: bool | None = None) -> tuple[list[int], bool]:
+    """How a rollout of ``task`` groups its ``envs_per_rollout`` envs on a machine with (``cuda``)
+    or without CUDA (None: this one): (envs per group, one scene?). One group of every env where
+    they share one simulator scene (:func:`sim_layout`), else two double-buffered halves (one
+    group below two envs). A trajectory chunk holds one group's envs."""
+    one_scene = sim_layout(task, task.envs_per_rollout, cuda)[1]
+    return env_group_sizes(task.envs_per_rollout, one_scene), one_scene
+
+
+def chunk_envs(task: TaskConfig) -> tuple[int, int]:
+    """(fewest, most) envs one chunk of ``task`` holds, whichever machine its rollout runs on:
+    :func:`env_groups` with and without CUDA (``env_batching: auto`` puts a scene only on CUDA)."""
+    sizes = []
+    for cuda in (False, True):
+        try:
+            sizes += env_groups(task, cuda)[0]
+        except EnvSetupError:  # a layout that machine cannot build (the topology check says so)
+            pass
+    return min(sizes, default=task.envs_per_rollout), max(sizes, default=task.envs_per_rollout)
+
+
+def chunk_spec(task: TaskConfig, obs_spec: ObsSpec, act_dim: int, extras: dict[str, ArraySpec]) -> ChunkSpec:
+    """The shape of every trajectory chunk of ``task`` whose policy ships ``extras`` per step: what
+    a rollout fills, the actor checks and its slots hold. N is the most envs a chunk holds
+    (:func:`chunk_envs`): the actor cannot know which machine each of its rollouts runs on."""
+    return ChunkSpec(obs=dict(obs_spec), act_dim=act_dim, extras=dict(extras), T=task.chunk_steps,
+                     N=chunk_envs(task)[1])
 
 
 def make_env(task: TaskConfig, seed: int, backend: str | None = None) -> Any:

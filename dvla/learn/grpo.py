@@ -25,7 +25,6 @@ a successful episode and 0 otherwise (reward-to-go: discounted 1 from the first 
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
@@ -34,12 +33,7 @@ import torch
 from ..config import TaskConfig
 from .ppo import Trajectories
 
-__all__ = ["grpo_envs", "episode_steps", "grpo_batch", "group_advantages", "grpo_advantages", "group_stats"]
-
-
-def episode_steps(task: TaskConfig) -> int:
-    """Transitions in one full episode (each plays up to ``action_chunk`` simulator steps)."""
-    return math.ceil(task.max_episode_steps / task.action_chunk)
+__all__ = ["grpo_envs", "grpo_batch", "group_advantages", "grpo_advantages"]
 
 
 def grpo_envs(task: TaskConfig) -> dict[str, Any]:
@@ -130,12 +124,3 @@ def grpo_advantages(episode_returns, group_ids, std_floor: float = 0.0):
     if is_torch:
         return torch.as_tensor(adv, dtype=episode_returns.dtype, device=episode_returns.device)
     return adv.astype(np.float32)
-
-
-def group_stats(rewards: np.ndarray, group_size: int) -> dict[str, float]:
-    """Share of groups whose episodes disagree (the only ones that teach anything) and mean return."""
-    returns = np.asarray(rewards).sum(0).reshape(-1, group_size)
-    return {
-        "groups_informative": float((returns.max(1) > returns.min(1)).mean()),
-        "episode_return_mean": float(returns.mean()),
-    }

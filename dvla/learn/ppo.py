@@ -2,8 +2,9 @@
 
 Data reaches the actor as trajectory *chunks*: ``T`` consecutive steps of ``N`` envs acted on by
 one (possibly slightly stale) policy version. The actor stacks chunks side by side into
-:class:`Trajectories`; :func:`gae_batch` (or :func:`~dvla.learn.grpo.grpo_batch`) turns them
-into a flat training batch, and :class:`PPOLearner` runs the clipped-surrogate update on it.
+:class:`Trajectories` (dvla/roles/slots.py); :func:`gae_batch` (or
+:func:`~dvla.learn.grpo.grpo_batch`) turns them into a flat training batch, and
+:class:`PPOLearner` runs the clipped-surrogate update on it.
 
 Stale data: every transition carries the log-probability of the *behaviour* policy that acted.
 By default the learner uses decoupled PPO: the trust region is clipped around the policy at the
@@ -19,7 +20,7 @@ import contextlib
 import logging
 import math
 import time
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 import numpy as np
@@ -67,14 +68,10 @@ def compute_gae(rewards, values, next_values, terminated, episode_end, gamma: fl
 
 @dataclass
 class Trajectories:
-    """Steps of N env columns side by side: what the actor stacks from its slots for one update.
-
-    Observations are dicts of tensors, one per observation key (``{"state"}`` for flat ones).
-    Shapes: ``obs``, ``final_obs`` [T, N, ...]; ``actions`` [T, N, A]; ``logprobs`` (of the
-    behaviour policy), ``rewards``, ``terminated``, ``truncated`` [T, N]; ``next_obs`` [N, ...].
-    ``final_obs`` is the pre-reset observation where an episode ended (zeros elsewhere),
-    ``next_obs`` the observation after the last step (for bootstrapping). ``extras`` [T, N, ...]
-    are the policy's per-step extras (a flow chain, action bins; empty for Gaussian policies).
+    """The per-step fields of several trajectory chunks as tensors, their env columns side by side
+    (``[T, N, ...]``, ``next_obs`` ``[N, ...]``): what the actor stacks from its slots for one
+    update. Each field is the chunk's (dvla/fabric/messages.py, ``TrajectoryChunk``); ``logprobs``
+    are the behaviour policy's, observations dicts of tensors (``{"state"}`` for flat ones).
     """
 
     obs: dict[str, Tensor]
@@ -83,15 +80,10 @@ class Trajectories:
     rewards: Tensor
     terminated: Tensor
     truncated: Tensor
-    final_obs: dict[str, Tensor]
+    success: Tensor
     next_obs: dict[str, Tensor]
+    final_obs: dict[str, Tensor]
     extras: dict[str, Tensor] = field(default_factory=dict)
-
-    @classmethod
-    def of(cls, arrays: Mapping[str, Any]) -> "Trajectories":
-        """The fields of ``arrays`` (other keys, such as ``success``, are ignored; ``extras`` may
-        be absent)."""
-        return cls(**{f.name: arrays[f.name] for f in fields(cls) if f.name in arrays or f.name != "extras"})
 
     @property
     def steps(self) -> int:

@@ -1,5 +1,6 @@
 """What the env layer promises its callers, apart from any simulator: the shape and dtype of each
-observation array (:class:`ArraySpec`, :data:`ObsSpec`) and the error an env raises when it cannot
+observation array (:data:`ObsSpec` of the fabric's :class:`ArraySpec`, the per-step part of a
+trajectory chunk's :class:`ChunkSpec`) and the error an env raises when it cannot
 be made as configured (:class:`EnvSetupError`), what one step of an env group gives
 (:class:`StepResult`) and how ManiSkill's rgb observation space maps to dvla's observation keys
 (:func:`structured_spec`). :mod:`dvla.learn.envs` re-exports them; env adapters
@@ -12,7 +13,9 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["ArraySpec", "ObsSpec", "EnvSetupError", "PolicySetupError", "StepResult", "structured_spec"]
+from ..fabric.messages import ArraySpec, ChunkSpec
+
+__all__ = ["ArraySpec", "ChunkSpec", "ObsSpec", "EnvSetupError", "PolicySetupError", "StepResult", "structured_spec"]
 
 
 class EnvSetupError(RuntimeError):
@@ -24,18 +27,6 @@ class PolicySetupError(ValueError):
     """A policy cannot be built as configured (e.g. its checkpoint directory is missing, incomplete
     or of another family): one line naming the path and what is wrong; a role reports it as
     such, without a traceback, and ``dvla plan``/``dvla up`` report it before starting anything."""
-
-
-@dataclass(frozen=True)
-class ArraySpec:
-    """Shape (without the env axis) and dtype of one observation array."""
-
-    #: per-env shape, e.g. (64, 64, 3)
-    shape: tuple[int, ...]
-    #: numpy dtype name: "float32", "uint8" or "int32"
-    dtype: str
-    #: token arrays: ids lie in [0, vocab) (None for other arrays)
-    vocab: int | None = None
 
 
 ObsSpec = dict[str, ArraySpec]

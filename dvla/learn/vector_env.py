@@ -4,9 +4,9 @@ This is ManiSkill3's GPU path (``physx_cuda``: thousands of envs in one scene): 
 :class:`~dvla.learn.envs.EnvGroup` loops over ``n`` one-env simulators and hands out numpy arrays,
 :class:`VectorEnvGroup` wraps a single ``ManiSkillVectorEnv`` of ``n`` envs and hands out torch
 tensors on the simulator's device, so a policy on the same device acts on them without a host
-copy, and the rollout records a whole trajectory chunk on the device before copying it to the host
-once (dvla/roles/rollout.py). Which group a rollout gets is :func:`dvla.learn.envs.sim_layout`'s
-decision (``task.env_batching``, ``task.sim_backend``).
+copy, and the rollout records a whole trajectory chunk on the device (:class:`DeviceChunk`)
+before copying it to the host once. Which group a rollout gets is
+:func:`dvla.learn.envs.env_groups`' decision (``task.env_batching``, ``task.sim_backend``).
 
 Same contract as ``EnvGroup`` (:class:`~dvla.learn.envs.StepResult`, auto-reset, ``final_obs``,
 ``ignore_terminations``, ``task.reward == "success"``, flat and ``rgb`` observations), with two
@@ -23,6 +23,7 @@ differences, both stated in docs/envs.md:
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -30,9 +31,27 @@ import torch
 
 from dvla.config import TaskConfig
 
-from .spec import ArraySpec, ObsSpec, StepResult, structured_spec
+from ..fabric.messages import TrajectoryChunk, chunk_arrays, nest
+from .spec import ArraySpec, ChunkSpec, ObsSpec, StepResult, structured_spec
 
-__all__ = ["VectorEnvGroup", "make_vector_env"]
+__all__ = ["VectorEnvGroup", "make_vector_env", "DeviceChunk"]
+
+
+class DeviceChunk(SimpleNamespace):
+    """A trajectory chunk's per-step fields for ``n`` envs (``obs``, ``actions``, ... ``extras``,
+    laid out by ``spec``) as zero tensors on ``device``: a one-scene group records every step
+    here with tensors that are already there, then :meth:`copy_to` copies them into the host
+    chunk that is shipped, one copy per array and chunk."""
+
+    def __init__(self, spec: ChunkSpec, n: int, device: torch.device | str) -> None:
+        super().__init__(**nest({path: torch.zeros(shape, dtype=getattr(torch, s.dtype), device=device)
+                                 for path, (shape, s) in spec.layout(n).items()}))
+
+    def copy_to(self, chunk: TrajectoryChunk) -> None:
+        """Copy every recorded tensor into ``chunk``'s arrays (in place)."""
+        host = chunk_arrays(chunk)
+        for path, tensor in chunk_arrays(self).items():
+            torch.from_numpy(host[path]).copy_(tensor)
 
 
 def make_vector_env(task: TaskConfig, n: int, backend: str, ignore_terminations: bool) -> Any:

@@ -2,7 +2,8 @@
 with the other ranks (dvla/learn/group.py); rank 0 publishes weight versions and checkpoints.
 
 Lanes (and what flows between them):
-- ``ingest``:  data-plane inbox -> policy-lag filter -> a free slot of the preallocated pool.
+- ``ingest``:  data-plane inbox -> the run's ChunkSpec and policy-lag checks -> a free slot of
+               the preallocated pool.
 - ``batch``:   gathers slots until one learner batch is full, re-checks lag, stacks it.
 - ``learn``:   values and GAE with the current critic, PPO epochs, a new version.
 - ``publish``: rank 0 reserves the version number on disk, encodes it (full / delta with error
@@ -16,7 +17,6 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,14 +24,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..config import RoleConfig, env_group_sizes, resolve_device
+from ..config import RoleConfig, resolve_device
 from ..fabric import Fabric
 from ..fabric.accounting import OTHER_PEER
 from ..fabric.fabric import DATA
-from ..fabric.messages import TrajectoryChunk
-from ..learn import PPOLearner, Trajectories, gae_batch, make_policy
+from ..fabric.messages import ChunkSpec, TrajectoryChunk
+from ..learn import PPOLearner, gae_batch, make_policy
 from ..learn.group import LearnerGroup
-from ..learn.envs import may_share_scene, probe_spec
+from ..learn.envs import chunk_envs, chunk_spec, probe_spec
 from ..learn.grpo import grpo_batch
 from ..learn.policies import extras_spec, policy_base_hash
 from ..ledger import ActorLedger
@@ -61,10 +61,10 @@ class Actor:
         self.group = LearnerGroup(cfg.group, self.device, address=_listen_address(cfg))
         self.is_root = self.group.is_root
         torch.manual_seed(cfg.seed)
-        self.obs_spec, self.act_dim = probe_spec(task)  # flat: {"state"}; rgb: rgb/proprio/tokens
-        self.policy = make_policy(task.policy, self.obs_spec, self.act_dim, **task.policy_kwargs).to(self.device)
-        #: per-step tensors the policy's rollouts ship besides the action (docs/policies.md)
-        self.extras_spec = extras_spec(self.policy)
+        obs_spec, act_dim = probe_spec(task)  # flat: {"state"}; rgb: rgb/proprio/tokens
+        self.policy = make_policy(task.policy, obs_spec, act_dim, **task.policy_kwargs).to(self.device)
+        #: what every chunk holds: the task's observations and actions, the policy's extras
+        self.spec = chunk_spec(task, obs_spec, act_dim, extras_spec(self.policy))
         self.learner = PPOLearner(self.policy, task.ppo, self.device, seed=cfg.seed, group=self.group)
         self.layout = ParamLayout.from_state_dict(self.policy)
         self._n_parameters = sum(p.numel() for p in self.policy.parameters())
@@ -85,18 +85,9 @@ class Actor:
         self.publisher = WeightPublisher(
             fabric, cfg.name, self.layout, cfg.replication, start, base_hash=policy_base_hash(self.policy)
         ) if self.is_root else None
-        groups = env_group_sizes(task.envs_per_rollout)  # a chunk holds one env group's columns
-        chunks_per_batch = -(-task.ppo.batch_steps // (task.chunk_steps * min(groups)))
-        # ... or all of a rollout's envs where they share one simulator scene: said in the file, or
-        # left to `auto`, which chooses it on CUDA nodes (taken to be the rollouts' nodes too when
-        # the actor learns on CUDA; docs/envs.md)
-        explicit = task.env_batching == "scene" or task.sim_backend == "physx_cuda"
-        scene = may_share_scene(task) and (explicit or self.device.type == "cuda")
-        n_max = task.envs_per_rollout if scene else max(groups)
-        self.slots = SlotPool(
-            n_slots=3 * chunks_per_batch + 8, T=task.chunk_steps, n_max=n_max,
-            obs_spec=self.obs_spec, act_dim=self.act_dim, pin=self.device.type == "cuda", extras_spec=self.extras_spec,
-        )
+        # slots of N = the largest chunk any rollout may ship, enough of the smallest for three batches
+        chunks_per_batch = -(-task.ppo.batch_steps // (task.chunk_steps * chunk_envs(task)[0]))
+        self.slots = SlotPool(self.spec, 3 * chunks_per_batch + 8, pin=self.device.type == "cuda")
         #: newest version learned (the learn lane numbers the next one from here)
         self.policy_version = start
         #: (version, checksum) of the newest version through the publish lane (published by rank 0;
@@ -170,7 +161,7 @@ class Actor:
                 continue
             with ctx.busy():
                 src = self.ledger.got(chunk.rollout, chunk.seq)
-                problem = chunk_problem(chunk, self.obs_spec, self.act_dim, self.released_version, self.extras_spec)
+                problem = chunk_problem(chunk, self.spec, self.released_version)
                 if problem is not None:
                     self._reject(chunk, src, *problem)
                     continue
@@ -183,11 +174,7 @@ class Actor:
                 if slot is None:  # stopping while every slot is taken: the inbox is still drained below
                     self.ledger.settle(src, "dropped.shutdown")
                     break
-                err = self.slots.fill(slot, chunk)
-                if err is not None:
-                    self.slots.release(slot)
-                    self._reject(chunk, src, "shape", err)
-                    continue
+                self.slots.fill(slot, chunk)
                 self.ledger.hold(slot, src)
             if not self.filled.put(slot, ctx.stop, stats=ctx.stats):  # stopping with the batch lane full
                 self.ledger.release(slot, "dropped.shutdown")
@@ -235,7 +222,7 @@ class Actor:
                 if not keep:
                     continue
                 keep.sort(key=self.slots.order)  # the same batch whatever the arrival order
-                batch = Trajectories.of(self.slots.stack(keep, self.device))
+                batch = self.slots.stack(keep, self.device)
                 for s in keep:
                     self.ledger.release(s, "consumed")
                     self.lags.append(self.published_version - self.slots.version(s))
@@ -379,60 +366,17 @@ class NewVersion:
     optimizer: tuple[dict[str, torch.Tensor], str] | None
 
 
-def chunk_problem(chunk: TrajectoryChunk, obs_spec: Mapping[str, Any], act_dim: int,
-                  newest_version: int, extras_spec: Mapping[str, Any] | None = None) -> tuple[str, str] | None:
-    """``(reason, detail)`` when ``chunk`` must not reach the learner, else None.
-
-    The codec has already checked that the arrays agree with each other (T, N, dtypes, keys);
-    this checks the values and the run's declarations: ``future_version`` / ``negative_version``
-    (a policy version no actor of this group released, newest ``newest_version``), ``shape``
-    (observation keys, per-env shapes and dtypes as ``obs_spec`` says, ``act_dim`` actions),
-    ``nonfinite`` (NaN or inf in a float array) and ``out_of_range`` (token ids outside the
-    spec's vocabulary). The policy's extras (``extras_spec``: a flow chain, action bins) are held
-    to the same rules. One pass over each float array; integer images are not read.
-    """
-    extras_spec = extras_spec or {}
+def chunk_problem(chunk: TrajectoryChunk, spec: ChunkSpec, newest_version: int) -> tuple[str, str] | None:
+    """``(reason, detail)`` when ``chunk`` must not reach the learner, else None: a policy version
+    no actor of this group released (``negative_version``, ``future_version``: newer than
+    ``newest_version``), so the lag filter always sees a real lag, or what the run's
+    :meth:`ChunkSpec.problem` finds (``shape``, ``nonfinite``, ``out_of_range``)."""
     v = chunk.policy_version
     if v < 0:
         return "negative_version", f"policy_version {v} < 0"
     if v > newest_version:
         return "future_version", f"policy_version {v} is newer than the newest released, {newest_version}"
-    obs = {part: getattr(chunk, part) for part in ("obs", "next_obs", "final_obs")}
-    problem = _spec_problem(chunk.obs, obs_spec, "obs", "observation keys", "the run's")
-    if problem:
-        return problem
-    if chunk.actions.shape[2:] != (act_dim,):
-        return "shape", f"actions {list(chunk.actions.shape)}, expected {act_dim} per step"
-    problem = _spec_problem(chunk.extras, extras_spec, "extras", "extras", "the policy's")
-    if problem:
-        return problem
-    floats = {"rewards": chunk.rewards, "logprobs": chunk.logprobs, "actions": chunk.actions}
-    for part, arrays in {**obs, "extras": chunk.extras}.items():
-        floats.update({f"{part}[{k!r}]": a for k, a in arrays.items() if a.dtype.kind == "f"})
-    for name, arr in floats.items():
-        if not np.isfinite(arr).all():
-            return "nonfinite", f"{name} holds NaN or inf"
-    for spec, parts in ((obs_spec, obs), (extras_spec, {"extras": chunk.extras})):
-        for key, s in spec.items():
-            vocab = getattr(s, "vocab", None)
-            for part, arrays in parts.items():
-                arr = arrays[key]
-                if vocab is not None and arr.size and (arr.min() < 0 or arr.max() >= vocab):
-                    return "out_of_range", f"{part}[{key!r}] holds ids outside [0, {vocab})"
-    return None
-
-
-def _spec_problem(arrays: Mapping[str, np.ndarray], spec: Mapping[str, Any], part: str, what: str,
-                  whose: str) -> tuple[str, str] | None:
-    """A ``shape`` problem when ``arrays`` ([T, N, ...] each) have other keys, per-step shapes or
-    dtypes than ``spec`` declares."""
-    if arrays.keys() != spec.keys():
-        return "shape", f"{what} {sorted(arrays)} != {whose} {sorted(spec)}"
-    for key, s in spec.items():
-        arr = arrays[key]
-        if arr.shape[2:] != tuple(s.shape) or arr.dtype != np.dtype(s.dtype):
-            return "shape", f"{part}[{key!r}] {arr.dtype}{list(arr.shape[2:])} != {whose} {s.dtype}{list(s.shape)}"
-    return None
+    return spec.problem(chunk)
 
 
 #: versions between two checkpoints (the first version of an incarnation is checkpointed too)

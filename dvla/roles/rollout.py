@@ -3,7 +3,7 @@
 Lanes (and what flows between them):
 - ``sim``:   steps env group A while ``infer`` computes actions for group B (double-buffered
              sampling); writes each transition into its group's chunk, taken from the
-             group's preallocated pool (chunkpool.py).
+             group's pool of chunks allocated once (``ChunkSpec.zeros``).
 - ``infer``: policy forward for one group's observations; swaps in new weights between two
              batches, never during one.
 - ``ship``:  encodes and publishes finished chunks on the data plane and gives them back to
@@ -13,7 +13,8 @@ Lanes (and what flows between them):
 
 Where all the rollout's envs share one simulator scene (ManiSkill on a GPU, docs/envs.md) there
 is one group: observations, actions and every recorded step stay tensors on the sim device
-(a ``DeviceChunk``), and a finished chunk is copied to the host once.
+(a ``DeviceChunk``), and a finished chunk is copied to the host once. How the envs are grouped
+is :func:`dvla.learn.envs.env_groups`, which the actor asks too to size its slots.
 
 In ``sync`` mode (the lock-step baseline) the sim lane stops after its share of one learner
 batch and waits for the next policy version before sampling again. In ``sim_only`` mode (a
@@ -34,15 +35,16 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from ..config import RoleConfig, env_group_sizes, resolve_device
+from ..config import RoleConfig, resolve_device
 from ..fabric import Fabric, TrajectoryChunk
 from ..learn import make_env_group, make_policy
 from ..learn.policies import extras_spec, policy_base_hash, sample_actions
-from ..learn.envs import obs_as_dict, obs_to_torch, sim_layout
+from ..learn.envs import chunk_spec, env_groups, obs_as_dict, obs_to_torch
 from ..learn.grpo import grpo_envs
+from ..learn.vector_env import DeviceChunk
 from ..ledger import RolloutLedger
 from ..replication import HeldWeights, ParamLayout, bind_flat, unflatten_into
-from .chunkpool import ChunkPool, DeviceChunk, Shipment, chunk_template
+from .freelist import FreeList
 from .runtime import main
 from .swimlane import LaneContext, Swimlane, sample_percentile
 from .weightsync import WeightSync, held_status
@@ -50,8 +52,16 @@ from .weightsync import WeightSync, held_status
 log = logging.getLogger("dvla.rollout")
 
 #: finished chunks waiting for the ship lane (with the one being shipped, what a killed rollout
-#: can take with it)
+#: can take with it). A group's pool holds SHIP_QUEUE + 2 chunks: one being filled, at most
+#: SHIP_QUEUE queued and one being published, so the group never waits for a chunk.
 SHIP_QUEUE = 8
+
+
+class Shipment(NamedTuple):
+    """sim -> ship: a finished chunk, and the pool it goes back to once published."""
+
+    chunk: TrajectoryChunk
+    pool: FreeList[TrajectoryChunk]
 
 
 class Actions(NamedTuple):
@@ -79,8 +89,8 @@ class _Group:
     #: steps recorded since the process started (names the sampling noise of the next one)
     steps: int = 0
     versions: list[int] = field(default_factory=list)
-    #: this group's preallocated chunks
-    chunks: ChunkPool | None = None
+    #: this group's chunks, allocated once
+    chunks: FreeList[TrajectoryChunk] | None = None
     #: the chunk being filled, one of `chunks`: each step is written into its arrays
     chunk: TrajectoryChunk | None = None
     #: a one-scene group's steps are recorded here on the sim device, then copied into `chunk`
@@ -159,24 +169,21 @@ class Rollout:
         self._noise = torch.Generator(device=self.device)
         seed = cfg.seed * 10_000
         # one simulator scene of every env (ManiSkill on a GPU), or two double-buffered groups
-        _, one_scene = sim_layout(task, task.envs_per_rollout)
-        for gid, size in enumerate(env_group_sizes(task.envs_per_rollout, one_scene)):
+        sizes, one_scene = env_groups(task)
+        for gid, size in enumerate(sizes):
             envs = make_env_group(task, size, seed + gid * 1000, batching="scene" if one_scene else "loop",
                                   **grpo_envs(task))
             self.groups.append(_Group(gid, envs, envs.reset()))
         g0 = self.groups[0].envs
-        self.obs_spec, self.act_dim = g0.obs_spec, g0.act_dim  # flat: {"state"}; rgb: rgb/proprio/tokens
-        policy = make_policy(task.policy, self.obs_spec, self.act_dim, **task.policy_kwargs)
+        policy = make_policy(task.policy, g0.obs_spec, g0.act_dim, **task.policy_kwargs)
         self.pool = PolicyPool(policy.to(self.device).eval())
-        #: per-step tensors the policy ships with each transition (flow chain, action tokens)
-        self.extras_spec = extras_spec(policy)
-        self.T = task.chunk_steps
+        #: every chunk's arrays: observations, actions, the policy's extras (flow chain, action tokens)
+        self.spec = chunk_spec(task, g0.obs_spec, g0.act_dim, extras_spec(policy))
         for g in self.groups:
-            template = chunk_template(cfg.name, self.T, g.envs.n, self.obs_spec, self.act_dim, self.extras_spec)
-            g.chunks = ChunkPool(template, SHIP_QUEUE + 2)
+            g.chunks = FreeList(self.spec.zeros(g.envs.n) for _ in range(SHIP_QUEUE + 2))
             g.chunk = g.chunks.take(threading.Event())
             if g.envs.on_device:
-                g.dev = DeviceChunk(template, g.envs.device)
+                g.dev = DeviceChunk(self.spec, g.envs.n, g.envs.device)
         #: chunks produced and shipped, in a counter file that survives a kill -9 (dvla/ledger.py)
         self.ledger = RolloutLedger(cfg.run_dir, cfg.name, SHIP_QUEUE)
         self.seq = self.ledger.first_seq
@@ -271,7 +278,7 @@ class Rollout:
             with ctx.busy():
                 self._record_step(g, a)
                 ctx.count(g.envs.n)
-            if g.t == self.T:
+            if g.t == self.spec.T:
                 self._finish_chunk(g, ctx)
             self.to_infer.put(a.gid, ctx.stop, stats=ctx.stats)
 
@@ -332,7 +339,8 @@ class Rollout:
         if g.dev is not None:
             g.dev.copy_to(g.chunk)  # the chunk's one device -> host copy
         # A new message object around the same arrays: the per-chunk fields are frozen.
-        chunk = dataclasses.replace(g.chunk, seq=self.seq, policy_version=min(g.versions), created_ns=time.time_ns())
+        chunk = dataclasses.replace(g.chunk, rollout=self.cfg.name, seq=self.seq, policy_version=min(g.versions),
+                                    created_ns=time.time_ns())
         self.seq += 1
         g.t = 0
         g.versions = []
@@ -341,7 +349,7 @@ class Rollout:
             self.ledger.add_produced()
         else:
             g.chunks.give(chunk)
-        nxt = g.chunks.take(ctx.stop)  # never waits with a full-size pool (chunkpool.py)
+        nxt = g.chunks.take(ctx.stop)  # never waits (SHIP_QUEUE)
         if nxt is None:
             return  # stopping
         g.chunk = nxt
@@ -350,7 +358,7 @@ class Rollout:
 
     def _lockstep_wait(self, g: _Group, ctx: LaneContext) -> None:
         """Lock-step baseline: after this rollout's share of a batch, wait for a new version."""
-        self._since_version += self.T * g.envs.n
+        self._since_version += self.spec.T * g.envs.n
         if self._since_version < self.cfg.lockstep_steps:
             return
         self._since_version = 0

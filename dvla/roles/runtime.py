@@ -22,7 +22,8 @@ from typing import Any, Protocol
 
 from ..config import RoleConfig
 from ..fabric import Fabric, load_secret, plane_config
-from ..fabric.zconfig import plane_max_message_size, traj_chunk_bytes
+from ..fabric.messages import ArraySpec, ChunkSpec
+from ..fabric.zconfig import plane_max_message_size
 from ..fabric.identity import IDENTITY_ENV, Identity, IdentityError
 from ..fabric.messages import Command, RoleStatus
 from ..learn.spec import EnvSetupError, PolicySetupError
@@ -96,8 +97,8 @@ def data_plane_cap(task: Any) -> int:
     obs = 4096
     if task.obs_mode != "state":
         obs += 2 * 3 * task.image_size ** 2 + 8 * task.instruction_tokens
-    chunk = traj_chunk_bytes(chunk_steps=task.chunk_steps, n_envs=task.envs_per_rollout, obs_bytes=obs, act_dim=64)
-    return plane_max_message_size(chunk, headroom=2.0)
+    bound = ChunkSpec(obs={"obs": ArraySpec((obs,), "uint8")}, act_dim=64, T=task.chunk_steps, N=task.envs_per_rollout)
+    return plane_max_message_size(bound.nbytes(), headroom=2.0)
 
 
 def setup_logging(name: str) -> None:

@@ -13,17 +13,16 @@ from torch import nn
 
 from dvla.config import PPOConfig
 from dvla.fabric.codec import decode, encode
-from dvla.fabric.messages import TrajectoryChunk
-from dvla.learn.envs import ArraySpec
+from dvla.fabric.messages import ArraySpec, ChunkSpec, TrajectoryChunk
 from dvla.learn.policies import MLPPolicy, extras_spec, sample_actions
-from dvla.learn.ppo import PPOLearner, Trajectories
+from dvla.learn.ppo import PPOLearner
 from dvla.roles.actor import chunk_problem
-from dvla.roles.chunkpool import chunk_template
 from dvla.roles.slots import SlotPool
 
 T, N, D, A, K = 4, 3, 5, 2, 3
 STATE = {"state": ArraySpec((D,), "float32")}
 EXTRAS = {"chain": ArraySpec((K + 1, A), "float32"), "bins": ArraySpec((A,), "int32", vocab=16)}
+SPEC = ChunkSpec(obs=STATE, act_dim=A, extras=EXTRAS, T=T, N=N)
 
 
 class ChainPolicy(nn.Module):
@@ -66,7 +65,7 @@ class ChainPolicy(nn.Module):
 
 
 def filled_chunk(policy: nn.Module, seed: int = 0) -> TrajectoryChunk:
-    c = chunk_template("rollout-0", T, N, STATE, A, extras_spec(policy))
+    c = ChunkSpec(obs=STATE, act_dim=A, extras=extras_spec(policy), T=T, N=N).zeros()
     rng = np.random.default_rng(seed)
     g = torch.Generator().manual_seed(seed)
     for t in range(T):
@@ -85,18 +84,18 @@ def test_extras_cross_the_wire_and_pass_the_actors_checks() -> None:
     c = decode(encode(filled_chunk(policy)))
     assert c.extras.keys() == EXTRAS.keys() and c.extras["chain"].shape == (T, N, K + 1, A)
     assert c.extras["bins"].dtype == np.int32
-    assert chunk_problem(c, STATE, A, 1, EXTRAS) is None
+    assert chunk_problem(c, SPEC, 1) is None
     # extras the policy does not declare, or missing ones, are a shape problem
-    assert chunk_problem(c, STATE, A, 1, {})[0] == "shape"
-    assert chunk_problem(dataclasses.replace(c, extras={"chain": c.extras["chain"]}), STATE, A, 1, EXTRAS)[0] == "shape"
+    assert chunk_problem(c, dataclasses.replace(SPEC, extras={}), 1)[0] == "shape"
+    assert chunk_problem(dataclasses.replace(c, extras={"chain": c.extras["chain"]}), SPEC, 1)[0] == "shape"
     wrong = {**c.extras, "chain": np.zeros((T, N, K, A), np.float32)}
-    assert chunk_problem(dataclasses.replace(c, extras=wrong), STATE, A, 1, EXTRAS)[0] == "shape"
+    assert chunk_problem(dataclasses.replace(c, extras=wrong), SPEC, 1)[0] == "shape"
     nan = {**c.extras, "chain": c.extras["chain"].copy()}
     nan["chain"][1, 2, 0, 1] = np.nan
-    code, detail = chunk_problem(dataclasses.replace(c, extras=nan), STATE, A, 1, EXTRAS)
+    code, detail = chunk_problem(dataclasses.replace(c, extras=nan), SPEC, 1)
     assert code == "nonfinite" and "chain" in detail
     big = {**c.extras, "bins": np.full((T, N, A), 16, np.int32)}
-    assert chunk_problem(dataclasses.replace(c, extras=big), STATE, A, 1, EXTRAS)[0] == "out_of_range"
+    assert chunk_problem(dataclasses.replace(c, extras=big), SPEC, 1)[0] == "out_of_range"
 
 
 def test_the_codec_rejects_extras_that_disagree_on_T_and_N() -> None:
@@ -109,13 +108,13 @@ def test_the_codec_rejects_extras_that_disagree_on_T_and_N() -> None:
 def test_extras_go_through_the_slots_into_the_learners_evaluate() -> None:
     torch.manual_seed(0)
     policy = ChainPolicy()
-    slots = SlotPool(n_slots=2, T=T, n_max=N, act_dim=A, obs_spec=STATE, extras_spec=EXTRAS)
+    slots = SlotPool(SPEC, n_slots=2)
     chunks = [decode(encode(filled_chunk(policy, seed))) for seed in (1, 2)]
     for slot, c in enumerate(chunks):
-        assert slots.fill(slot, c) is None
-    stacked = slots.stack([0, 1], torch.device("cpu"))
-    np.testing.assert_array_equal(stacked["extras"]["chain"][:, N:].numpy(), chunks[1].extras["chain"])
-    b = Trajectories.of(stacked)
+        slots.fill(slot, c)
+    b = slots.stack([0, 1], torch.device("cpu"))
+    np.testing.assert_array_equal(b.extras["chain"][:, N:].numpy(), chunks[1].extras["chain"])
+    np.testing.assert_array_equal(b.extras["bins"][:, :N].numpy(), chunks[0].extras["bins"])
     batch = b.training_batch(torch.zeros(T, 2 * N), torch.zeros(T, 2 * N), torch.zeros(T, 2 * N))
     assert batch["extras"]["chain"].shape == (T * 2 * N, K + 1, A)
     batch["advantages"] = torch.randn(T * 2 * N)
@@ -124,8 +123,6 @@ def test_extras_go_through_the_slots_into_the_learners_evaluate() -> None:
     # the rollout's log-probs were of the same weights: the update starts on-policy
     assert stats["behaviour_kl"] < 1e-10
     assert policy.seen_extras and all(s["chain"][1:] == (K + 1, A) for s in policy.seen_extras)
-    # a slot refuses a chunk without the policy's extras
-    assert "extras" in slots.fill(0, dataclasses.replace(chunks[0], extras={}))
 
 
 def _batch(n: int, seed: int) -> dict:
@@ -163,6 +160,7 @@ def test_frozen_parameters_are_not_optimised_or_restored() -> None:
     policy.critic.requires_grad_(False)
     frozen = [p.detach().clone() for p in policy.critic.parameters()]
     learner = PPOLearner(policy, PPOConfig(minibatches=2, update_epochs=1, batch_steps=16, target_kl=None), seed=0)
-    assert len(learner._trainable) == len(list(policy.parameters())) - len(frozen)
+    optimised = [p for group in learner.optimizer.param_groups for p in group["params"]]
+    assert len(optimised) == len(list(policy.parameters())) - len(frozen)
     learner.update(_batch(16, 2))
     assert all(torch.equal(f, p) for f, p in zip(frozen, policy.critic.parameters()))

@@ -46,7 +46,7 @@ def test_gae_hand_computed_torch():
     r, v, nv, term, end, expected = _gae_case()
     t = torch.as_tensor
     adv, ret = compute_gae(t(r), t(v), t(nv), t(term), t(end), GAMMA, LAM)
-    assert isinstance(adv, torch.Tensor)
+    assert isinstance(adv, torch.Tensor) and adv.dtype == torch.float32  # torch in, torch out, dtype kept
     np.testing.assert_allclose(adv.numpy(), expected, rtol=1e-6)
     np.testing.assert_allclose(ret.numpy(), expected + v, rtol=1e-6)
 
@@ -68,7 +68,7 @@ def test_grpo_advantages():
     adv = grpo_advantages(np.array([1.0, 3.0, 10.0, 10.0, 5.0]), np.array([7, 7, 2, 2, 9]))
     np.testing.assert_allclose(adv, [-1.0, 1.0, 0.0, 0.0, 0.0], atol=1e-6)
     t = grpo_advantages(torch.tensor([0.0, 2.0, 4.0]), torch.tensor([1, 1, 1]))
-    assert isinstance(t, torch.Tensor)
+    assert isinstance(t, torch.Tensor) and t.dtype == torch.float32  # torch in, torch out, dtype kept
     std = np.std([0.0, 2.0, 4.0])
     np.testing.assert_allclose(t.numpy(), [-2 / std, 0.0, 2 / std], rtol=1e-5)
     with pytest.raises(ValueError):
@@ -181,6 +181,7 @@ def test_gae_batch_of_two_stacked_chunks_matches_manual_gae(bootstrap_terminated
         "rewards": rng.normal(size=(T, N)).astype(np.float32),
         "terminated": np.zeros((T, N), bool),
         "truncated": np.zeros((T, N), bool),
+        "success": np.zeros((T, N), bool),
         "final_obs": np.zeros((T, N, 3), np.float32),
         "next_obs": rng.normal(size=(N, 3)).astype(np.float32),
     }
@@ -192,7 +193,7 @@ def test_gae_batch_of_two_stacked_chunks_matches_manual_gae(bootstrap_terminated
     side = {k: torch.as_tensor(np.concatenate([v, v], axis=0 if k == "next_obs" else 1)) for k, v in chunk.items()}
     for k in ("obs", "final_obs", "next_obs"):
         side[k] = {"state": side[k]}
-    batch = gae_batch(policy, Trajectories.of(side), cfg)
+    batch = gae_batch(policy, Trajectories(**side), cfg)
     assert batch["obs"].shape == (2 * T * N, 3) and batch["advantages"].shape == (2 * T * N,)
 
     with torch.no_grad():
@@ -280,7 +281,7 @@ def _trajectories(T=8, N=8, obs_dim=4, act_dim=2, seed=0):
     t = lambda *shape: torch.as_tensor(rng.normal(size=shape).astype(np.float32))  # noqa: E731
     no = torch.zeros(T, N, dtype=torch.bool)
     return Trajectories(obs={"state": t(T, N, obs_dim)}, actions=t(T, N, act_dim), logprobs=t(T, N) - 2.0,
-                        rewards=t(T, N), terminated=no, truncated=no.clone(),
+                        rewards=t(T, N), terminated=no, truncated=no.clone(), success=no.clone(),
                         final_obs={"state": torch.zeros(T, N, obs_dim)}, next_obs={"state": t(N, obs_dim)})
 
 

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from dvla.config import PPOConfig
-from dvla.fabric.messages import TrajectoryChunk
+from dvla.fabric.messages import ChunkSpec, TrajectoryChunk
 from dvla.learn.envs import ArraySpec
 from dvla.learn.policies import make_policy, registered_policies
 from dvla.learn.ppo import PPOLearner
@@ -156,18 +156,22 @@ def _chunk(T: int, n: int, rng: np.random.Generator, rgb_dtype=np.uint8) -> Traj
 
 def test_slots_carry_structured_observations_in_their_dtypes():
     rng = np.random.default_rng(0)
-    pool = SlotPool(n_slots=3, T=4, n_max=2, act_dim=8, obs_spec=SPEC)
+    spec = ChunkSpec(obs=SPEC, act_dim=8, T=4, N=2)
+    pool = SlotPool(spec, n_slots=3)
     a, b = _chunk(4, 2, rng), _chunk(4, 1, rng)
+    assert spec.problem(a) is None and spec.problem(b) is None
     stop = threading.Event()
     sa, sb = pool.acquire(stop), pool.acquire(stop)
-    assert pool.fill(sa, a) is None and pool.fill(sb, b) is None
+    pool.fill(sa, a)
+    pool.fill(sb, b)
+    assert (pool.steps(sa), pool.steps(sb)) == (8, 4)
     batch = pool.stack([sa, sb], torch.device("cpu"))
-    assert batch["obs"]["rgb"].dtype == torch.uint8 and batch["obs"]["rgb"].shape == (4, 3, 32, 32, 3)
-    assert batch["obs"]["tokens"].dtype == torch.int32
-    np.testing.assert_array_equal(batch["obs"]["rgb"][:, :2].numpy(), a.obs["rgb"])
-    np.testing.assert_array_equal(batch["obs"]["rgb"][:, 2:].numpy(), b.obs["rgb"])
-    np.testing.assert_array_equal(batch["next_obs"]["proprio"][2].numpy(), b.next_obs["proprio"][0])
-    sc = pool.acquire(stop)
-    assert "does not match" in pool.fill(sc, _chunk(4, 1, rng, rgb_dtype=np.int32))
-    state_only = SlotPool(n_slots=1, T=4, n_max=2, act_dim=8, obs_dim=35)
-    assert "observation keys" in state_only.fill(0, a)
+    assert batch.obs["rgb"].dtype == torch.uint8 and batch.obs["rgb"].shape == (4, 3, 32, 32, 3)
+    assert batch.obs["tokens"].dtype == torch.int32 and batch.steps == 12
+    np.testing.assert_array_equal(batch.obs["rgb"][:, :2].numpy(), a.obs["rgb"])
+    np.testing.assert_array_equal(batch.obs["rgb"][:, 2:].numpy(), b.obs["rgb"])
+    np.testing.assert_array_equal(batch.next_obs["proprio"][2].numpy(), b.next_obs["proprio"][0])
+    # what a slot could not hold never reaches one: the run's spec refuses it first
+    assert spec.problem(_chunk(4, 1, rng, rgb_dtype=np.int32))[0] == "shape"
+    code, detail = ChunkSpec(obs={"state": ArraySpec((35,), "float32")}, act_dim=8, T=4, N=2).problem(a)
+    assert code == "shape" and "obs keys" in detail

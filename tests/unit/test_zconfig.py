@@ -7,7 +7,8 @@ import json
 import pytest
 import zenoh
 
-from dvla.fabric.zconfig import MAX_MESSAGE_SIZE_KEY, plane_config, plane_max_message_size, traj_chunk_bytes
+from dvla.fabric.messages import ArraySpec, ChunkSpec
+from dvla.fabric.zconfig import MAX_MESSAGE_SIZE_KEY, plane_config, plane_max_message_size
 
 
 def test_max_message_size_is_carried_and_a_session_opens_with_it() -> None:
@@ -27,10 +28,10 @@ def test_max_message_size_is_carried_and_a_session_opens_with_it() -> None:
 
 def test_plane_max_message_size_from_declared_sizes() -> None:
     # tiny state task: 25 steps x 2 envs, 42 float32 obs, 8 actions
-    chunk = traj_chunk_bytes(chunk_steps=25, n_envs=2, obs_bytes=42 * 4, act_dim=8)
+    chunk = ChunkSpec(obs={"state": ArraySpec((42,), "float32")}, act_dim=8, T=25, N=2).nbytes()
     assert chunk == 25 * 2 * (2 * 168 + 32 + 8 + 3) + 2 * 168
     assert plane_max_message_size(chunk) == 1 << 20  # small runs get the floor
-    big = traj_chunk_bytes(chunk_steps=50, n_envs=64, obs_bytes=64 * 64 * 3, act_dim=8)
+    big = ChunkSpec(obs={"rgb": ArraySpec((64, 64, 3), "uint8")}, act_dim=8, T=50, N=64).nbytes()
     assert plane_max_message_size(big) == int(big * 1.25) + (64 << 10) < 1 << 30
     with pytest.raises(ValueError):
         plane_max_message_size(-1)

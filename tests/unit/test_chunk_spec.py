@@ -1,4 +1,6 @@
-"""The rollout's ChunkPool: preallocated chunks filled in place, encoded by the one codec, reused."""
+"""ChunkSpec, the one description of a trajectory chunk's arrays: the chunks it allocates are
+what the codec and the learner's check accept; a rollout's pool of them is filled in place,
+encoded by the one codec and reused."""
 
 from __future__ import annotations
 
@@ -10,19 +12,31 @@ import numpy as np
 import pytest
 
 from dvla.fabric import TrajectoryChunk, decode, encode
-from dvla.roles.chunkpool import ChunkPool, chunk_template
+from dvla.fabric.messages import ArraySpec, ChunkSpec, chunk_arrays
+from dvla.roles.freelist import FreeList
+
+SPEC = ChunkSpec(obs={"state": ArraySpec((5,), "float32"), "rgb": ArraySpec((4, 4, 3), "uint8")}, act_dim=4,
+                 extras={"bins": ArraySpec((4,), "int32", vocab=8)}, T=3, N=2)
 
 
-class _Spec:
-    def __init__(self, shape: tuple[int, ...], dtype: type) -> None:
-        self.shape, self.dtype = shape, np.dtype(dtype)
+def pool(size: int) -> FreeList[TrajectoryChunk]:
+    """A rollout group's chunks, allocated once."""
+    return FreeList(SPEC.zeros() for _ in range(size))
 
 
-SPEC = {"state": _Spec((5,), np.float32), "rgb": _Spec((4, 4, 3), np.uint8)}
-
-
-def template(T: int = 3, n: int = 2) -> TrajectoryChunk:
-    return chunk_template("rollout-0", T, n, SPEC, act_dim=4)
+def test_zeros_is_a_chunk_of_the_spec_for_any_env_count_up_to_N() -> None:
+    for n in (1, 2):
+        c = SPEC.zeros(n)
+        assert (c.horizon, c.num_envs, c.env_steps) == (3, n, 3 * n)
+        assert {p: (a.shape, a.dtype.name) for p, a in chunk_arrays(c).items()} == {
+            p: (shape, s.dtype) for p, (shape, s) in SPEC.layout(n).items()}
+        assert not any(a.any() for a in chunk_arrays(c).values())
+        assert SPEC.nbytes(n) == sum(a.nbytes for a in chunk_arrays(c).values())  # what the data plane's cap counts
+        c.validate()  # the wire's check: the arrays agree with each other
+        assert SPEC.problem(c) is None  # the learner's: they are what the run declared
+        implied = ChunkSpec.implied_by(c)  # what the wire sees: shapes and dtypes, no vocabularies
+        assert (implied.obs, implied.act_dim, implied.T, implied.N) == (SPEC.obs, 4, 3, n)
+    assert SPEC.problem(ChunkSpec(obs=SPEC.obs, act_dim=4, extras=SPEC.extras, T=3, N=3).zeros())[0] == "shape"
 
 
 def fill(m: TrajectoryChunk, seed: int) -> dict[str, np.ndarray]:
@@ -46,13 +60,12 @@ def fill(m: TrajectoryChunk, seed: int) -> dict[str, np.ndarray]:
 
 @pytest.mark.parametrize("seq", [0, 1, 127, 2**32 + 5, 2**64 - 1])
 def test_a_pooled_chunk_filled_in_place_round_trips_with_its_per_chunk_fields(seq: int) -> None:
-    pool = ChunkPool(template(), size=2)
-    chunk = pool.take(threading.Event())
+    chunk = pool(2).take(threading.Event())
     want = fill(chunk, seed=seq % 1000)
     sent = dataclasses.replace(chunk, seq=seq, policy_version=7, created_ns=1_700_000_000_123_456_789)
     got = decode(encode(sent), expect=TrajectoryChunk)
     assert (got.seq, got.policy_version, got.created_ns) == (seq, 7, 1_700_000_000_123_456_789)
-    assert got.rollout == "rollout-0" and got.env_steps == 6
+    assert got.rollout == "" and got.env_steps == 6
     np.testing.assert_array_equal(got.obs["state"], want["state"])
     np.testing.assert_array_equal(got.obs["rgb"], want["rgb"])
     np.testing.assert_array_equal(got.actions, want["actions"])
@@ -62,12 +75,12 @@ def test_a_pooled_chunk_filled_in_place_round_trips_with_its_per_chunk_fields(se
 
 
 def test_a_reused_chunk_carries_each_new_fill() -> None:
-    pool = ChunkPool(template(), size=1)
+    chunks = pool(1)
     for i in range(3):
-        chunk = pool.take(threading.Event())
+        chunk = chunks.take(threading.Event())
         want = fill(chunk, seed=i)
         raw = encode(dataclasses.replace(chunk, seq=i))
-        pool.give(chunk)
+        chunks.give(chunk)
         fill(chunk, seed=100 + i)  # refilled after the encode: the bytes sent are unaffected
         got = decode(raw, expect=TrajectoryChunk)
         assert got.seq == i
@@ -75,21 +88,19 @@ def test_a_reused_chunk_carries_each_new_fill() -> None:
 
 
 def test_chunk_pool_hands_out_each_chunk_once_and_stops_waiting_on_stop() -> None:
-    pool = ChunkPool(template(), size=3)
+    chunks = pool(3)
     stop = threading.Event()
-    taken = [pool.take(stop) for _ in range(3)]
-    assert len({id(b) for b in taken}) == 3 and pool.free() == 0
-    # every chunk has arrays of its own (and none shares the template's)
-    assert len({id(b.actions) for b in taken}) == 3 and len({id(b.obs["rgb"]) for b in taken}) == 3
+    taken = [chunks.take(stop) for _ in range(3)]
+    assert len({id(b) for b in taken}) == 3 and chunks.free() == 0
+    # every chunk has arrays of its own: what is written into one is in no other
     taken[0].actions[...] = 1.0
-    assert not taken[1].actions.any()
+    taken[0].obs["rgb"][...] = 7
+    assert not taken[1].actions.any() and not taken[2].obs["rgb"].any()
     stop_timer = threading.Timer(0.2, stop.set)
     stop_timer.start()
     t0 = time.monotonic()
-    assert pool.take(stop) is None  # every chunk is out: waits, then gives up on stop
+    assert chunks.take(stop) is None  # every chunk is out: waits, then gives up on stop
     assert 0.15 < time.monotonic() - t0 < 2.0
     stop_timer.join()
-    pool.give(taken[1])
-    assert pool.take(threading.Event()) is taken[1]
-    with pytest.raises(ValueError):
-        ChunkPool(template(), size=0)
+    chunks.give(taken[1])
+    assert chunks.take(threading.Event()) is taken[1]
