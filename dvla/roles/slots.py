@@ -67,9 +67,6 @@ class SlotPool:
     def version(self, slot: int) -> int:
         return self._version[slot]
 
-    def rollout(self, slot: int) -> str:
-        return self._rollout[slot]
-
     def order(self, slot: int) -> tuple[str, int]:
         """(rollout, seq) of the chunk in `slot`: a batch order that does not depend on arrival."""
         return self._rollout[slot], self._seq[slot]
