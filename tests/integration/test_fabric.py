@@ -645,8 +645,18 @@ b = zenoh.open(plane_config(connect=[f"tcp/127.0.0.1:{port}"]))
 deadline = time.monotonic() + 20
 while time.monotonic() < deadline and not b.info.peers_zid():
     time.sleep(0.05)
-names = [open(f"/proc/self/task/{t}/comm").read().strip() for t in os.listdir("/proc/self/task")]
-print(sum(n.startswith("rx-") for n in names), ZENOH_RX_THREADS + 3)
+def rx_threads():
+    names = []
+    for t in os.listdir("/proc/self/task"):
+        try:
+            names.append(open(f"/proc/self/task/{t}/comm").read().strip())
+        except OSError:  # a thread that ended meanwhile
+            pass
+    return sum(n.startswith("rx-") for n in names)
+# the pool's threads may start after the first link is up: wait for them (a wrong size never gets there)
+while time.monotonic() < deadline + 10 and rx_threads() < ZENOH_RX_THREADS + 3:
+    time.sleep(0.05)
+print(rx_threads(), ZENOH_RX_THREADS + 3)
 """
     env = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, env=env)

@@ -6,7 +6,9 @@ for the entry endpoints and the secret, collects every status reply, then render
 
 from __future__ import annotations
 
+import os
 import queue
+import sys
 import threading
 from pathlib import Path
 from typing import Annotated, Any, Optional
@@ -31,7 +33,7 @@ def status(
     if not (timeout > 0 and connect_timeout > 0):
         raise fail(f"--timeout ({timeout}) and --connect-timeout ({connect_timeout}) must be > 0")
     run_id, state = find_run(run, runs)
-    replies = _collect(run_id, state, timeout, connect_timeout)
+    replies, worker = _collect(run_id, state, timeout, connect_timeout)
     statuses = {msg.name: msg for _s, msg in replies}
     expected = sorted(p.stem for p in (runs / run_id / "roles").glob("*.json"))
     restarts = {k: int(v) for k, v in state.get("restarts", {}).items()}
@@ -40,12 +42,25 @@ def status(
         typer.echo(render_json(statuses, {"run": run_id, "silent": silent, "restarts": restarts}))
     else:
         typer.echo(render_table(statuses, expected, restarts))
+    _leave(worker, 0)
 
 
-def _collect(run_id: str, state: dict, timeout: float, connect_timeout: float) -> list[tuple[str, RoleStatus]]:
-    """Every status reply. Opening the session is bounded by `connect_timeout`, querying and
-    closing by `timeout`: the session lives on a thread of its own, and a close that a run
-    ending under it holds up is left to the process's exit."""
+def _leave(worker: threading.Thread, code: int) -> None:
+    """Give the session thread up to a second to close; if it is still inside Zenoh (a run ending
+    under it), leave the process at once: interpreter shutdown under a thread in Zenoh's native
+    code aborts the process, which would turn a printed answer into a crash."""
+    worker.join(1.0)
+    if worker.is_alive():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+
+
+def _collect(run_id: str, state: dict, timeout: float,
+             connect_timeout: float) -> tuple[list[tuple[str, RoleStatus]], threading.Thread]:
+    """Every status reply, and the thread that holds the session. Opening the session is bounded by
+    `connect_timeout`, querying by `timeout`: the session lives on a thread of its own, and a
+    close that a run ending under it holds up is left to the process's exit (`_leave`)."""
     done: queue.Queue[tuple[str, Any]] = queue.Queue()
 
     def work() -> None:
@@ -61,11 +76,14 @@ def _collect(run_id: str, state: dict, timeout: float, connect_timeout: float) -
         finally:
             fabric.close()
 
-    threading.Thread(target=work, name="status-cli", daemon=True).start()
+    worker = threading.Thread(target=work, name="status-cli", daemon=True)
+    worker.start()
     try:
         kind, got = done.get(timeout=connect_timeout + timeout + 1.0)  # +1: the open's last attempt
     except queue.Empty:
-        raise fail(f"run {run_id}: no answer from the control plane within {connect_timeout + timeout:.0f} s") from None
+        kind, got = "error", f"no answer from the control plane within {connect_timeout + timeout:.0f} s"
     if kind == "error":
-        raise fail(f"run {run_id}: {got}")
-    return got
+        exit_ = fail(f"run {run_id}: {got}")
+        _leave(worker, exit_.exit_code)
+        raise exit_
+    return got, worker
