@@ -232,8 +232,10 @@ class Verifier:
         self._certs: OrderedDict[tuple[str, str, bytes, bytes], None] = OrderedDict()  # verified certificates
 
     @property
-    def requires_identity(self) -> bool:
-        return self._operator is not None
+    def nonces_held(self) -> int:
+        """Nonces remembered against replays: at most ``replay_window``, none older than ``max_age_s``."""
+        with self._lock:
+            return len(self._seen)
 
     def open(self, key_expr: str, envelope: bytes | bytearray | memoryview, *, bind: bytes = b"",
              fresh: bool = True) -> Opened:
