@@ -48,7 +48,8 @@ def test_wandb_section_is_read_with_its_defaults() -> None:
     topo = parse_topology(_with_logging("  wandb: {project: my-project, mode: online, entity: team, tags: [a, b]}"))
     assert topo.logging.wandb == WandbConfig(project="my-project", mode="online", entity="team", tags=("a", "b"))
     offline = parse_topology(_with_logging("  wandb: {project: p}")).logging.wandb
-    assert offline is not None and offline.mode == "offline" and offline.name is None and offline.init_timeout_s > 0
+    assert offline == WandbConfig(project="p")
+    assert offline.mode == "offline" and offline.name is None and offline.init_timeout_s == 30.0
 
 
 def test_wandb_section_round_trips() -> None:
