@@ -303,6 +303,7 @@ class EnvGroup:
             self.obs_spec = {"state": ArraySpec((int(np.prod(shape)),), "float32")} if shape else None
         self._base = seed
         self._episode_index = np.zeros(n, dtype=np.int64)
+        self._episode_seeds = np.zeros(n, dtype=np.int64)
         self._succeeded = np.zeros(n, dtype=bool)
         self._obs: dict[str, np.ndarray] | None = None
 
@@ -327,6 +328,11 @@ class EnvGroup:
         return self.obs_spec["state"].shape[0]
 
     # --- resets -------------------------------------------------------------------------------
+
+    @property
+    def episode_seeds(self) -> np.ndarray:
+        """Reset seed of the episode each env is playing, int64 [n] (for grouping episodes)."""
+        return self._episode_seeds.copy()
 
     def reset(self, seed: int | None = None) -> Any:
         """Start a fresh episode in every env; returns the observations (see module docstring).
@@ -362,6 +368,7 @@ class EnvGroup:
     def _reset_one(self, i: int, seed: int) -> dict[str, np.ndarray]:
         env = self._envs[i]
         obs, _info = env.reset(seed=seed)
+        self._episode_seeds[i] = seed
         self._succeeded[i] = False
         self.task_labels[i] = str(getattr(env.unwrapped, "task_label", ""))
         if self.structured:
