@@ -82,7 +82,6 @@ class _Node:
     done: list[simpy.Event] = field(default_factory=list)
     #: per block: fully received (receivers only)
     received: list[simpy.Event] = field(default_factory=list)
-    in_rate: float = math.inf
 
 
 @dataclass

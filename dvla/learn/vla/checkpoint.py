@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import json
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -56,8 +56,6 @@ class CheckpointInfo:
     max_chunk: int
     action_low: tuple[float, ...]
     action_high: tuple[float, ...]
-    #: the VLM's weight files (not the flow expert's)
-    weight_files: tuple[Path, ...] = field(default=())
 
 
 def _fail(path: Path, what: str) -> CheckpointError:
@@ -148,7 +146,7 @@ def check_checkpoint(path: str | Path, family: str) -> CheckpointInfo:
         raise _fail(path, f"{EXPERT_FILE} missing (the flow family's action expert)")
     for file in weights + ((path / EXPERT_FILE,) if family == "flow" else ()):
         _check_safetensors(file)
-    return CheckpointInfo(path, family, settings, action_dim, max_chunk, bounds[0], bounds[1], weights)
+    return CheckpointInfo(path, family, settings, action_dim, max_chunk, bounds[0], bounds[1])
 
 
 def executed_chunk(info: CheckpointInfo, act_dim: int) -> int:
