@@ -12,10 +12,6 @@ from dataclasses import dataclass
 
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
-ALL = "all"
-"""Command target meaning every role of the run."""
-
-
 def check_name(kind: str, value: str) -> str:
     """A run id or role name must be one key chunk: no '/', '*', '$', '?', '#'."""
     if not isinstance(value, str) or not _NAME.match(value):

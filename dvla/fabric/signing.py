@@ -10,21 +10,8 @@ Zenoh key expression (a message signed for one key cannot be moved to another) a
 certificate, so a receiver knows *which* member sent it (:func:`dvla.fabric.identity.authorize`
 decides whether that member may).
 
-Envelope layout (all integers little-endian; see docs/wire-format.md)::
-
-    offset  size  field
-    0       4     magic b"DVS2"
-    4       4     key_id: SHA-256("dvla-key-id" | secret)[:4] (which secret signed it)
-    8       1     flags: bit 0 = identity block present
-    9       1     sender_len (S, 1..255)
-    10      S     sender, UTF-8
-    10+S    8     ts_ns, uint64, sender's wall clock (ns since the Unix epoch)
-    18+S    16    nonce, random
-    34+S    4     payload_len (P), uint32
-    38+S    I     identity block (flag set): kind_len (1) | kind | public key (32) | certificate (64)
-    38+S+I  P     payload
-    ..      32    tag = HMAC-SHA256(secret, u16 key_len | key_expr | u8 bind_len | bind | bytes [0, tag))
-    ..      64    signature = Ed25519(sender key, b"dvla-sig1" | tag)   (flag set only)
+The envelope's layout (magic, key id, sender, timestamp, nonce, optional identity block,
+payload, HMAC tag, optional Ed25519 signature) is drawn byte by byte in docs/wire-format.md.
 
 Freshness: an envelope is accepted if ``|now - ts_ns| <= max_age`` and its nonce has not been
 seen. Nonces are remembered for ``max_age`` (at most ``replay_window`` of them); when the store
@@ -232,8 +219,10 @@ class Verifier:
         self._certs: OrderedDict[tuple[str, str, bytes, bytes], None] = OrderedDict()  # verified certificates
 
     @property
-    def requires_identity(self) -> bool:
-        return self._operator is not None
+    def nonces_held(self) -> int:
+        """Nonces remembered against replays: at most ``replay_window``, none older than ``max_age_s``."""
+        with self._lock:
+            return len(self._seen)
 
     def open(self, key_expr: str, envelope: bytes | bytearray | memoryview, *, bind: bytes = b"",
              fresh: bool = True) -> Opened:

@@ -103,10 +103,7 @@ def plane_max_message_size(largest_bytes: int, *, headroom: float = 1.25, overhe
     """A `max_message_size` for a plane whose largest legitimate payload is ``largest_bytes``:
     with ``headroom`` for what the estimate leaves out, ``overhead`` bytes for the codec's
     framing and the signed envelope, and never below ``floor`` (status and small messages).
-
-    Data plane: the largest trajectory chunk (``ChunkSpec.nbytes``). Control plane: the larger of one weight chunk (``replication.chunk_bytes``) and a
-    full snapshot reply (4 bytes per replicated parameter, ``ParamLayout.numel``).
-    """
+    ``roles/runtime.py`` sizes each plane's cap with it."""
     if largest_bytes < 0:
         raise ValueError(f"largest_bytes must be >= 0, got {largest_bytes}")
     return max(int(floor), int(largest_bytes * headroom) + int(overhead))

@@ -2,11 +2,9 @@
 
 Every rank learns on the trajectories of its own rollouts. Gradients are averaged by
 ``DistributedDataParallel``; everything else that must agree is summed across ranks with
-:meth:`LearnerGroup.sum` (advantage-normalisation moments and the KL early-stop estimate of each
-minibatch, env steps per update) or :func:`all_reduce_sum` (observation-normalisation moments,
-inside a policy's ``observe``), so every rank takes the same optimizer steps and holds
-bit-identical parameters after each update. Rank 0 publishes and checkpoints; at start it hands
-its state (weights, optimizer, version counters) to the others with :meth:`LearnerGroup.sync_from_root`.
+:meth:`LearnerGroup.sum` or :func:`all_reduce_sum` (docs/learners.md lists what), so every rank
+holds bit-identical parameters after each update. Rank 0 publishes and checkpoints; at start it
+hands its state to the others with :meth:`LearnerGroup.sync_from_root`.
 
 A group of one (a run with one actor) opens no process group: every method is then local.
 Rendezvous is torch.distributed's TCP store on rank 0's node (``init_method``), as ``torchrun``

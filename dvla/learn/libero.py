@@ -4,29 +4,15 @@ This module owns everything LIBERO-specific: pointing the ``hf-libero`` package 
 ``libero`` extra) at its config file and at the assets directory of ``task.libero.assets``,
 choosing MuJoCo's offscreen GL backend, and turning one LIBERO task into a Gymnasium env whose
 observations are already dvla's structured form (``rgb``, ``proprio``; :class:`EnvGroup` adds the
-instruction's ``tokens``). Nothing here is imported until a LIBERO env is made.
+instruction's ``tokens``). Nothing here is imported until a LIBERO env is made. docs/libero.md
+says which task and initial state each seed plays, what success, reward, observations and
+actions are.
 
-* Tasks and instructions come from the package's suite table (task order 0, the one every LIBERO
-  paper reports): task ``i`` of a suite, its language instruction, its BDDL file, its init file.
-* Which task and which initial state an episode plays is a function of seeds only (see
-  :class:`~dvla.config.LiberoConfig`): an env built with seed s plays task
-  ``task_ids[s % k]``; a reset with seed s plays task ``task_ids[s % k]`` from init state
-  ``(s // k) % n_init``. A reset whose task differs from the env's current one rebuilds the
-  MuJoCo scene (seconds, not milliseconds): keep each env on one task by giving a rollout a
-  multiple of ``k`` envs per env group.
-* Success is the task's own BDDL goal (LIBERO's ``check_success``, what its ``done`` reports);
-  the reward is LIBERO's sparse 1 on success; an episode terminates on success and is
-  truncated at ``task.max_episode_steps``.
-* Observations: ``rgb`` uint8 ``[S, S, 3 * cameras]`` (agent view, then the wrist camera; images
-  turned upright from OpenGL's bottom-up rows), ``proprio`` float32 ``[25]`` (:data:`PROPRIO_KEYS`).
-  Actions: LIBERO's 7-d OSC_POSE delta (6-d end-effector delta, gripper), each in [-1, 1].
-
-Two things hf-libero 0.1.4 does that a non-interactive multi-process run cannot live with are
-handled before its import: it prompts on ``input()`` unless a config file exists under
-``$LIBERO_CONFIG_PATH`` (default ``~/.libero``), and it looks for assets inside its own package,
-then in ``~/.cache``, then downloads them. dvla writes the config file into a directory of its own
-(:func:`config_dir`, never the user's home) and hands LIBERO the assets directory through the
-package's assets-path cache.
+hf-libero prompts on ``input()`` unless a config file exists under ``$LIBERO_CONFIG_PATH`` and
+downloads assets it cannot find: neither may happen in a non-interactive multi-process run, so
+dvla writes the config file into a directory of its own (:func:`config_dir`, never the user's
+home) and hands LIBERO the assets directory through the package's assets-path cache, both before
+the import.
 """
 
 from __future__ import annotations

@@ -2,21 +2,10 @@
 
 A task names its policy with ``TaskConfig.policy``: a registry name (``"mlp"``, ``"tiny-vla"``)
 or ``"module:Class"`` for a user policy, built by :func:`make_policy` as
-``Class(obs, act_dim, **TaskConfig.policy_kwargs)``. ``obs`` is the int ``D`` for flat float32
-observations (``obs_mode="state"``) and an :data:`~dvla.learn.envs.ObsSpec` (name ->
-shape/dtype) for structured ones (``obs_mode="rgb"``: ``rgb``, ``proprio``, ``tokens``).
-docs/policies.md is the full protocol, including what a user policy must respect for weight
-replication.
-
-A policy is a ``torch.nn.Module`` with ``act(obs, deterministic=False) -> (action, logprob,
-value)``, ``evaluate(obs, action) -> (logprob, entropy, value)`` and ``value(obs)``, and
-optionally ``observe(obs)`` (the learner's batches, e.g. for normalisation statistics) and
-``sample(obs, deterministic=False) -> (action, logprob)`` (``act`` without the critic).
-A policy that needs more than the action to recompute its log-probability (a flow chain, action
-token ids) declares ``extras_spec`` (name -> ArraySpec, per step); its ``sample`` then returns
-``(action, logprob, extras)``, the rollout ships the extras with each transition and the learner
-calls ``evaluate(obs, action, extras)``. Register a class with ``@register_policy("name")`` to
-make it addressable by name.
+``Class(obs, act_dim, **TaskConfig.policy_kwargs)`` (``obs``: :func:`policy_obs_arg`). A policy
+is a ``torch.nn.Module`` with ``act``, ``evaluate`` and ``value`` (:class:`Policy`), optionally
+``observe``, ``sample`` and ``extras_spec``; docs/policies.md is the full protocol, including
+what a user policy must respect for weight replication.
 """
 
 from __future__ import annotations

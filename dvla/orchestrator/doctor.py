@@ -107,13 +107,20 @@ def needs_of(topo: Topology | None) -> Needs:
 # helpers
 
 
-def _python_probe(code: str, timeout: float = PROBE_TIMEOUT_S) -> tuple[int, str, str]:
-    """Run `code` in a fresh interpreter: (exit code, stdout, stderr); -1 on timeout."""
+def _run(cmd: list[str], timeout: float = 30.0) -> tuple[int, str, str]:
+    """(exit code, stdout, stderr) of `cmd`; -1 and why as stderr when it cannot start or times out."""
     try:
-        p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout)
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
         return -1, "", f"no answer in {timeout:.0f} s"
+    except OSError as err:
+        return -1, "", str(err)
     return p.returncode, p.stdout, p.stderr
+
+
+def _python_probe(code: str) -> tuple[int, str, str]:
+    """:func:`_run` of `code` in a fresh interpreter."""
+    return _run([sys.executable, "-c", code], PROBE_TIMEOUT_S)
 
 
 def parse_device_summary(text: str) -> list[str]:
@@ -192,12 +199,11 @@ def check_vulkan(needs: Needs) -> CheckResult:
         return outcome("vulkan", True, "SAPIEN render device: " + ", ".join(devices), required=needs.simulator)
     why = f"SAPIEN found no supported device ({last_line(err) if rc != 0 else 'none listed'})"
     if shutil.which("vulkaninfo"):
-        try:
-            p = subprocess.run(["vulkaninfo", "--summary"], capture_output=True, text=True, timeout=30)
-            names = [l.split("=", 1)[1].strip() for l in p.stdout.splitlines() if l.strip().startswith("deviceName")]
-            if p.returncode == 0 and names:
-                why += f"; vulkaninfo lists {', '.join(names)}"
-        except subprocess.TimeoutExpired:
+        code, listing, _err = _run(["vulkaninfo", "--summary"])
+        names = [l.split("=", 1)[1].strip() for l in listing.splitlines() if l.strip().startswith("deviceName")]
+        if code == 0 and names:
+            why += f"; vulkaninfo lists {', '.join(names)}"
+        elif code == -1:
             why += "; vulkaninfo timed out"
     return outcome("vulkan", False, why, fix=fix, required=needs.simulator)
 
@@ -357,14 +363,6 @@ def check_cpus(topo: Topology | None) -> CheckResult:
     return outcome("cpus", True, f"{pinned} pinned process(es): every core exists here", required=True)
 
 
-def _run(cmd: list[str]) -> tuple[bool, str]:
-    try:
-        p = subprocess.run(cmd, capture_output=True, text=True, timeout=30)
-    except (OSError, subprocess.TimeoutExpired) as err:
-        return False, f"`{' '.join(cmd)}`: {err}"
-    return p.returncode == 0, f"`{' '.join(cmd)}`: {last_line(p.stderr)}"
-
-
 def check_netns(needs: Needs) -> CheckResult:
     """Build a throwaway namespace with a veth pair, a bridge and a tbf shaper; remove it."""
     fix = "run as root with iproute2 installed (apt-get install iproute2); the kernel needs network " \
@@ -385,9 +383,9 @@ def check_netns(needs: Needs) -> CheckResult:
     ]
     try:
         for cmd in steps:
-            ok, msg = _run(cmd)
-            if not ok:
-                return outcome("netns", False, msg, fix=fix, required=needs.netns)
+            code, _out, err = _run(cmd)
+            if code != 0:
+                return outcome("netns", False, f"`{' '.join(cmd)}`: {last_line(err)}", fix=fix, required=needs.netns)
     finally:
         _run(["ip", "netns", "del", ns])
     return outcome("netns", True, "namespace, veth, bridge and tbf work (throwaway namespace removed)", required=needs.netns)
@@ -413,14 +411,12 @@ def check_clock() -> CheckResult:
     """Clock synchronisation: metrics and status timestamps are compared across hosts."""
     if not shutil.which("timedatectl"):
         return skip("clock", "timedatectl not found: check NTP by hand (chronyc tracking)")
-    try:
-        p = subprocess.run(["timedatectl", "show", "-p", "NTPSynchronized", "--value"], capture_output=True,
-                           text=True, timeout=10)
-    except subprocess.TimeoutExpired:
+    code, out, err = _run(["timedatectl", "show", "-p", "NTPSynchronized", "--value"], timeout=10)
+    if code == -1:
         return skip("clock", "timedatectl did not answer")
-    synced = parse_ntp(p.stdout) if p.returncode == 0 else None
+    synced = parse_ntp(out) if code == 0 else None
     if synced is None:
-        return skip("clock", f"NTP status unknown ({last_line(p.stderr)})")
+        return skip("clock", f"NTP status unknown ({last_line(err)})")
     return outcome("clock", synced, "NTP synchronised" if synced else "clock not NTP-synchronised",
                    fix="timedatectl set-ntp true (or install chrony)", required=False)
 

@@ -1,12 +1,8 @@
 """One evaluation from the blocks of several evaluators (``count: N`` evaluators in a topology).
 
-Every evaluator plays a contiguous block of each evaluation's episodes from the run's fixed
-seeds (dvla/roles/evaluator.py) and evaluates once per window of ``every_versions`` versions.
-The orchestrator joins the blocks of one window into one :class:`EvalResult` over all the
-episodes: counts add up, the success rate and its 95 % Wilson interval are computed again over
-the whole, and the version is the oldest any block played. A window some evaluator skipped
-(it was still busy, or restarted) never completes; it is dropped, and counted, once a later
-window completes.
+The orchestrator joins the blocks of one window of ``every_versions`` versions into one
+:class:`EvalResult` over all their episodes; a window some evaluator skipped is dropped, and
+counted, once a later one completes (docs/evaluation.md).
 """
 
 from __future__ import annotations

@@ -188,14 +188,9 @@ class Launcher:
             if sup is crashed or sup.failed or sup.finished:
                 continue
             if sup.alive():
-                _close_stdin(sup)
-                _signal(sup, signal.SIGKILL)
-                try:
-                    sup.exit_codes.append(sup.popen.wait(timeout=10))  # type: ignore[union-attr]
-                except subprocess.TimeoutExpired:
-                    pass
-                self._exited(sup, sup.exit_codes[-1] if sup.exit_codes else -9)
-                sup.popen = None
+                if not self._kill(sup, wait_s=10):  # never reaped: let go of it as killed
+                    self._exited(sup, -9)
+                    sup.popen = None
                 killed.append(sup.name)
             sup.restarts = max(sup.restarts, crashed.restarts)
             sup.next_start = max(sup.next_start, crashed.next_start)
@@ -234,17 +229,21 @@ class Launcher:
 
     def kill_all(self) -> None:
         for sup in self.children.values():
-            if sup.alive():
-                _close_stdin(sup)
-                _signal(sup, signal.SIGKILL)
-                try:
-                    code = sup.popen.wait(timeout=5)  # type: ignore[union-attr]
-                except subprocess.TimeoutExpired:
-                    continue
-                sup.exit_codes.append(code)
-                self._exited(sup, code)
-                sup.popen = None
+            if sup.alive() and self._kill(sup, wait_s=5):
                 sup.finished = True
+
+    def _kill(self, sup: Supervised, wait_s: float) -> bool:
+        """Hang up on `sup`, SIGKILL its process group and reap it; False if it is still there after `wait_s`."""
+        _close_stdin(sup)
+        _signal(sup, signal.SIGKILL)
+        try:
+            code = sup.popen.wait(timeout=wait_s)  # type: ignore[union-attr]
+        except subprocess.TimeoutExpired:
+            return False
+        sup.exit_codes.append(code)
+        self._exited(sup, code)
+        sup.popen = None
+        return True
 
     def pids(self) -> dict[str, int]:
         return {n: s.popen.pid for n, s in self.children.items() if s.popen is not None and s.alive()}

@@ -1,19 +1,9 @@
 """Emulated clusters (`emulate: netns`): one Linux network namespace per node, rate-limited links.
 
-This module owns everything dvla creates in the kernel's network stack for a run, and its removal:
-
-- one namespace per node (``dv-<run tag>-<node tag>``), holding ``lo`` and ``eth0``;
-- one "fabric" namespace per run (``dv-<run tag>-sw``) holding a bridge per rack (``br<r>``) and
-  a spine bridge (``spine``). Each node's ``eth0`` is a veth whose peer ``p<r>-<n>`` is a port of
-  its rack bridge; each rack bridge reaches the spine through a veth pair ``u<r>r`` / ``u<r>s``;
-- one host-side veth ``dv-<run tag>-h`` in the root namespace (peer ``host`` on the spine) so the
-  orchestrator and ``dvla status``, which run outside the namespaces, reach the control plane.
-
-Everything is one flat L2 segment, 10.77.0.0/16 (see :func:`node_ip`): no routers, no routes
-besides the connected one. Rates are enforced with ``tbf`` on the egress of *both* ends of every
-node veth (``links.node_gbit``) and every rack uplink (``links.rack_uplink_gbit``), so each
-direction is limited independently, as on a full-duplex NIC. The host link is not limited: only
-control traffic crosses it. See docs/cluster.md.
+This module owns everything dvla creates in the kernel's network stack for a run (namespaces per
+node and one "fabric" namespace of rack and spine bridges, veths shaped with ``tbf`` at both ends,
+a host veth for the orchestrator's control link) and its removal. docs/cluster.md draws the
+layout, the names and the rates.
 """
 
 from __future__ import annotations

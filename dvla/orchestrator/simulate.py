@@ -1,22 +1,8 @@
 """Discrete-event model of a weight version travelling a plan's replication tree (SimPy).
 
-What is modelled (docs/scale.md has the derivation and the validation):
-
-- **Links.** Each direction of each node NIC and rack uplink is a resource of the topology's
-  rate. A copy between nodes crosses the sender's NIC out and the child's NIC in, between racks
-  also the two rack uplinks. Concurrent copies share a link max-min fairly (TCP's long-run
-  share); a copy moves at the rate its bottleneck gives it. Bytes on the wire carry TCP/IPv4/
-  Ethernet headers (:data:`WIRE_OVERHEAD` per payload byte at a 1500-byte MTU).
-- **Chunks and pipelining.** A version moves as ``replication.chunk_bytes`` chunks. A relay
-  forwards a chunk once it holds it whole and has processed it, so every hop adds one chunk's
-  transfer and processing time to the pipeline; a sender's put blocks on its slowest child
-  (Zenoh's BLOCK congestion control), so siblings stay within a chunk or two of each other.
-  Large versions are simulated in at most ``max_blocks`` blocks of whole chunks (throughput per
-  block, pipeline fill per real chunk), so a 2 TB version on 1,024 nodes simulates in seconds.
-- **CPU.** Each process spends :class:`HostCosts` CPU seconds per MiB it encodes (source),
-  relays or verifies and swaps in (sink), one chunk after the other. On a real cluster every
-  node has its own cores; an emulated cluster (``shared_cores``) runs every process on one
-  machine's cores, which the model shares among them.
+Links are resources shared max-min fairly, a version moves chunk by chunk (store-and-forward per
+chunk, pipelined per version, a sender blocking on its slowest child) and each process pays
+:class:`HostCosts` CPU per MiB. docs/scale.md has the derivation and the validation.
 """
 
 from __future__ import annotations
@@ -96,7 +82,6 @@ class _Node:
     done: list[simpy.Event] = field(default_factory=list)
     #: per block: fully received (receivers only)
     received: list[simpy.Event] = field(default_factory=list)
-    in_rate: float = math.inf
 
 
 @dataclass

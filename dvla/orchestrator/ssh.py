@@ -1,28 +1,11 @@
 """Remote nodes over SSH: a node whose host is not this machine runs its roles through OpenSSH.
 
-Two halves live here, because they speak one small protocol:
-
-- **local** (:class:`SshWrapper`, a :class:`CommandWrapper`): turns a role's argv into
-  ``ssh ... HOST -- PYTHON -m dvla.orchestrator.ssh serve`` and writes one JSON line on the
-  process's stdin: the role's config, the run secret, the remote run directory and a few
-  environment variables. Nothing secret is ever on a command line. Then stdin stays open:
-  **closing it is how the orchestrator says stop**, and it closes by itself whenever the
-  orchestrator or the ssh client dies (the pipe's write end vanishes, or the connection drops and
-  sshd closes the remote command's stdin).
-- **remote** (:func:`serve`, run by ``python -m dvla.orchestrator.ssh serve`` on the node):
-  writes the config into ``<workdir>/<run>/roles/``, starts the role with the same entry point as
-  a local launch (``python -m dvla.roles.<kind> --config FILE``, secret in its environment),
-  streams its output to stderr (which ssh carries to the role's log in the local run directory),
-  and stops it (SIGTERM, then SIGKILL) as soon as stdin reaches end-of-file. When the role has
-  exited it writes the role's result files (its summary and chunk counters; see RESULT_DIRS) as
-  a tar stream on stdout; the local side checks every member, then unpacks it into the run
-  directory. Checkpoints, configs and caches stay on the node.
-
-A remote run directory is only ever deleted when it carries dvla's token file (an earlier run's):
-a directory of someone else's at that path stops the launch (:func:`run_dir_action`).
-
-ssh always runs with BatchMode (keys only, never a prompt); :func:`check_host` turns a failing
-connection into one line naming the host.
+Both halves of one small protocol (docs/cluster.md walks it): the local :class:`SshWrapper`
+starts ``ssh ... HOST -- PYTHON -m dvla.orchestrator.ssh serve`` and writes the role's config and
+secrets as one JSON line on its stdin (never a command line); the remote :func:`serve` runs the
+role, stops it when that stdin closes (how the orchestrator, or its death, says stop), and sends
+the role's result files back as a tar that the local side checks member by member. A remote run
+directory is only deleted when it carries dvla's token file (:func:`run_dir_action`).
 """
 
 from __future__ import annotations

@@ -1,17 +1,10 @@
 """Weights & Biases copy of a run's TensorBoard scalars (``logging.wandb`` in the topology).
 
 W&B is optional and may be remote, so it must never delay or fail a run: everything W&B does
-happens on one named thread (``wandb``). The monitor hands it rounds of scalars (the very dicts
-TensorBoard wrote, see ``tensorboard.py``) through a bounded queue without ever waiting: when the
-queue is full the round is dropped and counted. ``wandb.init`` runs on that thread, bounded by
-``init_timeout_s``; when it fails (no network, no API key, W&B down) one warning line names
-``logging.wandb`` and says what happened, and the run goes on without W&B. At the end of the run
-:meth:`WandbLog.close` waits at most ``finish_timeout_s`` (plus a margin) for the last rounds and
-``wandb.finish()``, then makes sure no W&B service process (``wandb-core``) of this process is left.
-
-Offline mode writes ``runs/<run>/wandb/offline-run-*`` and never touches the network (``wandb
-sync`` uploads it later). W&B's own usage telemetry is turned off: in online mode without a
-network, its exporter would hold the orchestrator's exit for up to 30 s.
+happens on one named thread (``wandb``), fed through a bounded queue that drops (and counts) a
+round rather than wait; a failed ``wandb.init`` is one warning line and the run goes on without
+W&B; :meth:`WandbLog.close` waits a bounded time. docs/architecture.md ("Scalars: TensorBoard and
+W&B") says what each mode writes and why W&B's telemetry is off.
 """
 
 from __future__ import annotations
@@ -70,7 +63,7 @@ class ScalarRound:
 
 
 class WandbLog:
-    """A W&B run fed from the monitor; see the module docstring. :meth:`log` never blocks."""
+    """A W&B run fed from the monitor, its thread started at once; :meth:`log` never blocks."""
 
     def __init__(self, cfg: WandbConfig, run_dir: Path, run: str, config: dict[str, Any]) -> None:
         self.cfg = cfg
@@ -88,6 +81,7 @@ class WandbLog:
         # a daemon: a W&B call that never returns must not hold the orchestrator's exit (close()
         # stops waiting for it after its bound)
         self._thread = threading.Thread(target=self._main, name="wandb", daemon=True)
+        self._thread.start()
 
     @classmethod
     def start(cls, topo: Topology, run_dir: Path, processes: int) -> WandbLog | None:
@@ -96,9 +90,7 @@ class WandbLog:
             return None
         task = topology_to_dict(topo)["task"]
         config = {"run": topo.run, "mode": topo.mode, "seed": topo.seed, "processes": processes, "task": task}
-        log = cls(topo.logging.wandb, run_dir, topo.run, config)
-        log._thread.start()
-        return log
+        return cls(topo.logging.wandb, run_dir, topo.run, config)
 
     def log(self, env_steps: int, scalars: dict[str, float]) -> None:
         """Queue one round of scalars at `env_steps`; drops it (counted) when the queue is full."""

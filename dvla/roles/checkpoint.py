@@ -1,19 +1,12 @@
 """Durable checkpoints of the learner group (written by rank 0), and the version high-water mark.
 
-Layout of ``RUN_DIR/checkpoints/``::
-
-    MANIFEST.json          the current checkpoint: version, env steps, checksum, files + sha256
-    v00000040/             one checkpoint: policy.safetensors (the weights *as published* with
-                           that version), optimizer.safetensors (tensors; the rest as JSON metadata)
-    high_water.json        versions up to here may have been published: a restart numbers above it
-
-Every file is written to a temporary name, fsynced and renamed, and the directory fsynced, so
-a crash at any point leaves the previous checkpoint whole; MANIFEST.json is replaced last and
-names one consistent set. Nothing is unpickled on load: the run directory is input like any
-other, so a checkpoint is exactly the two safetensors files the manifest names, in a ``v########``
-directory; anything else (a ``torch.save`` pickle under either name, an ``optimizer.pt``, a
-``dir`` pointing elsewhere) is refused with a CheckpointError naming the file, never opened by
-pickle. The weights' checksum and each file's sha256 are verified before anything is applied.
+docs/learners.md ("Checkpoints") draws ``RUN_DIR/checkpoints/`` and why a crash at any point
+leaves the previous checkpoint whole (temporary name, fsync, rename, MANIFEST.json last).
+Nothing is unpickled on load: the run directory is input like any other, so a checkpoint is
+exactly the two safetensors files the manifest names, in a ``v########`` directory; anything else
+(a ``torch.save`` pickle under either name, an ``optimizer.pt``, a ``dir`` pointing elsewhere)
+is refused with a CheckpointError naming the file. The weights' checksum and each file's sha256
+are verified before anything is applied.
 """
 
 from __future__ import annotations

@@ -350,8 +350,9 @@ def test_garbage_and_oversized_data_payloads_are_rejected_and_counted(pair: Pair
         "wrong-type": encode(Command(target="all", verb="stop")),
         "other-sender": encode(make_chunk("rollout-9", 1)),  # claims another rollout's name
     }
+    member = Signer(SECRET, rollout.name)
     for payload in bad.values():  # signed by a member of the run: they reach the decoder
-        rollout.data.put(key, rollout._signer.seal(key, payload))
+        rollout.data.put(key, member.seal(key, payload))
     rollout.data.put(key, good)  # a well-formed chunk, unsigned
     rollout.data.put(key, Signer(b"k" * 32, rollout.name).seal(key, good))  # signed with another secret
     rollout.publish_traj(make_chunk(rollout.name, 7))  # the subscriber keeps working

@@ -183,7 +183,8 @@ def test_cpus_check_names_the_node_role_and_key_of_a_core_this_host_lacks() -> N
     assert problems == [f"node n0, role rollout: lane_cpus.sim names core(s) {missing}, which this host does not "
                         f"have (usable cores: {','.join(map(str, usable))})"]  # once, not per rollout process
     r = check_cpus(bad)
-    assert r.status == "fail" and "lane_cpus.sim" in r.detail and r.fix
+    assert r.status == "fail" and r.detail == problems[0]
+    assert r.fix == "pin to cores this host has (nproc; taskset -pc $$ shows the usable ones)"
     assert pinning_problems(bad, allowed={usable[0], missing}) == []
     assert check_cpus(None).status == "skip"
     assert check_cpus(_topo()).status == "skip"  # nothing pinned

@@ -64,9 +64,14 @@ def test_skipped_windows_are_dropped_and_counted():
     assert j.add(block(8, 0, 2, 8, 8)) is not None  # window 2 completes: window 1 is given up
     assert j.incomplete == 1
     assert j.add(block(4, 1, 2, 8, 4)) is None  # a straggler of a window already given up waits
-    for v in range(12, 12 + 4 * (MAX_PENDING + 2), 4):
+    for v in range(12, 12 + 4 * (MAX_PENDING + 2), 4):  # windows 3 .. 12, shard 0 only
         assert j.add(block(v, 0, 2, 8, 4)) is None
-    assert j.incomplete > 1 and len(j._pending) <= MAX_PENDING
+    # 11 windows wait (the straggler's 1, then 3 .. 12): the oldest 3 beyond MAX_PENDING are dropped
+    assert MAX_PENDING == 8 and j.incomplete == 1 + 3
+    assert j.add(block(16, 1, 2, 8, 4)) is None  # window 4 was dropped: its late block completes nothing
+    assert j.incomplete == 1 + 3 + 1  # ... and is the oldest beyond MAX_PENDING again
+    assert j.add(block(20, 1, 2, 8, 4)) is not None  # window 5 is still held and completes
+    assert j.incomplete == 5
 
 
 def test_blocks_naming_another_shard_count_are_refused():

@@ -29,7 +29,8 @@ def test_tile_repeats_racks_and_keeps_one_evaluator() -> None:
     assert kinds.count("actor") == 8  # rack r0's pattern (with the actor) repeats every other rack
     assert kinds.count("replicator") == 16
     assert big.emulate == "none"
-    assert tile(_topo(), None, None) is not None
+    topo = _topo()
+    assert tile(topo, None, None) is topo  # no size given: the topology as it is
 
 
 def test_version_bytes_follow_dtype_trainable_share_and_encoding() -> None:

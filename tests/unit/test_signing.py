@@ -154,7 +154,7 @@ def test_replay_memory_is_bounded_and_evicted_nonces_stay_rejected():
         clock.now += 1000
         envs.append(signer.seal(KEY, b"p"))
         assert reason_of(verifier, KEY, envs[-1]) is None
-        assert len(verifier._seen) <= 4
+        assert verifier.nonces_held <= 4
     assert reason_of(verifier, KEY, envs[-1]) == "replay"
     # Forgotten nonces are behind the sender's horizon: still refused.
     assert reason_of(verifier, KEY, envs[0]) == "stale"
@@ -170,10 +170,10 @@ def test_expired_nonces_are_forgotten():
     verifier = Verifier(SECRET, max_age_s=1.0, replay_window=1000, clock=clock)
     for _ in range(50):
         assert reason_of(verifier, KEY, signer.seal(KEY, b"p")) is None
-    assert len(verifier._seen) == 50
+    assert verifier.nonces_held == 50
     clock.now += 2 * SEC
     assert reason_of(verifier, KEY, signer.seal(KEY, b"p")) is None
-    assert len(verifier._seen) == 1
+    assert verifier.nonces_held == 1
 
 
 def test_concurrent_replays_accept_exactly_once():

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import sys
 import threading
 import time
@@ -697,6 +698,15 @@ def _status(name: str, kind: str, version: int, lanes: dict[str, float], **extra
                       time_ns=time.time_ns())
 
 
+def _table_cells(table: str) -> dict[str, dict[str, str]]:
+    """Role -> {column header: cell} of `dvla status`'s table, cut where each header starts."""
+    head, *lines = table.splitlines()
+    cols = [(m.group(), m.start()) for m in re.finditer(r"\S+(?: \S+)*", head)]
+    bounds = [(name, start, cols[i + 1][1] if i + 1 < len(cols) else None) for i, (name, start) in enumerate(cols)]
+    rows = [{name: line[a:b].strip() for name, a, b in bounds} for line in lines]
+    return {r["ROLE"]: r for r in rows}
+
+
 def test_status_shows_every_lane_utilisation_and_rollout_lag() -> None:
     from dvla.orchestrator.view import render_json, render_table
 
@@ -707,17 +717,15 @@ def test_status_shows_every_lane_utilisation_and_rollout_lag() -> None:
         "rollout-node0-1": _status("rollout-node0-1", "rollout", 9, {"sim": 0.5, "infer": 0.2},
                                    placement={"cpus": [1], "lanes": {"sim": [0], "infer": [1]}}),
     }
-    table = render_table(statuses, expected=[*statuses, "evaluator-node0-0"])
-    rows = {line.split()[0]: line for line in table.splitlines()[1:]}
-    assert "LAG" in table.splitlines()[0] and "LANES" in table.splitlines()[0]
-    assert rows["rollout-node0-0"].split()[5] == "2"  # published 9, acting with 7
-    assert rows["rollout-node0-1"].split()[5] == "0"
-    assert rows["actor-node0-0"].split()[4:6] == ["9", "~1.2"]
-    assert "sim 81%" in rows["rollout-node0-0"] and "infer 12%" in rows["rollout-node0-0"]
-    assert "ingest 5%" in rows["actor-node0-0"] and "learn 93%" in rows["actor-node0-0"]
+    rows = _table_cells(render_table(statuses, expected=[*statuses, "evaluator-node0-0"]))
+    assert rows["rollout-node0-0"]["LAG"] == "2"  # published 9, acting with 7
+    assert rows["rollout-node0-1"]["LAG"] == "0"
+    assert (rows["actor-node0-0"]["VERSION"], rows["actor-node0-0"]["LAG"]) == ("9", "~1.2")
+    assert "sim 81%" in rows["rollout-node0-0"]["LANES (busy)"] and "infer 12%" in rows["rollout-node0-0"]["LANES (busy)"]
+    assert "ingest 5%" in rows["actor-node0-0"]["LANES (busy)"] and "learn 93%" in rows["actor-node0-0"]["LANES (busy)"]
     # a lane pinned apart from its process shows its cores; one on the process's cores does not
-    assert "sim@0 50%" in rows["rollout-node0-1"] and "infer 20%" in rows["rollout-node0-1"]
-    assert "silent" in rows["evaluator-node0-0"]
+    assert "sim@0 50%" in rows["rollout-node0-1"]["LANES (busy)"] and "infer 20%" in rows["rollout-node0-1"]["LANES (busy)"]
+    assert rows["evaluator-node0-0"]["STATE"] == "silent"
     doc = json.loads(render_json(statuses))
     by_name = {r["name"]: r for r in doc["roles"]}
     assert by_name["rollout-node0-0"]["policy_lag"] == 2

@@ -1,8 +1,8 @@
 """Random-initialised checkpoints of the Hugging Face VLA families, in the directory format of
 :mod:`.checkpoint`: real transformers classes (Llava = Llama + SigLIP for ``tokens``, PaliGemma =
 Gemma + SigLIP for ``flow``, plus dvla's action expert) with an offline word-level tokenizer.
-``size="test"`` is for unit and end-to-end tests (0.16 M parameters for tokens, 0.29 M for flow),
-``"0.5b"`` for GPU benchmarks (~0.46e9 each). Used by the tests and ``dvla bench vla``.
+``size="test"`` is for unit and end-to-end tests, ``"0.5b"`` (about half a billion parameters)
+for GPU benchmarks. Used by the tests and ``dvla bench vla``.
 """
 
 from __future__ import annotations

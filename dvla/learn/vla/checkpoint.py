@@ -1,27 +1,11 @@
 """Checkpoint directories of the Hugging Face VLA policies (``vla-tokens``, ``vla-flow``).
 
 A checkpoint is one local directory, read with ``local_files_only=True`` (nothing is downloaded
-at run time; every host running a role needs the same files at the same path)::
-
-    config.json                     a transformers vision-language model (AutoModelForImageTextToText):
-    model.safetensors               Llava (Llama + SigLIP, OpenVLA's layout) or PaliGemma (pi0's backbone);
-                                    sharded weights need their model.safetensors.index.json
-    tokenizer.json, tokenizer_config.json   (or tokenizer.model / vocab.json): AutoTokenizer
-    preprocessor_config.json        optional: image_mean / image_std (else 0.5 / 0.5)
-    dvla_policy.json                the action head, written by hand when converting a checkpoint
-    action_expert.safetensors       flow family only: the action expert (dvla/learn/vla/flow.py)
-
-``dvla_policy.json`` holds, for both families, ``family`` (``"tokens"`` or ``"flow"``),
-``action_dim`` (the robot's action size), ``max_chunk`` (most actions predicted per decision) and
-``action_low`` / ``action_high`` (``action_dim`` numbers each: the model's normalised action
-[-1, 1] maps linearly onto [low, high]; take them from the dataset statistics a downloaded
-OpenVLA-OFT / pi0 / SmolVLA checkpoint ships, e.g. OpenVLA's q01 / q99). The token family adds
-``n_bins`` (the last ``n_bins`` ids of the LM vocabulary are the action bins, as OpenVLA
-overwrites its last 256 ids) and optionally ``bin_order`` (``"ascending"``: bin i is id
-V - n_bins + i, the default; ``"descending"``: bin i is id V - 1 - i, OpenVLA's order). The flow
-family adds ``denoise_steps`` and ``expert`` (``width``, ``layers``, ``heads``, ``mlp``: the sizes
-of the action expert saved in ``action_expert.safetensors``). A downloaded pi0 / SmolVLA expert
-has another layout: only the VLM loads from such a checkpoint, the expert file must be ours.
+at run time; every host running a role needs the same files at the same path): the VLM
+(``config.json``, ``model.safetensors`` or shards), its tokenizer, an optional
+``preprocessor_config.json``, ``dvla_policy.json`` (the action head) and, for the flow family,
+``action_expert.safetensors``. docs/policies.md ("The checkpoint directory") lists every file and
+every ``dvla_policy.json`` key.
 
 :func:`check_checkpoint` checks all of this before anything loads and raises
 :class:`CheckpointError` with one line naming the path and what is wrong. :func:`content_hash`
@@ -34,7 +18,7 @@ from __future__ import annotations
 
 import json
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -72,8 +56,6 @@ class CheckpointInfo:
     max_chunk: int
     action_low: tuple[float, ...]
     action_high: tuple[float, ...]
-    #: the VLM's weight files (not the flow expert's)
-    weight_files: tuple[Path, ...] = field(default=())
 
 
 def _fail(path: Path, what: str) -> CheckpointError:
@@ -164,7 +146,7 @@ def check_checkpoint(path: str | Path, family: str) -> CheckpointInfo:
         raise _fail(path, f"{EXPERT_FILE} missing (the flow family's action expert)")
     for file in weights + ((path / EXPERT_FILE,) if family == "flow" else ()):
         _check_safetensors(file)
-    return CheckpointInfo(path, family, settings, action_dim, max_chunk, bounds[0], bounds[1], weights)
+    return CheckpointInfo(path, family, settings, action_dim, max_chunk, bounds[0], bounds[1])
 
 
 def executed_chunk(info: CheckpointInfo, act_dim: int) -> int:

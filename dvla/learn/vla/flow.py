@@ -5,7 +5,7 @@ bidirectional prefix; its last hidden states, projected to the expert's width, a
 :class:`ActionExpert` (plain torch, saved in ``action_expert.safetensors``) is a pre-norm
 transformer over the chunk's action tokens (plus one ``proprio`` token when observed): self-attention,
 cross-attention to the context (pads masked), MLP; each action token is
-``action_in(x) + position + time_mlp(sinusoid(t))`` and ``velocity_out`` reads the velocity.
+``action_in(x) + position + time_out(silu(time_in(sinusoid(t))))``; ``velocity_out`` reads the velocity.
 
 **Time.** x_0 ~ N(0, I) is noise at t = 0, x_K the normalised action at t = 1 (rectified flow:
 v ~ action - noise; pi0 runs the other way round). K = ``denoise_steps`` Euler steps,

@@ -28,10 +28,8 @@ INSTRUCTIONS: dict[str, str] = {
 """ManiSkill3 env id -> instruction."""
 
 
-def instruction_for(env: str, override: str | None = None) -> str:
-    """``override`` when given, else the table's instruction for ``env``."""
-    if override is not None:
-        return override
+def instruction_for(env: str) -> str:
+    """The table's instruction for ``env`` (callers put ``task.instruction`` first)."""
     try:
         return INSTRUCTIONS[env]
     except KeyError:

@@ -8,14 +8,14 @@ from typing import Annotated, Any, Optional
 
 import typer
 
-from ..simulate import simulate_broadcast
 from ..plan import make_plan
+from ..scale import BYTES_PER_PARAM, DEFAULT_PARAMS
+from ..simulate import simulate_broadcast
 from ..topology import topology_to_dict
 from .common import Format, fail, topology_or_exit
 
-
-#: weights size assumed without --param-mb: about the default MLP policy's (1.1 MB)
-DEFAULT_PARAM_MB = 1.1
+#: weights size assumed without --param-mb: the scale model's default, about the default MLP policy's
+DEFAULT_PARAM_MB = DEFAULT_PARAMS * BYTES_PER_PARAM["fp32"] / 1e6
 
 
 def plan(

@@ -15,8 +15,6 @@ from ..scale import (LINEAR_SHARE, PipelinePrediction, ScaleError, SpeedupRow, c
 from .common import fail
 
 _SUFFIX = {"": 1.0, "K": 1e3, "M": 1e6, "B": 1e9, "G": 1e9, "T": 1e12}
-#: node counts of the speedup table
-SIZES = (8, 16, 32, 64, 128, 256, 512, 1024)
 
 
 def parse_params(text: str) -> float:
@@ -41,7 +39,7 @@ def run_simulation(topo: Topology, cfg: SimulateConfig, encoding: str | None, pl
         check_inputs(cfg, topo)
         big = tile(topo, cfg.nodes, cfg.racks)
         pred = simulate_pipeline(big, dataclasses.replace(cfg, nodes=None, racks=None))
-        rows, bend = speedup_table(topo, cfg, [n for n in sizes if n >= 1]) if sizes else ([], None)
+        rows, bend = speedup_table(topo, cfg, list(sizes)) if sizes else ([], None)
     except ScaleError as err:
         raise fail(str(err))
     doc = {"config": dataclasses.asdict(cfg), "encoding": topo.replication.encoding, "prediction": _asdict(pred),
@@ -71,7 +69,7 @@ def run_simulation(topo: Topology, cfg: SimulateConfig, encoding: str | None, pl
 
 def _model(cfg: SimulateConfig, pred: PipelinePrediction) -> str:
     params = pred.extras["version_bytes_full"]
-    return f"{_si(cfg.params or 0) if cfg.params else 'default'} params {cfg.dtype}, version {_bytes(params)}"
+    return f"{_si(cfg.params) if cfg.params else 'default'} params {cfg.dtype}, version {_bytes(params)}"
 
 
 def report(pred: PipelinePrediction, cfg: SimulateConfig, encoding: str) -> list[str]:
