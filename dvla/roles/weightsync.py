@@ -96,10 +96,8 @@ class WeightSync:
         self._fetched: tuple[str, list[Any]] | None = None
         self._next_fetch = 0.0
         self._current: str | None = None
-        # Only the current parent's key is subscribed: every further subscription would bring
-        # each version once more over every link on the way (a chain of relays would carry a
-        # version once per ancestor). The lane switches it (never a Zenoh callback), and a
-        # switch asks for a snapshot, which covers what arrived meanwhile.
+        # Only the current parent's key is subscribed (more would carry each version once per
+        # ancestor); the lane switches it, and a switch asks for a snapshot.
         self._sub_parent: str | None = None
         self._inbox: Any = None
         fabric.watch_alive(self._on_alive)
@@ -182,8 +180,7 @@ class WeightSync:
         """One iteration of the receiving lane: catch up if needed, then handle one message.
 
         A snapshot fetch runs on a thread of its own while this lane keeps draining the stream,
-        so a large snapshot in flight never fills the inbox and never holds Zenoh's receive
-        thread (which the snapshot reply itself needs).
+        so it never fills the inbox nor holds Zenoh's receive thread (which its reply needs).
         """
         if self._want_snapshot and self._fetch is None and time.monotonic() >= self._next_fetch:
             self._start_fetch()
@@ -206,20 +203,18 @@ class WeightSync:
 
     def _handle(self, msg: Any) -> None:
         if isinstance(msg, WeightManifest):
+            self._manifest = None
             if not self._fits(msg):
-                self._manifest = None
                 return
             try:
                 if self._assembler is None:
                     self._assembler = ChunkAssembler(msg.n_chunks, msg.total_bytes, self.held.layout.nbytes)
                 else:
                     self._assembler.reset(msg.n_chunks, msg.total_bytes)
+                self._manifest = msg
             except ReplicationError as err:
                 self.counters["rejected"] += 1
                 log.warning("weights: manifest v%d from %s rejected: %s", msg.version, msg.sender, err)
-                self._manifest = None
-                return
-            self._manifest = msg
             return
         m = self._manifest
         if m is None or msg.version != m.version:
@@ -356,12 +351,9 @@ def serve_snapshots(
     """Declare ``sender``'s ``snapshot`` queryable (children's catch-up and repair).
 
     The reply is the version ``held()`` holds, whole: a :class:`WeightSnapshot` header with the
-    actor's signed manifest of it, then its ``full`` payload as ``WeightChunk`` replies of at most
-    `chunk_bytes` (within the ctrl plane's message cap), encoded once per version however many
-    children ask. A requester that is up to date (or asks before anything is held) gets the
-    header alone and never costs a copy of the weights. The held weights are read under their
-    lock, so a reply never mixes two versions. Requests are answered by one thread of their own
-    from a short queue (never on Zenoh's receive thread; see Fabric.serve).
+    actor's signed manifest, then its ``full`` payload as ``WeightChunk`` replies of at most
+    `chunk_bytes`, encoded once per version (read under the held weights' lock). A requester
+    that is up to date gets the header alone. Answered on a worker thread (Fabric.serve).
     """
     encoded: dict[int, list[bytes]] = {}
 
