@@ -37,7 +37,7 @@ import torch
 from ..config import RoleConfig, resolve_device
 from ..fabric import Fabric, TrajectoryChunk
 from ..learn import make_env_group, make_policy
-from ..learn.policies import extras_spec, policy_base_hash, sample_actions
+from ..learn.policies import extras_spec, sample_actions
 from ..learn.envs import chunk_spec, env_groups, obs_as_dict, obs_to_torch
 from ..learn.grpo import grpo_envs
 from ..learn.vector_env import DeviceChunk
@@ -204,20 +204,14 @@ class Rollout:
         self.to_infer = sl.queue("obs", len(self.groups))  # group ids whose obs await actions
         self.to_sim = sl.queue("actions", len(self.groups))  # Actions for a group
         self.to_ship = sl.queue("chunks", SHIP_QUEUE)  # Shipment: a finished chunk and its pool
-        self.weights = WeightSync(  # verified versions from the parent (ancestors as fallback) -> pool.held
-            self.fabric, self.pool.held, (self.cfg.parent, *self.cfg.ancestors[1:]), lambda _v: self._ready.set(),
-            base_hash=policy_base_hash(self.pool.active), base_source=str(self.cfg.task.policy_kwargs.get("checkpoint", "")),
-        )
+        self.weights = WeightSync.of_role(  # verified versions from the parent -> pool.held
+            self.cfg, self.fabric, self.pool.held, lambda _v: self._ready.set(), policy=self.pool.active)
         sl.lane("sim", self._sim_random if self.sim_only else self._sim)
         sl.lane("infer", self._infer)
         sl.lane("ship", self._ship)
-        sl.lane("sync", self._sync)
+        sl.lane("sync", self.weights.run)
 
     # -- lanes --------------------------------------------------------------------------------
-    def _sync(self, ctx: LaneContext) -> None:
-        while ctx.running:
-            self.weights.step(ctx)
-
     def _wait_for_weights(self, ctx: LaneContext) -> None:
         # No acting before the first verified weights: random initial weights on every rollout
         # would make their log-probs meaningless to the learner.

@@ -22,7 +22,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..config import ReplicationConfig
+from ..config import ReplicationConfig, RoleConfig
 from ..fabric import Fabric
 from ..fabric.codec import encode
 from ..fabric.messages import SnapshotRequest, WeightChunk, WeightManifest, WeightSnapshot
@@ -104,6 +104,17 @@ class WeightSync:
         self._select()
         self._follow()
 
+    @classmethod
+    def of_role(cls, cfg: RoleConfig, fabric: Fabric, held: HeldWeights | None, on_version: Callable[[int], None],
+                policy: Any = None, **kwargs: Any) -> "WeightSync":
+        """Role `cfg`'s receiving side: its parent, further ancestors as fallbacks; with `policy`,
+        versions made for another frozen base are refused."""
+        if policy is not None:  # imported here: a replicator builds no policy
+            from ..learn.policies import policy_base_hash
+
+            kwargs.update(base_hash=policy_base_hash(policy), base_source=str(cfg.task.policy_kwargs.get("checkpoint", "")))
+        return cls(fabric, held, (cfg.parent, *cfg.ancestors[1:]), on_version, **kwargs)
+
     def _adopt(self, held: HeldWeights) -> None:
         self.held = held
         self.fetch_timeout_s = 5.0 + held.layout.nbytes / 25e6
@@ -176,6 +187,11 @@ class WeightSync:
         return self._current or self.parents[0]
 
     # -- the lane -----------------------------------------------------------------------------
+    def run(self, ctx: LaneContext) -> None:
+        """The receiving lane."""
+        while ctx.running:
+            self.step(ctx)
+
     def step(self, ctx: LaneContext, timeout: float = 0.1) -> None:
         """One iteration of the receiving lane: catch up if needed, then handle one message.
 
