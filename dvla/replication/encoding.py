@@ -42,10 +42,6 @@ _U32 = np.dtype("<u4")
 _F32 = np.dtype("<f4")
 
 
-# --------------------------------------------------------------------------------------------
-# Errors
-
-
 class CorruptPayload(ReplicationError):
     """A payload or manifest is malformed (wrong sizes, out-of-range indices, bad fields)."""
 
@@ -69,10 +65,6 @@ class NeedSnapshot(ReplicationError):
 
 class StaleVersion(ReplicationError):
     """A version not newer than the one already held arrived (duplicate or late delivery)."""
-
-
-# --------------------------------------------------------------------------------------------
-# Checksums, bfloat16 and chunk arithmetic
 
 
 def checksum(flat: np.ndarray) -> str:
@@ -158,9 +150,6 @@ def _is_full(encoding: str) -> bool:
     return encoding in FULL_ENCODINGS
 
 
-# --------------------------------------------------------------------------------------------
-# Lossless compression of delta payloads
-
 #: suffix of a manifest's encoding whose payload is zstd-compressed ("delta-bf16+zstd")
 ZSTD = "zstd"
 
@@ -233,10 +222,6 @@ def inflate_delta(encoding: str, data: memoryview, numel: int) -> memoryview:
     return memoryview(pay).cast("B")
 
 
-# --------------------------------------------------------------------------------------------
-# A version
-
-
 @dataclass(frozen=True)
 class WeightVersion:
     """One encoded weight version: its manifest and its payload.
@@ -265,14 +250,10 @@ def _byte_view(data: BytesLike) -> memoryview:
         raise CorruptPayload(f"payload must be contiguous bytes: {exc}") from exc
 
 
-# --------------------------------------------------------------------------------------------
-# Decoding, shared by the encoder and every replica: replicas match the encoder bit for bit
-# because both sides run exactly this function on exactly the same inputs.
-
-
 def _decode_into(encoding: str, view: memoryview, base: np.ndarray, out: np.ndarray) -> None:
     """The parameters after a version of `encoding` whose payload is `view`, applied to `base`,
-    into `out` (which must not alias `base`)."""
+    into `out` (which must not alias `base`). The encoder and every replica run exactly this:
+    that is why replicas match the encoder bit for bit."""
     n = base.size
     if encoding == "full":
         np.copyto(out, np.frombuffer(view, dtype=_F32, count=n))
@@ -296,10 +277,6 @@ def _decode_into(encoding: str, view: memoryview, base: np.ndarray, out: np.ndar
 def topk_count(numel: int, fraction: float) -> int:
     """Entries sent per delta-topk version: ceil(fraction * numel), at least 1."""
     return min(numel, max(1, math.ceil(fraction * numel)))
-
-
-# --------------------------------------------------------------------------------------------
-# Encoder
 
 
 class WeightEncoder:
@@ -442,10 +419,6 @@ class WeightEncoder:
         return memoryview(self._topk).cast("B")
 
 
-# --------------------------------------------------------------------------------------------
-# The weights a node holds
-
-
 class HeldWeights:
     """The newest verified weights a node holds: ``version``, ``checksum``, the flat float32
     ``active`` vector, and ``proof`` (the actor's signed manifest envelope of that version).
@@ -559,10 +532,6 @@ class HeldWeights:
         if encoding == "delta-topk" and (nbytes % 8 or nbytes > 4 * n):
             # Encoders never send a top-k payload larger than a full one.
             raise CorruptPayload(f"delta-topk payload of {nbytes} bytes is not 8*k with 8*k <= {4 * n}")
-
-
-# --------------------------------------------------------------------------------------------
-# Chunk assembly
 
 
 class ChunkAssembler:
