@@ -1,20 +1,13 @@
 """`Fabric`: the two Zenoh sessions of one process and everything sent or received through them.
 
-- The **data** session carries trajectory chunks only (high rate, bulky, BLOCK congestion
-  control so none vanish in the network).
-- The **ctrl** session carries weights, commands, status, eval results and liveliness, sent at
-  a higher priority. It is a different session on a different link, so a flooded data plane
-  cannot delay it.
+The **data** session carries trajectory chunks only (BLOCK congestion control: none vanish in
+the network); the **ctrl** session, on a link of its own so a flooded data plane cannot delay
+it, carries weights, commands, status, eval results and liveliness.
 
-Every message on both planes is a signed envelope (:mod:`dvla.fabric.signing`): HMAC with the
-run secret, and, when the fabric has an :class:`~dvla.fabric.identity.Identity`, the sender's
-certified signature, checked against what that sender may send (:func:`~dvla.fabric.identity.authorize`).
-Queries are signed too and every reply is bound to its query's nonce.
-
-Zenoh callbacks never block for long: they hand messages to a bounded :class:`Inbox`. The
-trajectory inbox decodes (zero-copy) on Zenoh's receive thread, so its lane gets ready chunks;
-ctrl inboxes queue raw bytes that the reading lane verifies and decodes. Everything is counted.
-Usable without any dvla configuration: pass two plain `zenoh.Config` objects (docs/embedding.md).
+Every message, query and reply is a signed envelope (:mod:`dvla.fabric.signing`; replies bound
+to their query's nonce). Zenoh callbacks hand messages to a bounded :class:`Inbox` and never
+block for long; everything is counted. Usable without any dvla configuration: pass two plain
+`zenoh.Config` objects (docs/embedding.md).
 """
 
 from __future__ import annotations
@@ -121,11 +114,10 @@ class Inbox:
 class Fabric:
     """Two Zenoh sessions (data, ctrl), signed control traffic, accounting, liveliness.
 
-    `name` is this process's name in the run (its key suffix). `data_conf` may be None for a
-    process that has no data-plane traffic (replicators, evaluators, tools). With `identity`
-    every envelope this fabric seals carries its certified signature, and every envelope it
-    opens must carry one certified by the same operator and pass :func:`authorize`; without,
-    the run secret alone authenticates (any holder may claim any name).
+    `name` is this process's name in the run (its key suffix); `data_conf` None: no data plane.
+    With `identity` every envelope carries this process's certified signature and every envelope
+    opened must carry one that passes :func:`authorize`; without, the run secret alone
+    authenticates (any holder may claim any name).
     """
 
     def __init__(
@@ -304,11 +296,8 @@ class Fabric:
             pass
 
     def on_ctrl(self, key: str, expect: type | tuple[type, ...] | None, handler: Callable[[str, Any], None]) -> None:
-        """Call `handler(sender, msg)` for each verified message on `key`, from Zenoh's thread.
-
-        For small, rare messages (commands) whose handler only sets flags; bulk traffic uses
-        `subscribe_ctrl`.
-        """
+        """Call `handler(sender, msg)` for each verified message on `key`, from Zenoh's thread: for
+        rare messages (commands) whose handler only sets flags."""
 
         def _cb(sample: zenoh.Sample) -> None:
             k, raw, _peer = _take(sample, self.accounting, CTRL)

@@ -42,10 +42,8 @@ _SAMPLES_PER_WINDOW = 20
 class LaneStats:
     """Counters of one lane: busy and waiting seconds, items done, errors.
 
-    Written by the lane's own thread only, read by a status thread through :meth:`snapshot`;
-    plain float/int updates are atomic enough under the GIL, so the hot path takes no lock.
+    Written by the lane's own thread only (no lock on the hot path), read through :meth:`snapshot`.
     Waiting inside a busy section pauses the busy clock, so ``busy_s`` is work, not blocking.
-    Sections nest: an inner ``busy()`` inside a busy section is a no-op.
     """
 
     def __init__(
@@ -191,10 +189,9 @@ def _fraction(part: float, whole: float) -> float:
 class BoundedQueue(Generic[T]):
     """A bounded FIFO with stop-aware, accounted waits.
 
-    ``put``/``get`` block in :data:`WAIT_SLICE_S` slices and give up as soon as the stop event is
-    set, so a lane blocked on a queue always exits. Blocking time is charged to the calling
-    lane's ``wait_s`` (the current lane thread's stats unless ``stats`` is given). ``None`` is
-    not a valid item: it is what ``get`` returns when it was stopped or timed out.
+    ``put``/``get`` block in :data:`WAIT_SLICE_S` slices and give up once the stop event is set;
+    blocking is charged to the calling lane's ``wait_s``. ``None`` is what ``get`` returns when
+    stopped or timed out, so it is not a valid item.
     """
 
     def __init__(self, maxsize: int, name: str = "") -> None:

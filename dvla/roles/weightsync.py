@@ -2,14 +2,11 @@
 snapshots) and `WeightSync` (the receiving lane's logic shared by rollouts, evaluators and
 replicators), with the one snapshot queryable both ends serve (`serve_snapshots`).
 
-- Listens on the parent's weights key; assembles each version's chunks into a reusable buffer;
-  `HeldWeights.apply` decodes and verifies it (layout, base version, checksum); only a verified,
-  complete version is held and announced to `on_version`.
-- Anything that does not fit (a missed base version, a bad checksum, a fresh start) is repaired by
-  asking the parent's `snapshot` queryable (falling back to further ancestors): the held version
-  sent whole, as a full version's chunks, through the same assembler and `apply`.
-- When the parent's liveliness token goes, it re-subscribes to the nearest live ancestor; when
-  the parent comes back it moves back (the tree heals).
+A receiver assembles each version's chunks and holds it once `HeldWeights.apply` verified it.
+Anything that does not fit (a missed base, a bad checksum, a fresh start) is repaired by a
+snapshot from the parent (or a further ancestor): the held version sent whole through the same
+assembler and `apply`. When the parent's liveliness token goes it follows the nearest live
+ancestor, and moves back when the parent returns.
 """
 
 from __future__ import annotations
