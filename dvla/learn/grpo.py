@@ -56,13 +56,9 @@ def group_advantages(
 ) -> torch.Tensor:
     """Advantages ``[T, N]`` of a batch where each column is one whole episode.
 
-    Columns ``G*m .. G*m + G-1`` (``G = group_size``) are one group. ``baseline`` "episode":
-    every step of a column gets ``(R - mean_g R) / max(std_g R, std_floor)`` with R the column's
-    undiscounted return. "step": step t gets ``(G_t - mean_g G_t) / max(std_g G_t, std_floor)``
-    with ``G_t = sum_k>=t gamma^(k-t) r_k`` the column's reward-to-go; std is the population std.
-
-    Raises ValueError when a column is not exactly one episode (ends only at its last step) or
-    N is not a multiple of ``group_size``: the rollout broke the layout above.
+    Columns ``G*m .. G*m + G-1`` are one group; ``baseline`` "episode" normalises the column's
+    return within its group, "step" the reward-to-go from each step (docs/policies.md). Raises
+    ValueError when a column is not exactly one episode or N is not a multiple of ``group_size``.
     """
     steps, n = rewards.shape
     if n % group_size:

@@ -107,15 +107,10 @@ class Trajectories:
 def gae_batch(policy: nn.Module, b: Trajectories, cfg: PPOConfig) -> dict[str, Any]:
     """The PPO batch of ``b``, with GAE from ``policy``'s critic.
 
-    Values are recomputed with the learner's critic rather than taken from the rollout: the
-    rollout's critic is stale, and the bootstrap values must come from the same function as the
-    baseline. Rewards are multiplied by ``cfg.reward_scale``.
-
-    ``cfg.terminal_bootstrap`` bootstraps terminated episodes from ``V(final_obs)`` like
-    truncated ones; the episode still ends there. ManiSkill tasks terminate on *success* while
-    their dense reward keeps paying near the goal, so without the bootstrap reaching the goal is
-    worth less than hovering next to it. Set it False for tasks whose terminations really are
-    terminal.
+    Values come from the learner's critic, not the rollout's stale one, so bootstrap and baseline
+    are one function. ``cfg.terminal_bootstrap`` bootstraps terminated episodes from
+    ``V(final_obs)`` like truncated ones (ManiSkill terminates on success while its dense reward
+    keeps paying near the goal; docs/topology.md).
     """
     T, N = b.rewards.shape
     ended = b.terminated | b.truncated
