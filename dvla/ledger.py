@@ -8,11 +8,9 @@ fabric, which imports nothing of dvla, keeps its own per-plane counters (``fabri
 the actor copies their per-rollout drops and rejects into its file.
 
 A counter file, ``RUN_DIR/counters/<role>.<incarnation>.<pid>``, is rewritten in place with one
-``pwrite`` per event and no fsync (the kernel keeps the pages when the process dies), as JSON
-padded to the longest record so far. Incarnations of a role never overlap (the launcher restarts
-a role after it exited), so the n-th file of a role is its n-th incarnation; a rollout puts it in
-the high bits of each chunk's ``seq``, so the actor tells incarnations apart without a wire field.
-Remote roles send their files back when they exit (orchestrator/ssh.py).
+``pwrite`` per event and no fsync (the kernel keeps the pages when the process dies). The n-th
+file of a role is its n-th incarnation (they never overlap); a rollout puts it in the high bits of
+each chunk's ``seq``. Remote roles send their files back when they exit (orchestrator/ssh.py).
 """
 
 from __future__ import annotations

@@ -1,20 +1,13 @@
 """`Fabric`: the two Zenoh sessions of one process and everything sent or received through them.
 
-- The **data** session carries trajectory chunks only (high rate, bulky, BLOCK congestion
-  control so none vanish in the network).
-- The **ctrl** session carries weights, commands, status, eval results and liveliness, sent at
-  a higher priority. It is a different session on a different link, so a flooded data plane
-  cannot delay it.
+The **data** session carries trajectory chunks only (BLOCK congestion control: none vanish in
+the network); the **ctrl** session, on a link of its own so a flooded data plane cannot delay
+it, carries weights, commands, status, eval results and liveliness.
 
-Every message on both planes is a signed envelope (:mod:`dvla.fabric.signing`): HMAC with the
-run secret, and, when the fabric has an :class:`~dvla.fabric.identity.Identity`, the sender's
-certified signature, checked against what that sender may send (:func:`~dvla.fabric.identity.authorize`).
-Queries are signed too and every reply is bound to its query's nonce.
-
-Zenoh callbacks never block for long: they hand messages to a bounded :class:`Inbox`. The
-trajectory inbox decodes (zero-copy) on Zenoh's receive thread, so its lane gets ready chunks;
-ctrl inboxes queue raw bytes that the reading lane verifies and decodes. Everything is counted.
-Usable without any dvla configuration: pass two plain `zenoh.Config` objects (docs/embedding.md).
+Every message, query and reply is a signed envelope (:mod:`dvla.fabric.signing`; replies bound
+to their query's nonce). Zenoh callbacks hand messages to a bounded :class:`Inbox` and never
+block for long; everything is counted. Usable without any dvla configuration: pass two plain
+`zenoh.Config` objects (docs/embedding.md).
 """
 
 from __future__ import annotations
@@ -52,16 +45,11 @@ PRIO_DATA = zenoh.Priority.DATA
 class Inbox:
     """Bounded hand-off from a Zenoh callback to a lane.
 
-    The callback waits at most `block_s` for space (this is how backpressure reaches the sender
-    through Zenoh's BLOCK congestion control), then drops the message and counts it: a consumer
-    that is slow for seconds must never stall Zenoh's receive thread long enough to close the
-    transport.
-
-    With a `decoder`, the callback queues raw payloads and :meth:`get` decodes them (the
-    control plane: verification happens on the reader's thread). Without one, the subscription
-    decodes on receive and queues ready messages through :meth:`offer` (the data plane: the
-    queue then holds ready messages, and the consumer never competes with the receive thread
-    for the GIL over the same bytes).
+    The callback waits at most `block_s` for space (backpressure through Zenoh's BLOCK
+    congestion control), then drops and counts the message: a slow consumer must never stall
+    Zenoh's receive thread long enough to close the transport. With a `decoder` (control plane)
+    raw payloads are queued and :meth:`get` verifies them on the reader's thread; without one
+    (data plane) the subscription queues decoded messages through :meth:`offer`.
     """
 
     def __init__(
@@ -95,10 +83,8 @@ class Inbox:
     def get(self, timeout: float | None = None) -> Any | None:
         """Next valid message, or None after `timeout`. Invalid ones are counted and skipped.
 
-        Messages already queued are looked at even after the deadline (``get_nowait`` included),
-        so invalid ones cannot hide a valid one behind them or keep the inbox full (a forged
-        flood would otherwise starve a reader that polls); at most ``maxsize`` past the deadline,
-        so an endless flood still hands control back.
+        Up to ``maxsize`` queued messages are still looked at past the deadline, so a forged
+        flood cannot hide a valid message from a reader that polls, yet control comes back.
         """
         deadline = None if timeout is None else time.monotonic() + timeout
         late = 0
@@ -128,11 +114,10 @@ class Inbox:
 class Fabric:
     """Two Zenoh sessions (data, ctrl), signed control traffic, accounting, liveliness.
 
-    `name` is this process's name in the run (its key suffix). `data_conf` may be None for a
-    process that has no data-plane traffic (replicators, evaluators, tools). With `identity`
-    every envelope this fabric seals carries its certified signature, and every envelope it
-    opens must carry one certified by the same operator and pass :func:`authorize`; without,
-    the run secret alone authenticates (any holder may claim any name).
+    `name` is this process's name in the run (its key suffix); `data_conf` None: no data plane.
+    With `identity` every envelope carries this process's certified signature and every envelope
+    opened must carry one that passes :func:`authorize`; without, the run secret alone
+    authenticates (any holder may claim any name).
     """
 
     def __init__(
@@ -188,15 +173,12 @@ class Fabric:
         return len(envelope)
 
     def subscribe_traj(self, maxsize: int, expect: type, block_s: float = 1.0, rollout: str = "*") -> Inbox:
-        """Bounded inbox of decoded TrajectoryChunks from every (or one) rollout, for a lane
-        that takes them with ``inbox.get(timeout)``.
+        """Bounded inbox of decoded TrajectoryChunks from every (or one) rollout.
 
-        Each envelope is verified on Zenoh's receive thread: one that fails authentication (or
-        comes from anything but the rollout its key names) is counted as received from and
-        rejected for :data:`UNAUTHENTICATED`, never under the rollout's name. The rest is
-        counted as received from its sender, decoded (zero-copy: its arrays are views of the
-        received bytes) and checked to name that sender; one that fails is counted as that
-        sender's reject, logged, and goes no further.
+        Envelopes are verified and decoded (zero-copy) on Zenoh's receive thread. One that fails
+        authentication, or comes from another rollout than its key names, is counted under
+        :data:`UNAUTHENTICATED`, never under the rollout's name; one that does not decode or
+        names another sender is counted as that sender's reject.
         """
         if self.data is None:
             raise RuntimeError(f"{self.name}: this fabric was opened without a data plane")
@@ -314,11 +296,8 @@ class Fabric:
             pass
 
     def on_ctrl(self, key: str, expect: type | tuple[type, ...] | None, handler: Callable[[str, Any], None]) -> None:
-        """Call `handler(sender, msg)` for each verified message on `key`, from Zenoh's thread.
-
-        For small, rare messages (commands) whose handler only sets flags; bulk traffic uses
-        `subscribe_ctrl`.
-        """
+        """Call `handler(sender, msg)` for each verified message on `key`, from Zenoh's thread: for
+        rare messages (commands) whose handler only sets flags."""
 
         def _cb(sample: zenoh.Sample) -> None:
             k, raw, _peer = _take(sample, self.accounting, CTRL)
@@ -336,12 +315,10 @@ class Fabric:
         """Queryable on `key`: `handler(request_msg)` returns a message (or its encoded bytes)
         to reply with, a list of them (one reply each), or None for no reply.
 
-        Only signed, authorized requests reach the handler (an unsigned query gets nothing and
-        is counted); the reply is sealed bound to the request's nonce, so it answers that query
-        and no other. With `worker`, verified requests wait in a queue of `backlog` for one
-        thread of their own (expensive replies, e.g. a full snapshot, never run on Zenoh's
-        receive thread, and at most one runs at a time); a request finding it full is dropped
-        and counted (``dropped.query_backlog``).
+        Only signed, authorized requests reach the handler; each reply is bound to its request's
+        nonce. With `worker`, verified requests wait in a queue of `backlog` for one thread of
+        their own (expensive replies never run on Zenoh's receive thread); a request finding it
+        full is dropped and counted (``dropped.query_backlog``).
         """
 
         def _answer(query: zenoh.Query, req: Any, nonce: bytes) -> None:
@@ -395,11 +372,9 @@ class Fabric:
         """Query every matching queryable with a signed request (`request`, or an empty payload);
         returns the verified (sender, message) replies bound to this query.
 
-        The query and its replies (which travel with the query's QoS) use BLOCK congestion
-        control, unless `droppable`: then a link congested by weights drops them instead, for
-        small repeated queries such as status. Under BLOCK a status query fanned out by the ctrl
-        router into a link full of weights, or a role's status reply, would wait there for up to
-        Zenoh's ``wait_before_close`` (zconfig.py) and hold every status query behind it."""
+        `droppable` (small repeated queries such as status): a link congested by weights drops the
+        query and its replies instead of holding them, under BLOCK, for up to Zenoh's
+        ``wait_before_close`` (zconfig.py) with every later status query behind them."""
         payload = self._signer.seal(selector, encode(request) if request is not None else b"")
         nonce = nonce_of(payload)
         # Every reply is kept (no consolidation): a queryable may answer with several (a snapshot
@@ -560,14 +535,10 @@ def _take(sample: zenoh.Sample, acct: Accounting, plane: str) -> tuple[str, byte
 def _on_receive_thread(callback: Callable[[zenoh.Sample], None]) -> Any:
     """`callback` as a handler that runs on Zenoh's receive thread itself.
 
-    By default zenoh-python hands each sample to a per-subscriber Python thread through a
-    queue, so an `Inbox` waiting for space stalls only that thread while Zenoh keeps reading
-    the link and buffering samples (hundreds of MB for a stalled consumer). Run directly, the
-    wait holds the link's receive task instead, and Zenoh's BLOCK congestion control slows
-    the sender down. That wait holds one thread of Zenoh's receive pool, which every session of
-    the process shares: a process with such links needs more threads than it has links
-    (``dvla.roles.runtime.size_zenoh_rx``). `indirect` is an unstable zenoh-python option: fall
-    back to the default when it is missing.
+    zenoh-python's default hand-off thread would let Zenoh keep buffering samples for a stalled
+    consumer; run directly, an `Inbox` waiting for space holds the link's receive task and BLOCK
+    slows the sender down (hence ``dvla.roles.runtime.size_zenoh_rx``). `indirect` is an
+    unstable zenoh-python option: fall back to the default when it is missing.
     """
     try:
         return zenoh.handlers.Callback(callback, indirect=False)

@@ -1,17 +1,12 @@
 """Typed messages exchanged between dvla processes.
 
-This module owns the message *types*: one frozen, keyword-only dataclass per message, each with
-a class-level ``TYPE_TAG`` naming it on the wire, and a ``validate()`` that checks invariants a
-type hint cannot express (array shapes agreeing, enumerated strings, non-negative counters).
-:class:`ChunkSpec` is the one description of a trajectory chunk's arrays: it checks a chunk on
-the wire (the shape its own arrays imply) and in the learner (the run's), and allocates chunks.
-How messages become bytes is :mod:`dvla.fabric.codec`'s job; the byte layout is documented in
-``docs/wire-format.md``. Nothing here depends on the rest of dvla, so other RL code can reuse
-these types as-is.
+One frozen, keyword-only dataclass per message, with a ``TYPE_TAG`` naming it on the wire and a
+``validate()`` for invariants a type hint cannot express; :class:`ChunkSpec`, the one description
+of a trajectory chunk's arrays. The bytes are :mod:`dvla.fabric.codec`'s (docs/wire-format.md).
+Nothing here depends on the rest of dvla.
 
-Field type hints are the schema: the codec checks decoded values against them, so only the
-hint shapes it understands may be used (``str``, ``int``, ``float``, ``bool``, ``bytes``,
-``np.ndarray``, ``dict[str, X]`` of those, and ``dict[str, Any]`` for free-form maps).
+Field type hints are the schema the codec checks decoded values against: only ``str``, ``int``,
+``float``, ``bool``, ``bytes``, ``np.ndarray``, ``dict[str, X]`` of those and ``dict[str, Any]``.
 """
 
 from __future__ import annotations

@@ -8,19 +8,9 @@ Layout, chosen so no episode ever has to be reassembled from pieces:
 * episodes play to the time limit (terminations ignored), so all envs of a group end together;
 * one trajectory chunk is exactly one episode (``chunk_steps`` = transitions per episode).
 
-A chunk's env column therefore is one whole episode and columns ``G*m .. G*m + G-1`` one group;
-this holds in the actor's stacked batch too, since every chunk's env count is a multiple of G.
-No critic is used. Two advantages (``task.grpo_baseline``):
-
-* ``"step"`` (default): step t of an episode gets its discounted reward-to-go from t
-  (``task.grpo_gamma``) minus the mean reward-to-go from t of the G episodes of its group, over
-  their std at t. Still group-relative and critic-free, but an action is no longer credited
-  with the rewards collected before it, which only add noise.
-* ``"episode"``: every step gets the episode's group-normalised return (:func:`grpo_advantages`).
-
-Either way the std is floored at ``task.grpo_std_floor`` so groups whose episodes barely differ
-do not turn noise into full-size advantages. With ``task.reward: success`` the return is 1 for
-a successful episode and 0 otherwise (reward-to-go: discounted 1 from the first success on).
+A chunk's env column therefore is one whole episode and columns ``G*m .. G*m + G-1`` one group,
+in the actor's stacked batch too. No critic; the two baselines (``task.grpo_baseline``) and the
+std floor are described in docs/policies.md (GRPO).
 """
 
 from __future__ import annotations
@@ -44,11 +34,8 @@ def grpo_envs(task: TaskConfig) -> dict[str, Any]:
 
 
 def grpo_batch(b: Trajectories, task: TaskConfig) -> dict[str, Any]:
-    """The training batch of ``b`` with the GRPO advantages of ``task`` (:func:`group_advantages`).
-
-    No critic: the value head is trained towards 0 (returns = 0), which costs little and keeps
-    the batch format of PPO.
-    """
+    """The training batch of ``b`` with the GRPO advantages of ``task``; the value head is
+    trained towards 0 (no critic), which keeps PPO's batch format."""
     adv = group_advantages(
         b.rewards * task.ppo.reward_scale, b.terminated, b.truncated, task.group_size,
         baseline=task.grpo_baseline, gamma=task.grpo_gamma, std_floor=task.grpo_std_floor,
@@ -69,13 +56,9 @@ def group_advantages(
 ) -> torch.Tensor:
     """Advantages ``[T, N]`` of a batch where each column is one whole episode.
 
-    Columns ``G*m .. G*m + G-1`` (``G = group_size``) are one group. ``baseline`` "episode":
-    every step of a column gets ``(R - mean_g R) / max(std_g R, std_floor)`` with R the column's
-    undiscounted return. "step": step t gets ``(G_t - mean_g G_t) / max(std_g G_t, std_floor)``
-    with ``G_t = sum_k>=t gamma^(k-t) r_k`` the column's reward-to-go; std is the population std.
-
-    Raises ValueError when a column is not exactly one episode (ends only at its last step) or
-    N is not a multiple of ``group_size``: the rollout broke the layout above.
+    Columns ``G*m .. G*m + G-1`` are one group; ``baseline`` "episode" normalises the column's
+    return within its group, "step" the reward-to-go from each step (docs/policies.md). Raises
+    ValueError when a column is not exactly one episode or N is not a multiple of ``group_size``.
     """
     steps, n = rewards.shape
     if n % group_size:
@@ -106,9 +89,8 @@ def grpo_advantages(episode_returns, group_ids, std_floor: float = 0.0):
     """Group-relative advantages: ``(R - mean_g) / (max(std_g, std_floor) + 1e-8)`` within each group.
 
     ``episode_returns`` and ``group_ids`` are 1-D (numpy or torch); episodes sharing a group id
-    started from the same initial state. A group of one gets advantage 0. The population std is
-    used, so the result does not depend on an arbitrary degrees-of-freedom choice. ``std_floor``
-    keeps groups whose returns barely differ from getting full-size advantages out of noise.
+    started from the same initial state. A group of one gets advantage 0; the std is the
+    population std.
     """
     is_torch = isinstance(episode_returns, torch.Tensor)
     r = episode_returns.detach().cpu().numpy() if is_torch else np.asarray(episode_returns)

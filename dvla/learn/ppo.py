@@ -7,11 +7,10 @@ one (possibly slightly stale) policy version. The actor stacks chunks side by si
 :class:`PPOLearner` runs the clipped-surrogate update on it.
 
 Stale data: every transition carries the log-probability of the *behaviour* policy that acted.
-By default the learner uses decoupled PPO: the trust region is clipped around the policy at the
-start of the update, and the staleness is corrected by a truncated importance weight
-(proximal / behaviour). Clipping the ratio against the behaviour policy directly (plain PPO)
-stops learning on PushCube with a lag of just one version: each version moves the policy by
-about ``target_kl``, so most samples start an update already outside the clip range.
+By default (decoupled PPO, Hilton et al. 2021) the clip applies to the ratio against the policy
+at the start of the update and the staleness is corrected by an importance weight proximal /
+behaviour truncated at ``is_clip``: clipping against the behaviour policy (plain PPO) starts
+most samples outside the clip range once the data lags a version.
 """
 
 from __future__ import annotations
@@ -108,15 +107,10 @@ class Trajectories:
 def gae_batch(policy: nn.Module, b: Trajectories, cfg: PPOConfig) -> dict[str, Any]:
     """The PPO batch of ``b``, with GAE from ``policy``'s critic.
 
-    Values are recomputed with the learner's critic rather than taken from the rollout: the
-    rollout's critic is stale, and the bootstrap values must come from the same function as the
-    baseline. Rewards are multiplied by ``cfg.reward_scale``.
-
-    ``cfg.terminal_bootstrap`` bootstraps terminated episodes from ``V(final_obs)`` like
-    truncated ones; the episode still ends there. ManiSkill tasks terminate on *success* while
-    their dense reward keeps paying near the goal, so without the bootstrap reaching the goal is
-    worth less than hovering next to it. Set it False for tasks whose terminations really are
-    terminal.
+    Values come from the learner's critic, not the rollout's stale one, so bootstrap and baseline
+    are one function. ``cfg.terminal_bootstrap`` bootstraps terminated episodes from
+    ``V(final_obs)`` like truncated ones (ManiSkill terminates on success while its dense reward
+    keeps paying near the goal; docs/topology.md).
     """
     T, N = b.rewards.shape
     ended = b.terminated | b.truncated
@@ -149,27 +143,17 @@ BATCH_KEYS = ("obs", "actions", "logprobs", "advantages", "returns")
 class PPOLearner:
     """Clipped-surrogate PPO on batches of (possibly stale) transitions.
 
-    With ``cfg.decoupled`` false the ratio is against the behaviour log-probs in the batch. With
-    ``cfg.decoupled`` true (the default) the clip is instead applied to the ratio against the policy
-    at the start of the update (the "proximal" policy), and the staleness is corrected by an
-    importance weight proximal/behaviour truncated at ``is_clip`` (decoupled PPO, Hilton et al.
-    2021): with lag 0 both are the same objective; with stale data the trust region no longer
-    starts out clipped.
-
     The ``target_kl`` early stop measures how far *this update* moved the policy (KL to the
     policy at its start), not the staleness the batch arrived with: otherwise data a few versions
     old could stop every update before its first step.
 
-    In a learner group (``group``, dvla/learn/group.py) each rank runs this on its own batch:
-    gradients are averaged by DDP, and each minibatch's advantage moments and KL estimate are
-    summed over the ranks, so the normalisation and the early-stop decision are the same on every
-    rank (and so is every optimizer step). ``seed`` seeds the minibatch order.
+    In a learner group (``group``, dvla/learn/group.py) gradients are averaged by DDP and each
+    minibatch's advantage moments and KL estimate are summed over the ranks, so every rank takes
+    the same normalisation, early stop and optimizer step.
 
     An update that meets a non-finite gradient norm, or leaves a non-finite parameter or buffer,
-    is refused: the step is not applied, the update stops, parameters and buffers are put back
-    as they were before it, ``updates_refused_nonfinite`` counts it and the returned statistics
-    carry ``refused_nonfinite`` = 1 (the caller must not publish a version for it). Adam's
-    moments keep the steps taken before the refusal: those gradients were finite and clipped.
+    is refused: parameters and buffers are restored, ``updates_refused_nonfinite`` counts it and
+    the statistics carry ``refused_nonfinite`` = 1 (the caller must not publish a version for it).
     """
 
     def __init__(
@@ -250,9 +234,8 @@ class PPOLearner:
                 n, a_sum, a_sq = self._sum([adv.numel(), adv.sum(), adv.square().sum()])
                 adv_mean = a_sum / n
                 adv_std = max(a_sq / n - adv_mean * adv_mean, 0.0) ** 0.5
-                # Micro-batches (cfg.micro_batch): forward and backward a slice at a time, each
-                # loss weighted by its share of the minibatch, so the summed gradient is the
-                # minibatch's; only activations of one slice are alive at once.
+                # Micro-batches: each slice's loss weighted by its share, so the summed gradient
+                # is the minibatch's while only one slice's activations are alive.
                 self.optimizer.zero_grad(set_to_none=True)
                 kl_sum, parts = 0.0, {}
                 slices = _slices(mb_size, cfg.micro_batch or mb_size, self.device)
@@ -272,9 +255,7 @@ class PPOLearner:
                     stopped = True
                     break
                 grad_norm = float(nn.utils.clip_grad_norm_(self._trainable, cfg.max_grad_norm))
-                # The gradients were averaged across the group by DDP in backward(): a non-finite
-                # value on any rank reached every rank, so every rank computes this norm from the
-                # same gradients and takes the same decision (the loss is rank-local: it would not).
+                # DDP averaged the gradients, so every rank sees the same norm and refuses together.
                 if not math.isfinite(grad_norm):
                     refused = f"gradient norm {grad_norm}"
                     self.optimizer.zero_grad(set_to_none=True)
@@ -286,8 +267,7 @@ class PPOLearner:
             epochs_run += 1
             if stopped or refused:
                 break
-        # Parameters and buffers are identical on every rank; the flag is summed anyway (every
-        # rank calls this collective), so the group refuses together even if one rank went bad alone.
+        # Summed so the group refuses together even if one rank went bad alone.
         if self._sum([not _all_finite(state)])[0] > 0 and not refused:
             refused = "a non-finite parameter or buffer after the update"
         if refused:

@@ -1,10 +1,6 @@
-"""What the env layer promises its callers, apart from any simulator: the shape and dtype of each
-observation array (:data:`ObsSpec` of the fabric's :class:`ArraySpec`, the per-step part of a
-trajectory chunk's :class:`ChunkSpec`) and the error an env raises when it cannot
-be made as configured (:class:`EnvSetupError`), what one step of an env group gives
-(:class:`StepResult`) and how ManiSkill's rgb observation space maps to dvla's observation keys
-(:func:`structured_spec`). :mod:`dvla.learn.envs` re-exports them; env adapters
-(:mod:`dvla.learn.libero`, :mod:`dvla.learn.vector_env`) import them from here."""
+"""What the env layer promises its callers, apart from any simulator: observation specs
+(:data:`ObsSpec`, :func:`structured_spec`), one step's result (:class:`StepResult`) and the setup
+errors. :mod:`dvla.learn.envs` re-exports them; env adapters import them from here."""
 
 from __future__ import annotations
 

@@ -1,24 +1,13 @@
 """One ManiSkill scene of ``n`` envs stepped as a batch, its tensors kept on the sim device.
 
-This is ManiSkill3's GPU path (``physx_cuda``: thousands of envs in one scene): where
-:class:`~dvla.learn.envs.EnvGroup` loops over ``n`` one-env simulators and hands out numpy arrays,
-:class:`VectorEnvGroup` wraps a single ``ManiSkillVectorEnv`` of ``n`` envs and hands out torch
-tensors on the simulator's device, so a policy on the same device acts on them without a host
-copy, and the rollout records a whole trajectory chunk on the device (:class:`DeviceChunk`)
-before copying it to the host once. Which group a rollout gets is
-:func:`dvla.learn.envs.env_groups`' decision (``task.env_batching``, ``task.sim_backend``).
+ManiSkill3's GPU path (``physx_cuda``): where :class:`~dvla.learn.envs.EnvGroup` loops over
+one-env simulators and hands out numpy arrays, :class:`VectorEnvGroup` wraps one
+``ManiSkillVectorEnv`` and hands out tensors on the simulator's device, and the rollout records
+a whole chunk there (:class:`DeviceChunk`) before one copy to the host. Which group a rollout
+gets is :func:`dvla.learn.envs.env_groups`' decision.
 
-Same contract as ``EnvGroup`` (:class:`~dvla.learn.envs.StepResult`, auto-reset, ``final_obs``,
-``ignore_terminations``, ``task.reward == "success"``, flat and ``rgb`` observations), with two
-differences, both stated in docs/envs.md:
-
-* seeding: :meth:`reset` seeds env ``i`` with ``base + i`` (one seeded reset of the scene); an
-  episode that ends is reset with the *scene's* torch RNG re-seeded from ``(base, resets so
-  far)``, so a run replays exactly from its seed, but episodes do not follow ``EnvGroup``'s
-  per-episode seed schedule (seeding 1024 envs one by one at every partial reset would cost more
-  than the step). GRPO, which needs envs sharing seeded initial states, keeps ``EnvGroup``.
-* ``task.action_chunk`` must be 1: a batch of envs whose episodes end at different sub-steps of
-  an open-loop chunk would play the rest of the chunk in a freshly reset episode.
+Same contract as ``EnvGroup``, but for seeding and ``task.action_chunk`` (which must be 1): both
+are described in docs/envs.md.
 """
 
 from __future__ import annotations
@@ -38,10 +27,8 @@ __all__ = ["VectorEnvGroup", "make_vector_env", "DeviceChunk"]
 
 
 class DeviceChunk(SimpleNamespace):
-    """A trajectory chunk's per-step fields for ``n`` envs (``obs``, ``actions``, ... ``extras``,
-    laid out by ``spec``) as zero tensors on ``device``: a one-scene group records every step
-    here with tensors that are already there, then :meth:`copy_to` copies them into the host
-    chunk that is shipped, one copy per array and chunk."""
+    """A trajectory chunk's per-step fields for ``n`` envs, laid out by ``spec``, as zero tensors
+    on ``device``: a one-scene group records its steps here, then :meth:`copy_to` the host chunk."""
 
     def __init__(self, spec: ChunkSpec, n: int, device: torch.device | str) -> None:
         super().__init__(**nest({path: torch.zeros(shape, dtype=getattr(torch, s.dtype), device=device)

@@ -115,10 +115,9 @@ class Monitor:
 
     def _drain_evals(self) -> None:
         while (got := self._inbox.get_nowait()) is not None:
-            whole = self.eval_join.add(got[1])
-            if whole is None:
+            ev = self.eval_join.add(got[1])
+            if ev is None:
                 continue
-            ev = whole
             steps = self.last.env_steps if self.last else 0
             p = EvalPoint(self.now(), ev.policy_version, steps, ev.success_once, ev.success_at_end, ev.return_mean,
                           ev.episodes, ev.success_low, ev.success_high)

@@ -1,18 +1,12 @@
 """Topology files: YAML text in, a validated frozen :class:`dvla.config.Topology` out.
 
-This module owns reading topology files and writing a resolved topology back to YAML (the copy
-kept in the run directory). The rules a file must follow are the schema's, stated beside each
-field in :mod:`dvla.config` (types, defaults, ranges, checks of a field, ``problems()`` between
-fields); the reader here is generic: it walks the dataclasses, reads each value by its type
-hint, applies the field's rules and, once an object is built, its ``problems()``. Only the checks
-against this machine live here (a user policy imports, a checkpoint directory holds a policy,
-LIBERO's assets from the environment, local nodes reachable from remote ones).
+Also writes a resolved topology back to YAML (the run directory's copy). The rules are the
+schema's, beside each field in :mod:`dvla.config`; the reader walks the dataclasses generically,
+reading each value by its type hint and applying the field's rules, then the object's
+``problems()``. Only the checks against this machine live here.
 
-Validation never stops at the first problem: the whole file is walked and every problem is
-reported as ``file:line: key.path: message``, so a user fixes a file in one pass. A rule between
-fields runs on the values that could be read (a wrong type, a value out of range or failing its
-check is reported once, and a rule reading it is skipped). Parsing works on the node graph of
-``yaml.compose`` because only nodes carry line numbers.
+Every problem is reported at once as ``file:line: key.path: message``; a rule reading a value
+already reported is skipped. Parsing walks ``yaml.compose``'s nodes: only they carry line numbers.
 """
 
 from __future__ import annotations

@@ -10,12 +10,8 @@ fabric (dvla/roles/weightsync.py).
   payloads from chunks (:class:`ChunkAssembler`) and holds the newest verified version
   (:class:`HeldWeights`).
 
-Flow: the actor calls ``WeightEncoder.encode(flatten(model, layout, buf))`` once per policy
-version and sends the signed manifest, then the chunks. Each relay forwards every verified
-message to its children as it arrives, and feeds the chunks to a ``ChunkAssembler`` whose
-payload its ``HeldWeights.apply`` decodes and verifies; each rollout does the same, and its
-infer lane copies ``held.active`` into the policy between two batches. A snapshot (catch-up) is
-the held version sent whole, through the same assembler and ``apply``. See docs/replication.md.
+The flow from the actor's update to a rollout's installed weights: docs/replication.md and
+docs/architecture.md.
 """
 
 from dvla.replication.encoding import (

@@ -42,10 +42,6 @@ _U32 = np.dtype("<u4")
 _F32 = np.dtype("<f4")
 
 
-# --------------------------------------------------------------------------------------------
-# Errors
-
-
 class CorruptPayload(ReplicationError):
     """A payload or manifest is malformed (wrong sizes, out-of-range indices, bad fields)."""
 
@@ -71,17 +67,11 @@ class StaleVersion(ReplicationError):
     """A version not newer than the one already held arrived (duplicate or late delivery)."""
 
 
-# --------------------------------------------------------------------------------------------
-# Checksums, bfloat16 and chunk arithmetic
-
-
 def checksum(flat: np.ndarray) -> str:
-    """Hex digest (XXH3-128, 16 bytes) of the exact bytes of a C-contiguous array, without copying.
+    """Hex digest (XXH3-128) of the exact bytes of a C-contiguous array, without copying.
 
-    A fast non-cryptographic hash is enough here: it detects a replica that differs from what
-    the actor published (lost or damaged chunks, a decoding bug); forgery is stopped earlier by
-    the HMAC signature of every manifest and chunk. A cryptographic hash would cost a large
-    version more CPU than decoding it.
+    Non-cryptographic on purpose: it catches a replica that differs from what the actor
+    published; forgery is stopped earlier by the HMAC signature of every manifest and chunk.
     """
     if not flat.flags.c_contiguous:
         raise ValueError("checksum needs a C-contiguous array")
@@ -94,13 +84,11 @@ def _all_finite(x: np.ndarray) -> bool:
 
 
 def bf16_round_bits(x: np.ndarray, out: np.ndarray | None = None, scratch: np.ndarray | None = None) -> np.ndarray:
-    """Round float32 ``x`` to bfloat16 (round to nearest, ties to even) and return the uint16 bits.
+    """Round float32 ``x`` to bfloat16 (nearest, ties to even) and return the uint16 bits.
 
-    Works on the float32 bit pattern: adding ``0x7FFF`` plus the lowest kept bit before
-    truncating to the upper 16 bits is exact round-to-nearest-even for normals, subnormals and
-    overflow (which rounds to infinity, as IEEE requires). Infinities map to infinities; NaNs map
-    to the quiet bfloat16 NaN with their sign (the bit trick alone could turn a NaN into an
-    infinity). ``out`` (uint16) and ``scratch`` (uint32), both of ``x``'s size, avoid allocation.
+    Adding ``0x7FFF`` plus the lowest kept bit before truncating is exact round-to-nearest-even
+    (overflow rounds to infinity); NaNs are fixed to the quiet bfloat16 NaN with their sign (the
+    bit trick alone could turn one into an infinity). ``out`` and ``scratch`` avoid allocation.
     """
     bits = x.view(np.uint32)
     s = np.empty(x.shape, dtype=np.uint32) if scratch is None else scratch
@@ -132,11 +120,8 @@ def chunk_count(total_bytes: int, chunk_bytes: int) -> int:
 
 
 def chunk_span(index: int, n_chunks: int, total_bytes: int) -> tuple[int, int]:
-    """(start, stop) byte range of chunk ``index``.
-
-    Chunks are even: all hold ``ceil(total_bytes / n_chunks)`` bytes except a shorter last one,
-    so a receiver derives every offset from the manifest's (n_chunks, total_bytes) alone.
-    """
+    """(start, stop) byte range of chunk ``index``: even chunks of ``ceil(total_bytes / n_chunks)``
+    bytes but a shorter last one, so offsets follow from the manifest alone."""
     size = -(-total_bytes // n_chunks)
     start = index * size
     return start, min(total_bytes, start + size)
@@ -164,9 +149,6 @@ FULL_ENCODINGS = ("full", "full-bf16")
 def _is_full(encoding: str) -> bool:
     return encoding in FULL_ENCODINGS
 
-
-# --------------------------------------------------------------------------------------------
-# Lossless compression of delta payloads
 
 #: suffix of a manifest's encoding whose payload is zstd-compressed ("delta-bf16+zstd")
 ZSTD = "zstd"
@@ -208,14 +190,9 @@ def deflate_delta(encoding: str, payload: memoryview, level: int = 1) -> bytes:
 def inflate_delta(encoding: str, data: memoryview, numel: int) -> memoryview:
     """Inverse of :func:`deflate_delta`; never produces more than a raw payload of `numel` can be.
 
-    Raises :class:`CorruptPayload` for data that does not decompress, or to a wrong size.
-
-    The output is capped before anything is allocated: ``zstandard`` sizes its output buffer
-    from the content size a frame header declares and ignores ``max_output_size`` then, so a
-    1 KB frame declaring 1 TiB would raise MemoryError (or take that much). The declared size is
-    read first and refused above the cap; a frame declaring none is held to ``max_output_size``;
-    the window (decoder memory) is capped too, and only one frame, with no trailing bytes, is
-    accepted. Every failure, MemoryError included, is a :class:`CorruptPayload`.
+    Every failure (data that does not decompress, or to a wrong size) is a :class:`CorruptPayload`.
+    The frame header's declared size is checked before anything is allocated: ``zstandard``
+    sizes its output from it and then ignores ``max_output_size``.
     """
     limit = 2 * numel if encoding == "delta-bf16" else 4 * numel
     try:
@@ -243,10 +220,6 @@ def inflate_delta(encoding: str, data: memoryview, numel: int) -> memoryview:
         raise CorruptPayload("delta-topk+zstd indices out of range")
     pay[:k] = idx
     return memoryview(pay).cast("B")
-
-
-# --------------------------------------------------------------------------------------------
-# A version
 
 
 @dataclass(frozen=True)
@@ -277,14 +250,10 @@ def _byte_view(data: BytesLike) -> memoryview:
         raise CorruptPayload(f"payload must be contiguous bytes: {exc}") from exc
 
 
-# --------------------------------------------------------------------------------------------
-# Decoding, shared by the encoder and every replica: replicas match the encoder bit for bit
-# because both sides run exactly this function on exactly the same inputs.
-
-
 def _decode_into(encoding: str, view: memoryview, base: np.ndarray, out: np.ndarray) -> None:
     """The parameters after a version of `encoding` whose payload is `view`, applied to `base`,
-    into `out` (which must not alias `base`)."""
+    into `out` (which must not alias `base`). The encoder and every replica run exactly this:
+    that is why replicas match the encoder bit for bit."""
     n = base.size
     if encoding == "full":
         np.copyto(out, np.frombuffer(view, dtype=_F32, count=n))
@@ -310,10 +279,6 @@ def topk_count(numel: int, fraction: float) -> int:
     return min(numel, max(1, math.ceil(fraction * numel)))
 
 
-# --------------------------------------------------------------------------------------------
-# Encoder
-
-
 class WeightEncoder:
     """Actor side: encodes successive parameter vectors as versions, with error feedback.
 
@@ -322,16 +287,11 @@ class WeightEncoder:
     transmit (bfloat16 rounding, entries outside the top-k) stays in the next delta instead of
     being lost.
 
-    A version is sent ``full`` when it is the first one, every ``snapshot_every`` versions
-    (versions 1, 1 + snapshot_every, ...), when ``encode(..., full=True)`` asks for it, when a
-    delta would not be smaller than a full payload (delta-topk with ``topk_fraction >= 0.5``),
-    and when the delta or its result is not finite (NaN/inf in the parameters, or a delta
-    overflowing bfloat16). Full versions copy the parameters exactly, NaNs included, so a
-    non-finite state is replicated faithfully and cleared by the next finite one.
-
-    Each version's manifest names ``sender`` and ``base_hash`` (the policy's frozen base) and
-    is signed by ``seal`` (its envelope is the version's ``proof``, kept with the held weights
-    for snapshots).
+    A version is sent ``full`` when it is the first one, every ``snapshot_every`` versions,
+    when ``encode(..., full=True)`` asks, when a delta would not be smaller than a full payload,
+    and when the delta or its result is not finite (a full version replicates NaNs faithfully;
+    the next finite one clears them). ``seal`` signs each manifest (its envelope is the
+    version's ``proof``, kept with the held weights for snapshots).
     """
 
     def __init__(
@@ -368,7 +328,6 @@ class WeightEncoder:
         #: "zstd": delta payloads travel compressed (when that is smaller); full ones never do
         self.compression = compression
         self.sender, self.base_hash, self.seal = sender, base_hash, seal
-        self._z = b""
         #: last version encoded (0 before the first encode, or ``start_version`` when resuming)
         self.version = start_version
         self.held = HeldWeights(layout)
@@ -431,7 +390,7 @@ class WeightEncoder:
         if not _is_full(encoding) and self.compression == ZSTD:
             z = deflate_delta(encoding, payload)
             if len(z) < payload.nbytes:
-                self._z, payload, encoding = z, memoryview(z), f"{encoding}+{ZSTD}"
+                payload, encoding = memoryview(z), f"{encoding}+{ZSTD}"
         digest = checksum(new)
         manifest = WeightManifest(
             sender=self.sender, version=version, base_version=base, encoding=encoding, layout_hash=self.layout.hash,
@@ -460,19 +419,13 @@ class WeightEncoder:
         return memoryview(self._topk).cast("B")
 
 
-# --------------------------------------------------------------------------------------------
-# The weights a node holds
-
-
 class HeldWeights:
     """The newest verified weights a node holds: ``version``, ``checksum``, the flat float32
     ``active`` vector, and ``proof`` (the actor's signed manifest envelope of that version).
 
-    Two preallocated buffers form a dual pool: ``active`` and ``staging``, where the one writer
-    (the encoder, or :meth:`apply` on the receiving lane) computes the next version; it is made
-    active by swapping references under ``lock``. Readers hold ``lock`` while they read
-    ``active`` (the writer only ever writes the other buffer, and swaps only while nobody
-    reads), so a reader sees one version whole, never a mix, and never waits for a decode.
+    The one writer (the encoder, or :meth:`apply`) computes the next version in ``staging`` and
+    swaps it in under ``lock``; readers hold ``lock`` while they read ``active``, so a reader
+    sees one version whole and never waits for a decode.
     """
 
     def __init__(self, layout: ParamLayout) -> None:
@@ -528,11 +481,8 @@ class HeldWeights:
         This is where the replicas' promise lives: a version is held only if the decoded
         parameters hash to the manifest's checksum, the actor's, bit for bit.
 
-        Raises :class:`LayoutMismatch` (sender's layout differs), :class:`CorruptPayload`
-        (malformed manifest or payload), :class:`StaleVersion` (not newer than what is held),
-        :class:`NeedSnapshot` (a delta whose base is not the held version) or
-        :class:`ChecksumMismatch` (result differs from the sender's). On any error nothing
-        held changes.
+        Raises :class:`LayoutMismatch`, :class:`CorruptPayload`, :class:`StaleVersion`,
+        :class:`NeedSnapshot` or :class:`ChecksumMismatch`; on any error nothing held changes.
         """
         view = _byte_view(payload)
         self._check(m, view.nbytes)
@@ -582,10 +532,6 @@ class HeldWeights:
         if encoding == "delta-topk" and (nbytes % 8 or nbytes > 4 * n):
             # Encoders never send a top-k payload larger than a full one.
             raise CorruptPayload(f"delta-topk payload of {nbytes} bytes is not 8*k with 8*k <= {4 * n}")
-
-
-# --------------------------------------------------------------------------------------------
-# Chunk assembly
 
 
 class ChunkAssembler:

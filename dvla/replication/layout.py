@@ -1,19 +1,12 @@
 """Parameter layout: the map between a torch state_dict and one flat float32 vector.
 
-This module owns :class:`ParamLayout` (which tensors are replicated, in which order, with which
-shapes and dtypes, and a stable digest of all that), :func:`flatten` and :func:`unflatten_into`,
-plus the root of the replication error hierarchy (:class:`ReplicationError`,
-:class:`LayoutMismatch`).
+Owns :class:`ParamLayout`, :func:`flatten`, :func:`unflatten_into` and :func:`bind_flat`, and
+the root of the replication errors (:class:`ReplicationError`, :class:`LayoutMismatch`).
 
-Only floating-point tensors are replicated, and of a module only those that can change: a
-parameter with ``requires_grad=False`` (a frozen base under LoRA adapters, docs/policies.md) is
-loaded from the same checkpoint on every node and never shipped. Integer and boolean buffers (for example BatchNorm's
-``num_batches_tracked`` counter) are ignored: they are bookkeeping of the learner, not part of the
-policy function, and replicating them would break the single-dtype flat vector. Floating buffers
-(running means and variances) are carried like parameters.
-
-Every floating tensor is carried as float32 in the flat vector whatever its own dtype; float16
-and bfloat16 tensors convert exactly to float32 and back, float64 tensors are rounded.
+Only floating-point tensors that can change replicate: a frozen parameter (``requires_grad=False``,
+a LoRA base, docs/policies.md) is loaded from the same checkpoint on every node, and integer
+buffers (BatchNorm's ``num_batches_tracked``) are learner bookkeeping. Every tensor travels as
+float32 (float16 and bfloat16 convert exactly, float64 is rounded).
 """
 
 from __future__ import annotations
@@ -71,7 +64,6 @@ class ParamLayout:
         for shape in self.shapes:
             offsets.append(total)
             total += math.prod(shape)
-        # Frozen dataclass: derived fields are set once here and never change afterwards.
         object.__setattr__(self, "offsets", tuple(offsets))
         object.__setattr__(self, "numel", total)
         object.__setattr__(self, "hash", _layout_digest(self.names, self.shapes, self.dtypes))
@@ -179,9 +171,8 @@ def flatten(sd: StateDictLike, layout: ParamLayout, out: np.ndarray | None = Non
 def unflatten_into(flat: np.ndarray, model_or_state_dict: StateDictLike, layout: ParamLayout) -> None:
     """Copy ``flat`` into the existing tensors of a module or state_dict, in place.
 
-    No tensor storage is allocated: each slice of ``flat`` is viewed as a tensor
-    (``torch.from_numpy``) and copied into the target with ``Tensor.copy_``, which converts
-    dtype and moves to the target's device. Tensors outside the layout are left untouched.
+    Nothing is allocated: ``Tensor.copy_`` from views of ``flat`` converts dtype and device.
+    Tensors outside the layout are left untouched.
     """
     _check_flat(flat, layout)
     with warnings.catch_warnings():
@@ -201,12 +192,10 @@ def unflatten_into(flat: np.ndarray, model_or_state_dict: StateDictLike, layout:
 def bind_flat(module: torch.nn.Module, layout: ParamLayout) -> torch.Tensor | None:
     """Make the layout's tensors of ``module`` views into one flat tensor; return it.
 
-    Afterwards copying a whole version into the module is one ``flat.copy_(src)`` (a single
-    memcpy, one GIL release) instead of one copy per tensor, and :func:`unflatten_into` and
-    ``state_dict`` still work through the views. The current values are kept. The flat tensor
-    has the tensors' own dtype (float32, or bfloat16 for a bf16 model: the copy converts).
-    Returns None, and changes nothing, when the tensors do not share one dtype and one device,
-    or a layout name is not a parameter or buffer of ``module``.
+    Installing a version is then one ``flat.copy_(src)`` instead of one copy per tensor; values,
+    :func:`unflatten_into` and ``state_dict`` keep working. The flat tensor has the tensors' own
+    dtype. Returns None, changing nothing, when the tensors do not share one dtype and device or
+    a layout name is not a parameter or buffer of ``module``.
     """
     owners: list[tuple[torch.nn.Module, str, bool]] = []
     devices, dtypes = set(), set()

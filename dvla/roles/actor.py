@@ -93,19 +93,15 @@ class Actor:
         #: (version, checksum) of the newest version through the publish lane (published by rank 0;
         #: recorded by the others); one assignment, so status never pairs a version with another's checksum
         self.published: tuple[int, str] = (start, "")
-        #: newest version whose weights may have left the group: set before rank 0 sends it (a
-        #: rollout may act on it at once). Other ranks set it as they record it, which is before
-        #: rank 0 can send it: the ranks learn each version in lockstep, and rank 0 still has to
-        #: checksum, reserve, encode and send it. No chunk may claim a newer policy version.
+        #: newest version whose weights may have left the group (no chunk may claim a newer one):
+        #: set before rank 0 sends it; other ranks record each version before rank 0 can send it.
         self.released_version = start
         #: (rollout, reason) -> chunks rejected at ingest (for the log, which names the sender)
         self._rejections: dict[tuple[str, str], int] = {}
         self.env_steps = env_steps  # consumed by the whole group's learners
         self.learn_stats: dict[str, float] = {}
         self.lags: list[int] = []
-        #: chunks received per lag (newest published version - behaviour version, at ingest),
-        #: cumulative:
-        #: a reader diffs two readings to get the lag distribution of a window
+        #: chunks received per lag (newest published - behaviour version, at ingest), cumulative
         self.ingest_lag_counts: dict[int, int] = {}
         #: versions sent and their bytes, full versions and deltas apart
         self.publish_bytes = {"full_versions": 0, "full_bytes": 0, "delta_versions": 0, "delta_bytes": 0}

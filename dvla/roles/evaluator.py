@@ -8,10 +8,9 @@ Lanes:
             `episodes` episodes (ManiSkill's `success_once` and `success_at_end`), each to the
             time limit, or to the env's termination (success) with `full_episodes: false`.
 
-Several evaluators split every evaluation: evaluator i of n plays the i-th contiguous block of the
-episodes, from the run's fixed eval seeds, and the orchestrator joins the n blocks of one window
-into one evaluation (docs/evaluation.md). Windows, not exact versions, line the shards up: an
-evaluator that missed a version evaluates the next one of the same window.
+Several evaluators split every evaluation into contiguous blocks of episodes, which the
+orchestrator joins per window (docs/evaluation.md): an evaluator that missed a version
+evaluates the next one of the same window.
 """
 
 from __future__ import annotations
@@ -27,7 +26,6 @@ from ..config import RoleConfig, resolve_device
 from ..fabric import Fabric
 from ..fabric.messages import EvalResult
 from ..learn import make_env_group, make_policy, run_eval_episodes
-from ..learn.policies import policy_base_hash
 from ..replication import HeldWeights, ParamLayout, unflatten_into
 from .runtime import main
 from .swimlane import LaneContext, Swimlane
@@ -60,16 +58,10 @@ class Evaluator:
         self.results: list[dict[str, float]] = []
 
     def build(self, sl: Swimlane) -> None:
-        self.weights = WeightSync(  # verified versions from the parent -> held
-            self.fabric, self.held, (self.cfg.parent, *self.cfg.ancestors[1:]), lambda _v: self._new.set(),
-            base_hash=policy_base_hash(self.policy), base_source=str(self.cfg.task.policy_kwargs.get("checkpoint", "")),
-        )
-        sl.lane("sync", self._sync)
+        self.weights = WeightSync.of_role(  # verified versions from the parent -> held
+            self.cfg, self.fabric, self.held, lambda _v: self._new.set(), policy=self.policy)
+        sl.lane("sync", self.weights.run)
         sl.lane("eval", self._eval)
-
-    def _sync(self, ctx: LaneContext) -> None:
-        while ctx.running:
-            self.weights.step(ctx)
 
     def _eval(self, ctx: LaneContext) -> None:
         every = self.cfg.task.eval.every_versions

@@ -1,16 +1,13 @@
 """Replicator role: a relay of the weight tree (one per rack, more where fan-out demands).
 
 Lanes (and what flows between them):
-- ``recv``:    weight messages from the parent (signature checked by the fabric); each one is
-               queued for forwarding at once (cut-through, chunk by chunk), then assembled and
-               verified (layout, base version, checksum) into the held weights. The layout's
-               size and hash come from the first verified manifest: a replicator builds no
-               model and no environment, and needs neither torch's policy code nor a GPU.
-- ``forward``: sends each message's signed envelope, unchanged, to the children (the actor
-               signed it for every hop: ``keys.weights_signed()``).
+- ``recv``:    verified weight messages from the parent, each queued for forwarding at once
+               (cut-through), then assembled and verified into the held weights. The layout
+               comes from the first verified manifest: a replicator builds no model.
+- ``forward``: sends each message's signed envelope, unchanged, to the children.
 
-The ``snapshot`` queryable (children's catch-up and repair) answers from the held weights on a
-thread of its own (weightsync.serve_snapshots).
+The ``snapshot`` queryable answers from the held weights on a thread of its own
+(weightsync.serve_snapshots).
 """
 
 from __future__ import annotations
@@ -42,13 +39,13 @@ class Replicator:
     def build(self, sl: Swimlane) -> None:
         f = self.fabric
         self.outbox = sl.queue("forward", 256)  # recv -> forward: signed envelopes (bytes)
-        self.weights = WeightSync(  # parent -> recv (ancestors as fallback)
-            f, HeldWeights(self.layout) if self.layout is not None else None, (self.cfg.parent, *self.cfg.ancestors[1:]),
-            self._on_version, on_message=self._cut_through,
+        self.weights = WeightSync.of_role(  # parent -> recv (ancestors as fallback)
+            self.cfg, f, HeldWeights(self.layout) if self.layout is not None else None, self._on_version,
+            on_message=self._cut_through,
         )
         self.weights.serve(self.cfg.name, self.cfg.replication.chunk_bytes)  # children's catch-up: the held version
         self._stop = sl.stop_event
-        sl.lane("recv", self._recv)
+        sl.lane("recv", self.weights.run)
         sl.lane("forward", self._forward)
 
     def _cut_through(self, _msg: Any, envelope: bytes) -> None:
@@ -58,10 +55,6 @@ class Replicator:
 
     def _on_version(self, version: int) -> None:
         self.policy_version = version
-
-    def _recv(self, ctx: LaneContext) -> None:
-        while ctx.running:
-            self.weights.step(ctx)
 
     def _forward(self, ctx: LaneContext) -> None:
         key = self.fabric.keys.weights(self.cfg.name)

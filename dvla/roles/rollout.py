@@ -12,14 +12,13 @@ Lanes (and what flows between them):
              installs the newest between two batches (``PolicyPool``).
 
 Where all the rollout's envs share one simulator scene (ManiSkill on a GPU, docs/envs.md) there
-is one group: observations, actions and every recorded step stay tensors on the sim device
-(a ``DeviceChunk``), and a finished chunk is copied to the host once. How the envs are grouped
-is :func:`dvla.learn.envs.env_groups`, which the actor asks too to size its slots.
+is one group whose steps stay tensors on the sim device (a ``DeviceChunk``), copied to the host
+once per chunk. The grouping is :func:`dvla.learn.envs.env_groups` (the actor sizes its slots
+from it through ``chunk_envs``).
 
-In ``sync`` mode (the lock-step baseline) the sim lane stops after its share of one learner
-batch and waits for the next policy version before sampling again. In ``sim_only`` mode (a
-benchmark baseline) the sim lane steps both groups with uniform random actions and nothing is
-inferred or shipped: what the simulators alone deliver in this process and placement.
+Modes: ``sync`` (the lock-step baseline) waits for a new policy version after its share of one
+learner batch; ``sim_only`` (a benchmark baseline) steps the envs with uniform random actions
+and infers and ships nothing.
 """
 
 from __future__ import annotations
@@ -38,7 +37,7 @@ import torch
 from ..config import RoleConfig, resolve_device
 from ..fabric import Fabric, TrajectoryChunk
 from ..learn import make_env_group, make_policy
-from ..learn.policies import extras_spec, policy_base_hash, sample_actions
+from ..learn.policies import extras_spec, sample_actions
 from ..learn.envs import chunk_spec, env_groups, obs_as_dict, obs_to_torch
 from ..learn.grpo import grpo_envs
 from ..learn.vector_env import DeviceChunk
@@ -103,15 +102,12 @@ class _Group:
 
 class PolicyPool:
     """The policy module that serves inference (`active`) and the verified weights it installs
-    (`held`, filled by the sync lane: dvla.replication.HeldWeights).
+    (`held`, filled by the sync lane).
 
-    The infer lane installs the newest held version into `active` between two batches: one copy
-    of the replicated tensors (a single flat copy where they are views of one flat tensor, see
-    `bind_flat`), converting to the policy's device and dtype. It never waits: the sync lane
-    decodes the next version into the held weights' other buffer, and when the held lock is
-    taken (a version being swapped in) the install is put off to the next batch. A newer
-    version replaces an uninstalled one. A LoRA policy holds its base once: only the replicated
-    tensors (adapters, heads) are held again, in the two float32 host buffers.
+    The infer lane copies the newest held version into `active` between two batches (one flat
+    copy where `bind_flat` could bind the replicated tensors to one tensor). It never waits: when
+    the held lock is taken the install is put off to the next batch. Only the replicated tensors
+    are held (a LoRA policy's base is not).
     """
 
     def __init__(self, policy: torch.nn.Module) -> None:
@@ -161,9 +157,7 @@ class Rollout:
         self.fabric = fabric
         task = cfg.task
         self.device = torch.device(resolve_device(task.rollout_device))
-        # torch.distributions re-validates its arguments on every call, a large share of an
-        # inference on a batch of a few observations; the infer lane's CPU comes straight out
-        # of the simulators' share.
+        # Argument validation on every call is a large share of a small batch's inference.
         torch.distributions.Distribution.set_default_validate_args(False)
         self.groups: list[_Group] = []
         self._noise = torch.Generator(device=self.device)
@@ -210,20 +204,14 @@ class Rollout:
         self.to_infer = sl.queue("obs", len(self.groups))  # group ids whose obs await actions
         self.to_sim = sl.queue("actions", len(self.groups))  # Actions for a group
         self.to_ship = sl.queue("chunks", SHIP_QUEUE)  # Shipment: a finished chunk and its pool
-        self.weights = WeightSync(  # verified versions from the parent (ancestors as fallback) -> pool.held
-            self.fabric, self.pool.held, (self.cfg.parent, *self.cfg.ancestors[1:]), lambda _v: self._ready.set(),
-            base_hash=policy_base_hash(self.pool.active), base_source=str(self.cfg.task.policy_kwargs.get("checkpoint", "")),
-        )
+        self.weights = WeightSync.of_role(  # verified versions from the parent -> pool.held
+            self.cfg, self.fabric, self.pool.held, lambda _v: self._ready.set(), policy=self.pool.active)
         sl.lane("sim", self._sim_random if self.sim_only else self._sim)
         sl.lane("infer", self._infer)
         sl.lane("ship", self._ship)
-        sl.lane("sync", self._sync)
+        sl.lane("sync", self.weights.run)
 
     # -- lanes --------------------------------------------------------------------------------
-    def _sync(self, ctx: LaneContext) -> None:
-        while ctx.running:
-            self.weights.step(ctx)
-
     def _wait_for_weights(self, ctx: LaneContext) -> None:
         # No acting before the first verified weights: random initial weights on every rollout
         # would make their log-probs meaningless to the learner.

@@ -22,10 +22,9 @@ from typing import Any, Protocol
 
 from ..config import RoleConfig
 from ..fabric import Fabric, load_secret, plane_config
-from ..fabric.messages import ArraySpec, ChunkSpec
-from ..fabric.zconfig import plane_max_message_size
 from ..fabric.identity import IDENTITY_ENV, Identity, IdentityError
-from ..fabric.messages import Command, RoleStatus
+from ..fabric.messages import ArraySpec, ChunkSpec, Command, RoleStatus
+from ..fabric.zconfig import plane_max_message_size
 from ..learn.spec import EnvSetupError, PolicySetupError
 from .swimlane import Swimlane, pin_cpus, set_torch_threads
 
@@ -56,13 +55,10 @@ ZENOH_RX_THREADS = 2
 
 
 def size_zenoh_rx(waiting_links: int) -> None:
-    """Give Zenoh's receive pool one more thread per link whose reader may wait on purpose.
-
-    An actor's trajectory subscription waits on Zenoh's receive thread while its inbox is full
-    (backpressure to the rollouts, fabric.py), and the data and ctrl sessions share the pool: with
-    as many rollouts waiting as the pool has threads, the ctrl session's links (status queries,
-    commands) would not be read until the learner caught up. Call before the first session
-    opens; a ``ZENOH_RUNTIME`` already set is kept."""
+    """Give Zenoh's receive pool one more thread per link whose reader may wait on purpose (an
+    actor's full trajectory inbox holds a receive thread, fabric.py): otherwise the ctrl links
+    sharing the pool (status, commands) wait for the learner. Call before the first session opens;
+    a ``ZENOH_RUNTIME`` already set is kept."""
     if waiting_links > 0:
         os.environ.setdefault("ZENOH_RUNTIME", f"(rx: (worker_threads: {ZENOH_RX_THREADS + waiting_links}))")
 
@@ -225,13 +221,11 @@ def main(role_factory: Any, argv: list[str] | None = None) -> int:
         print(f"dvla role: cannot read config {args.config}: {err}", file=sys.stderr)
         return ExitStatus.CONFIG
     setup_logging(cfg.name)
-    # PyTorch keeps compiled-kernel caches (its fused CPU Adam creates the directory) under
-    # /tmp by default: keep a role's inside its run directory instead.
+    # PyTorch's compiled-kernel cache (fused CPU Adam creates it) goes in the run, not /tmp.
     os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(Path(cfg.run_dir) / "cache" / "torchinductor"))
     if cfg.cpus:
         pin_cpus(cfg.cpus)
-    # One intra-op thread per role: the lanes are the concurrency, and a role's share of the
-    # cores is what `cpus` (or the scheduler) gives it; more threads only contend.
+    # One intra-op thread per role: the lanes are the concurrency; more threads only contend.
     threads = set_torch_threads(1)
     fabric = open_fabric(cfg)
     role = None

@@ -1,11 +1,9 @@
 """The actor's trajectory pool: slots allocated once (pinned host memory on CUDA), each with room
 for one chunk of the run's :class:`~dvla.fabric.messages.ChunkSpec` (T steps of up to N envs).
 
-`ingest` copies a chunk the spec accepted (its arrays are views of the received bytes) into a
-free slot, once; `batch` stacks slots into the learner's :class:`~dvla.learn.ppo.Trajectories`
-and releases them. Every array keeps its wire dtype (images stay uint8). No allocation happens
-per chunk in steady state; when every slot is taken, `acquire` waits, the data-plane inbox
-fills, and backpressure reaches the rollouts.
+`ingest` copies an accepted chunk into a free slot, once; `batch` stacks slots into the learner's
+:class:`~dvla.learn.ppo.Trajectories` and releases them. Arrays keep their wire dtype. When every
+slot is taken, `acquire` waits and backpressure reaches the rollouts through the inbox.
 """
 
 from __future__ import annotations
@@ -50,9 +48,8 @@ class SlotPool:
         return self._free.free()
 
     def fill(self, slot: int, c: TrajectoryChunk) -> None:
-        """Copy ``c`` (a chunk its ChunkSpec has no problem with) into `slot`: each array once,
-        from the received bytes into the slot's first N columns. torch.from_numpy wraps the
-        decoded view without a copy, and torch's strided copy is faster than numpy's."""
+        """Copy ``c`` (a chunk its ChunkSpec accepted) into `slot`'s first columns, each array once
+        (torch.from_numpy wraps the received view; torch's strided copy beats numpy's)."""
         n = c.num_envs
         for path, src in chunk_arrays(c).items():
             self._arrays[path][slot].narrow(self._env_axis[path], 0, n).copy_(torch.from_numpy(src))

@@ -42,10 +42,8 @@ _SAMPLES_PER_WINDOW = 20
 class LaneStats:
     """Counters of one lane: busy and waiting seconds, items done, errors.
 
-    Written by the lane's own thread only, read by a status thread through :meth:`snapshot`;
-    plain float/int updates are atomic enough under the GIL, so the hot path takes no lock.
+    Written by the lane's own thread only (no lock on the hot path), read through :meth:`snapshot`.
     Waiting inside a busy section pauses the busy clock, so ``busy_s`` is work, not blocking.
-    Sections nest: an inner ``busy()`` inside a busy section is a no-op.
     """
 
     def __init__(
@@ -120,10 +118,6 @@ class LaneStats:
         self.last_item_ns = time.time_ns()
         self._maybe_sample(self._clock())
 
-    def record_error(self) -> None:
-        """Record one error the lane survived (or the one that ended it)."""
-        self.errors += 1
-
     def _totals(self, now: float) -> tuple[float, float]:
         """Busy and wait seconds including a section still open at ``now``."""
         busy = self.busy_s
@@ -195,10 +189,9 @@ def _fraction(part: float, whole: float) -> float:
 class BoundedQueue(Generic[T]):
     """A bounded FIFO with stop-aware, accounted waits.
 
-    ``put``/``get`` block in :data:`WAIT_SLICE_S` slices and give up as soon as the stop event is
-    set, so a lane blocked on a queue always exits. Blocking time is charged to the calling
-    lane's ``wait_s`` (the current lane thread's stats unless ``stats`` is given). ``None`` is
-    not a valid item: it is what ``get`` returns when it was stopped or timed out.
+    ``put``/``get`` block in :data:`WAIT_SLICE_S` slices and give up once the stop event is set;
+    blocking is charged to the calling lane's ``wait_s``. ``None`` is what ``get`` returns when
+    stopped or timed out, so it is not a valid item.
     """
 
     def __init__(self, maxsize: int, name: str = "") -> None:
@@ -225,19 +218,7 @@ class BoundedQueue(Generic[T]):
             self._q.put_nowait(item)
             return True
         except queue.Full:
-            pass
-        deadline = None if timeout is None else time.monotonic() + timeout
-        with _wait_section(stats):
-            while not stop.is_set():
-                wait = _slice_until(WAIT_SLICE_S, deadline)
-                if wait <= 0:
-                    return False
-                try:
-                    self._q.put(item, timeout=wait)
-                    return True
-                except queue.Full:
-                    pass
-        return False
+            return self._blocking(lambda wait: self._q.put(item, timeout=wait), queue.Full, stop, timeout, stats)[0]
 
     def get(
         self, stop: threading.Event, *, timeout: float | None = None, stats: LaneStats | None = None
@@ -248,17 +229,22 @@ class BoundedQueue(Generic[T]):
         item = self.get_nowait()
         if item is not None:
             return item
+        return self._blocking(lambda wait: self._q.get(timeout=wait), queue.Empty, stop, timeout, stats)[1]
+
+    def _blocking(self, call: Callable[[float], Any], retry: type[Exception], stop: threading.Event,
+                  timeout: float | None, stats: LaneStats | None) -> tuple[bool, Any]:
+        """(True, ``call(wait)``) once a slice's call succeeds; (False, None) on stop or timeout."""
         deadline = None if timeout is None else time.monotonic() + timeout
         with _wait_section(stats):
             while not stop.is_set():
                 wait = _slice_until(WAIT_SLICE_S, deadline)
                 if wait <= 0:
-                    return None
+                    break
                 try:
-                    return self._q.get(timeout=wait)
-                except queue.Empty:
+                    return True, call(wait)
+                except retry:
                     pass
-        return None
+        return False, None
 
     def get_nowait(self) -> T | None:
         """Dequeue an item if one is ready, else None (for draining on shutdown)."""
@@ -406,12 +392,9 @@ class Swimlane:
         return BoundedQueue(maxsize, f"{self.role}/{name}")
 
     def pin(self, lane_cpus: dict[str, Iterable[int]]) -> None:
-        """Pin lanes to cores of their own (``{"sim": [0]}``); each lane's thread applies its
-        pinning as it starts, so the process's other threads keep their affinity.
-
-        Raises ValueError, naming the lane, for a lane this role does not have or an empty set.
-        A pinning the OS refuses (a core that does not exist here) fails that lane when it starts,
-        which stops the role with an error naming the lane.
+        """Pin lanes to cores of their own (``{"sim": [0]}``), applied by each lane's thread as it
+        starts. ValueError names a lane this role does not have or an empty set; a pinning the OS
+        refuses fails that lane when it starts (stopping the role with an error naming it).
         """
         if self._started:
             raise RuntimeError(f"swimlane {self.role!r}: pin() after start()")
@@ -470,7 +453,7 @@ class Swimlane:
             lane.cpu_s_final = time.thread_time()
 
     def _fail(self, ctx: LaneContext, exc: BaseException) -> None:
-        ctx.stats.record_error()
+        ctx.stats.errors += 1
         log.error(
             "lane %s/%s failed: %s: %s; stopping all lanes",
             self.role, ctx.name, type(exc).__name__, exc, exc_info=exc,
@@ -523,7 +506,6 @@ class Swimlane:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-
     @property
     def state(self) -> str:
         """``"idle"`` (not started), ``"running"``, ``"stopped"`` or ``"error"``."""
@@ -534,9 +516,8 @@ class Swimlane:
         return "stopped" if self.stop_event.is_set() else "running"
 
     def stats(self) -> dict[str, dict[str, Any]]:
-        """Per-lane :meth:`LaneStats.snapshot`, plus whether the lane thread is alive and the CPU
-        seconds its thread has used (``cpu_s``; busy time is wall time, so a lane busy 100% of
-        the time on a core it shares with another thread shows about half that in CPU)."""
+        """Per-lane :meth:`LaneStats.snapshot`, plus ``alive`` and the CPU seconds its thread has
+        used (``cpu_s``: busy time is wall time, shared cores show in CPU time)."""
         out: dict[str, dict[str, Any]] = {}
         for name, lane in self._lanes.items():
             snap: dict[str, Any] = dict(lane.ctx.stats.snapshot())
@@ -588,10 +569,8 @@ def pin_cpus(cpus: Iterable[int]) -> set[int] | None:
 
 
 def set_torch_threads(n: int, interop: int | None = 1) -> dict[str, int] | None:
-    """Set torch intra-op threads to ``n`` and inter-op threads to ``interop`` where allowed.
-
-    Inter-op threads default to 1 because the lanes already supply the concurrency; torch only
-    accepts that setting before its first parallel work, so a refusal is logged, not raised.
+    """Set torch intra-op threads to ``n`` and inter-op threads to ``interop`` (1: the lanes are
+    the concurrency); torch refuses the latter after its first parallel work, which is logged.
     Returns the effective ``{"intra": .., "interop": ..}``, or None if torch is not installed.
     """
     if n < 1:

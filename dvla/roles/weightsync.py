@@ -2,14 +2,11 @@
 snapshots) and `WeightSync` (the receiving lane's logic shared by rollouts, evaluators and
 replicators), with the one snapshot queryable both ends serve (`serve_snapshots`).
 
-- Listens on the parent's weights key; assembles each version's chunks into a reusable buffer;
-  `HeldWeights.apply` decodes and verifies it (layout, base version, checksum); only a verified,
-  complete version is held and announced to `on_version`.
-- Anything that does not fit (a missed base version, a bad checksum, a fresh start) is repaired by
-  asking the parent's `snapshot` queryable (falling back to further ancestors): the held version
-  sent whole, as a full version's chunks, through the same assembler and `apply`.
-- When the parent's liveliness token goes, it re-subscribes to the nearest live ancestor; when
-  the parent comes back it moves back (the tree heals).
+A receiver assembles each version's chunks and holds it once `HeldWeights.apply` verified it.
+Anything that does not fit (a missed base, a bad checksum, a fresh start) is repaired by a
+snapshot from the parent (or a further ancestor): the held version sent whole through the same
+assembler and `apply`. When the parent's liveliness token goes it follows the nearest live
+ancestor, and moves back when the parent returns.
 """
 
 from __future__ import annotations
@@ -22,7 +19,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..config import ReplicationConfig
+from ..config import ReplicationConfig, RoleConfig
 from ..fabric import Fabric
 from ..fabric.codec import encode
 from ..fabric.messages import SnapshotRequest, WeightChunk, WeightManifest, WeightSnapshot
@@ -96,15 +93,24 @@ class WeightSync:
         self._fetched: tuple[str, list[Any]] | None = None
         self._next_fetch = 0.0
         self._current: str | None = None
-        # Only the current parent's key is subscribed: every further subscription would bring
-        # each version once more over every link on the way (a chain of relays would carry a
-        # version once per ancestor). The lane switches it (never a Zenoh callback), and a
-        # switch asks for a snapshot, which covers what arrived meanwhile.
+        # Only the current parent's key is subscribed (more would carry each version once per
+        # ancestor); the lane switches it, and a switch asks for a snapshot.
         self._sub_parent: str | None = None
         self._inbox: Any = None
         fabric.watch_alive(self._on_alive)
         self._select()
         self._follow()
+
+    @classmethod
+    def of_role(cls, cfg: RoleConfig, fabric: Fabric, held: HeldWeights | None, on_version: Callable[[int], None],
+                policy: Any = None, **kwargs: Any) -> "WeightSync":
+        """Role `cfg`'s receiving side: its parent, further ancestors as fallbacks; with `policy`,
+        versions made for another frozen base are refused."""
+        if policy is not None:  # imported here: a replicator builds no policy
+            from ..learn.policies import policy_base_hash
+
+            kwargs.update(base_hash=policy_base_hash(policy), base_source=str(cfg.task.policy_kwargs.get("checkpoint", "")))
+        return cls(fabric, held, (cfg.parent, *cfg.ancestors[1:]), on_version, **kwargs)
 
     def _adopt(self, held: HeldWeights) -> None:
         self.held = held
@@ -178,12 +184,16 @@ class WeightSync:
         return self._current or self.parents[0]
 
     # -- the lane -----------------------------------------------------------------------------
+    def run(self, ctx: LaneContext) -> None:
+        """The receiving lane."""
+        while ctx.running:
+            self.step(ctx)
+
     def step(self, ctx: LaneContext, timeout: float = 0.1) -> None:
         """One iteration of the receiving lane: catch up if needed, then handle one message.
 
         A snapshot fetch runs on a thread of its own while this lane keeps draining the stream,
-        so a large snapshot in flight never fills the inbox and never holds Zenoh's receive
-        thread (which the snapshot reply itself needs).
+        so it never fills the inbox nor holds Zenoh's receive thread (which its reply needs).
         """
         if self._want_snapshot and self._fetch is None and time.monotonic() >= self._next_fetch:
             self._start_fetch()
@@ -206,20 +216,18 @@ class WeightSync:
 
     def _handle(self, msg: Any) -> None:
         if isinstance(msg, WeightManifest):
+            self._manifest = None
             if not self._fits(msg):
-                self._manifest = None
                 return
             try:
                 if self._assembler is None:
                     self._assembler = ChunkAssembler(msg.n_chunks, msg.total_bytes, self.held.layout.nbytes)
                 else:
                     self._assembler.reset(msg.n_chunks, msg.total_bytes)
+                self._manifest = msg
             except ReplicationError as err:
                 self.counters["rejected"] += 1
                 log.warning("weights: manifest v%d from %s rejected: %s", msg.version, msg.sender, err)
-                self._manifest = None
-                return
-            self._manifest = msg
             return
         m = self._manifest
         if m is None or msg.version != m.version:
@@ -356,12 +364,9 @@ def serve_snapshots(
     """Declare ``sender``'s ``snapshot`` queryable (children's catch-up and repair).
 
     The reply is the version ``held()`` holds, whole: a :class:`WeightSnapshot` header with the
-    actor's signed manifest of it, then its ``full`` payload as ``WeightChunk`` replies of at most
-    `chunk_bytes` (within the ctrl plane's message cap), encoded once per version however many
-    children ask. A requester that is up to date (or asks before anything is held) gets the
-    header alone and never costs a copy of the weights. The held weights are read under their
-    lock, so a reply never mixes two versions. Requests are answered by one thread of their own
-    from a short queue (never on Zenoh's receive thread; see Fabric.serve).
+    actor's signed manifest, then its ``full`` payload as ``WeightChunk`` replies of at most
+    `chunk_bytes`, encoded once per version (read under the held weights' lock). A requester
+    that is up to date gets the header alone. Answered on a worker thread (Fabric.serve).
     """
     encoded: dict[int, list[bytes]] = {}
 
