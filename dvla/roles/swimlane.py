@@ -149,7 +149,7 @@ class LaneStats:
         while len(samples) >= 2 and samples[1][0] <= horizon:
             samples.popleft()
 
-    def snapshot(self) -> dict[str, float | int]:
+    def reading(self) -> dict[str, float | int]:
         """Counters plus rates over the last ``window_s`` seconds (or since start if shorter).
 
         Keys: ``busy_s``, ``wait_s``, ``items``, ``errors`` (totals since start);
@@ -520,7 +520,7 @@ class Swimlane:
         used (``cpu_s``: busy time is wall time, shared cores show in CPU time)."""
         out: dict[str, dict[str, Any]] = {}
         for name, lane in self._lanes.items():
-            snap: dict[str, Any] = dict(lane.ctx.stats.snapshot())
+            snap: dict[str, Any] = dict(lane.ctx.stats.reading())
             snap["alive"] = lane.thread is not None and lane.thread.is_alive()
             cpu = lane.cpu_s()
             if cpu is not None:

@@ -305,7 +305,7 @@ def test_busy_section_measures_busy_time_and_utilisation() -> None:
         time.sleep(0.2)
     stats.count()
     time.sleep(0.2)
-    snap = stats.snapshot()
+    snap = stats.reading()
     assert 0.19 <= snap["busy_s"] < 0.3
     assert snap["wait_s"] == 0.0
     assert snap["items"] == 1
@@ -343,7 +343,7 @@ def test_waiting_inside_busy_pauses_the_busy_clock() -> None:
         clock.t += 1.0
         with stats.busy():  # nested busy is a no-op, not double counted
             clock.t += 0.5
-    snap = stats.snapshot()
+    snap = stats.reading()
     assert snap["busy_s"] == pytest.approx(2.5)
     assert snap["wait_s"] == pytest.approx(3.0)
     assert snap["utilisation"] == pytest.approx(2.5 / 5.5)
@@ -355,7 +355,7 @@ def test_open_busy_section_counts_in_snapshot() -> None:
     stats = LaneStats(clock=clock)
     with stats.busy():
         clock.t += 4.0
-        snap = stats.snapshot()
+        snap = stats.reading()
         assert snap["busy_s"] == pytest.approx(4.0)
         assert snap["utilisation"] == pytest.approx(1.0)
 
@@ -366,20 +366,20 @@ def test_items_per_s_uses_a_sliding_window() -> None:
     for _ in range(100):  # 100 items/s for 5 s
         clock.t += 0.05
         stats.count(5)
-    snap = stats.snapshot()
+    snap = stats.reading()
     assert snap["items"] == 500
     assert snap["items_per_s"] == pytest.approx(100.0, rel=0.02)
     for _ in range(20):  # then idle for 20 s, polled once a second
         clock.t += 1.0
-        stats.snapshot()
-    snap = stats.snapshot()
+        stats.reading()
+    snap = stats.reading()
     assert snap["items_per_s"] == pytest.approx(0.0, abs=0.1)
     assert snap["items"] == 500
     for _ in range(20):  # then 2 items/s for 20 s: only the last window counts
         clock.t += 1.0
         stats.count(2)
-    assert stats.snapshot()["items_per_s"] == pytest.approx(2.0, rel=0.1)
-    assert stats.snapshot()["utilisation"] == 0.0
+    assert stats.reading()["items_per_s"] == pytest.approx(2.0, rel=0.1)
+    assert stats.reading()["utilisation"] == 0.0
 
 
 def test_lane_stats_rejects_bad_window() -> None:
