@@ -1,19 +1,10 @@
 """``tiny-vla``: a small vision-language-action policy for structured (``obs_mode="rgb"``) observations.
 
-One transformer encoder reads a single token sequence::
-
-    [ACT] [VAL] | image patches (conv patchify) | proprioception | instruction words
-
-and two learned readout tokens give the outputs: ``[ACT]`` the mean of a Gaussian over the
-action (state-independent learned log-std), ``[VAL]`` the critic's value. Image, proprioception
-and word tokens get learned position (and type) embeddings; padding words are masked out. With
-``task.action_chunk`` K the action is K env actions side by side, so the head predicts K future
-actions at once.
-
-Sizes come from ``policy_kwargs`` (``d_model``, ``layers``, ``heads``, ``patch_size``,
-``mlp_ratio``) on top of a named preset (``size``, default ``tiny``: see :data:`PRESETS`); the
-image size is the task's ``image_size``. The ``tiny`` preset has about 0.4 M parameters and
-runs on a laptop CPU; ``1b`` is about a billion parameters for GPU machines.
+One transformer encoder reads ``[ACT] [VAL] | image patches | proprioception | instruction words``
+(padding words masked); ``[ACT]`` reads the mean of a Gaussian over the action (learned
+state-independent log-std; with ``task.action_chunk`` K, K actions side by side), ``[VAL]`` the
+value. Sizes: ``policy_kwargs`` on top of a named preset (``size``, default ``tiny``, about 0.4 M
+parameters; ``1b`` for GPU machines: see :data:`PRESETS`).
 """
 
 from __future__ import annotations
