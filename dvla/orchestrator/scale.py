@@ -1,14 +1,9 @@
 """`dvla plan --simulate`: a whole-pipeline model of a topology at any size (docs/scale.md).
 
-- :func:`tile` repeats a topology's racks up to N nodes in R racks (the cluster it stands for);
-- :func:`version_bytes` is what one weight version puts on the wire for a model size and encoding;
-- :func:`simulate_pipeline` is a SimPy discrete-event run of the pipeline: rollouts produce env
-  steps at a measured rate over data links shared max-min fairly, learner ranks take their batch
-  once every rank has it (DDP) and spend compute plus a ring all-reduce per optimizer step, rank 0
-  publishes, versions travel the replication tree (:mod:`.simulate`, chunk by chunk) and reach
-  the rollouts, which act with them: policy lag is what results;
-- :func:`speedup_table` runs it from 8 to 1,024 nodes and names where and why speedup stops
-  being linear.
+:func:`tile` repeats a topology's racks up to N nodes; :func:`version_bytes` is one weight
+version's wire size; :func:`simulate_pipeline` is a SimPy discrete-event run of rollouts, shared
+data links, DDP learner ranks and the replication tree (:mod:`.simulate`), from which policy lag
+results; :func:`speedup_table` runs it from 8 to 1,024 nodes and names where speedup stops being linear.
 """
 
 from __future__ import annotations
