@@ -349,11 +349,8 @@ def encode(msg: Message, limits: Limits = DEFAULT_LIMITS) -> bytes:
 
 
 def encode_into(msg: Message, buf: bytearray, limits: Limits = DEFAULT_LIMITS) -> int:
-    """:func:`encode` into a reused buffer (resized to the message; returns its length).
-
-    For a sender of large messages: a fresh megabyte object per message, freed when Zenoh lets
-    go of it, measurably delays the control traffic of the sending process (docs/benchmarks.md).
-    """
+    """:func:`encode` into a reused buffer (resized to the message; returns its length): a fresh
+    megabyte object per large message delays the sender's control traffic (docs/benchmarks.md)."""
     return _write(msg, limits).finish_into(buf)
 
 

@@ -182,12 +182,9 @@ def _parse(env: memoryview) -> _Parsed:
 
 
 class Verifier:
-    """Checks envelopes sealed with the same secret; thread-safe.
-
-    With ``operator`` (the run's operator public key) and ``run``, every envelope must also
-    carry an identity certified by that operator and signed by it (reason ``no_identity`` or
-    ``bad_identity`` otherwise). ``clock`` (ns) is injectable for tests; it must be the wall
-    clock in production because timestamps come from other hosts.
+    """Checks envelopes sealed with the same secret; thread-safe. With ``operator`` (the run's
+    operator public key) and ``run``, every envelope must also carry an identity that operator
+    certified. ``clock`` (ns) must be the wall clock outside tests: timestamps come from other hosts.
     """
 
     def __init__(self, secret: bytes, max_age_s: float = 30.0, replay_window: int = 4096, *,

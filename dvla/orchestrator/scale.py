@@ -107,12 +107,9 @@ def check_inputs(cfg: SimulateConfig, topo: Topology) -> None:
 
 
 def tile(topo: Topology, nodes: int | None, racks: int | None) -> Topology:
-    """The topology's racks repeated until it has `nodes` nodes in `racks` racks.
-
-    Rack i of the result takes its role pattern from the topology's rack ``i mod R0``, its node j
-    from that rack's node ``j mod n``; every repetition keeps its actors (so learner ranks grow
-    with the cluster, as the topology places them) and replicators; evaluators only in the
-    first. Hosts become names (the result is modelled, never started)."""
+    """The topology's racks repeated until it has `nodes` nodes in `racks` racks: rack i copies rack
+    ``i mod R0``, node j that rack's node ``j mod n``; actors (learner ranks grow with the cluster)
+    and replicators repeat, evaluators stay in the first; hosts become names (never started)."""
     template = [r for r in topo.racks if r.nodes]
     total0 = sum(len(r.nodes) for r in template)
     if nodes is None and racks is None:

@@ -164,12 +164,9 @@ _HASH_CACHE: dict[tuple, str] = {}
 
 
 def content_hash(path: str | Path) -> str:
-    """xxh3-128 hex over the names and bytes of the files a policy reads from ``path``.
-
-    Config, tokenizer, dvla_policy.json and every safetensors file, in name order, streamed in
-    8 MiB blocks: two hosts with the same files agree, a host with other base weights does not.
-    Cached per process on (name, size, mtime), since every copy of a policy asks (a rollout builds
-    two)."""
+    """xxh3-128 hex over the names and bytes of the files a policy reads from ``path`` (config,
+    tokenizer, dvla_policy.json, every safetensors file), cached per process on (name, size,
+    mtime) since every copy of a policy asks."""
     path = Path(path).expanduser().resolve()
     files = sorted(p for p in path.iterdir() if p.is_file() and _HASHED.fullmatch(p.name))
     key = (str(path),) + tuple((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in files)

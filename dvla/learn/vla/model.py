@@ -44,12 +44,9 @@ def _spec_shape(spec: Any) -> tuple[int, ...]:
 
 @register_policy("tiny-vla")
 class TinyVLA(nn.Module):
-    """Patch + word + proprioception transformer with Gaussian action and value readouts.
-
-    ``obs`` is the ObsSpec of structured observations: ``rgb`` (required, uint8 [H, W, C]),
-    ``proprio`` (float32 [P], optional) and ``tokens`` (int32 [L] with ``vocab``, optional).
-    ``observe`` keeps running mean/variance of ``proprio`` in buffers (they replicate with the
-    weights), so joint positions and velocities of any scale arrive standardised.
+    """Patch + word + proprioception transformer with Gaussian action and value readouts. ``obs``
+    needs ``rgb``; ``proprio`` and ``tokens`` are optional. ``observe`` keeps running moments of
+    ``proprio`` in buffers that replicate with the weights, so joints of any scale arrive standardised.
     """
 
     def __init__(
