@@ -122,11 +122,9 @@ class SshTarget:
 
 
 def check_host(target: SshTarget, prepare: tuple[str, str] | None = None) -> dict[str, Any]:
-    """Log in once and ask the remote Python about itself; raise :class:`SshError` (one line) if
-    the host, the login or the remote dvla fails. Returns what the remote side reported.
-
-    With `prepare` (remote run directory, run token) the remote side also makes that directory
-    the run's (:func:`prepare_run_dir`); one that is not dvla's own is an SshError naming it."""
+    """Log in once and return what the remote Python reports about itself; :class:`SshError` (one
+    line) if the host, the login or the remote dvla fails. With `prepare` (remote run directory,
+    run token) the remote side also makes that directory the run's (:func:`prepare_run_dir`)."""
     timeout = target.ssh.connect_timeout_s + 20
     argv = target.argv(target.python_command("-m", "dvla.orchestrator.ssh", "probe"))
     header = json.dumps({"run_dir": prepare[0], "token": prepare[1]}) + "\n" if prepare else ""
