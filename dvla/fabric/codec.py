@@ -1,22 +1,13 @@
-"""The one wire codec of dvla: message dataclass <-> msgpack bytes.
-
-This module owns the byte encoding of every :mod:`dvla.fabric.messages` type (format in
-``docs/wire-format.md``)::
+"""The one wire codec of dvla: message dataclass <-> msgpack bytes (docs/wire-format.md)::
 
     {"v": SCHEMA_VERSION, "t": <type tag>, "b": {<field name>: <value>, ...}}
 
-numpy arrays travel as msgpack ext type :data:`ARRAY_EXT_CODE` whose payload is a small header
-(dtype name, ndim, little-endian uint32 shape, alignment padding) followed by the raw C-order
-little-endian array bytes.
-
-Performance contract: :func:`encode` copies each array's bytes exactly once (into the output
-buffer); :func:`decode` copies them never (arrays are ``np.frombuffer`` views of the input).
-msgpack-python's ``Unpacker`` copies every ext payload into a fresh ``bytes`` before handing it
-over, so decoding uses the small msgpack reader below instead; it enforces :class:`Limits` on
-every declared length *before* touching the data, and since every value is either a view of the
-input or bounded by it, a forged length can never make it allocate beyond the input size.
-
-Safety contract: :func:`decode` raises :class:`CodecError` for any bad input and nothing else.
+numpy arrays travel as msgpack ext type :data:`ARRAY_EXT_CODE` (a small header, then the raw
+C-order little-endian bytes). :func:`encode` copies each array's bytes once; :func:`decode` never
+(``np.frombuffer`` views), so it uses the small reader below rather than msgpack's ``Unpacker``,
+which copies every ext payload. The reader checks :class:`Limits` on every declared length before
+touching data, so a forged length cannot allocate beyond the input. :func:`decode` raises
+:class:`CodecError` for any bad input and nothing else.
 """
 
 from __future__ import annotations
@@ -358,11 +349,8 @@ def encode(msg: Message, limits: Limits = DEFAULT_LIMITS) -> bytes:
 
 
 def encode_into(msg: Message, buf: bytearray, limits: Limits = DEFAULT_LIMITS) -> int:
-    """:func:`encode` into a reused buffer (resized to the message; returns its length).
-
-    For a sender of large messages: a fresh megabyte object per message, freed when Zenoh lets
-    go of it, measurably delays the control traffic of the sending process (docs/benchmarks.md).
-    """
+    """:func:`encode` into a reused buffer (resized to the message; returns its length): a fresh
+    megabyte object per large message delays the sender's control traffic (docs/benchmarks.md)."""
     return _write(msg, limits).finish_into(buf)
 
 

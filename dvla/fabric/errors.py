@@ -1,9 +1,6 @@
-"""Typed exceptions of the message fabric.
-
-This module owns every exception that ``dvla.fabric`` raises for bad input: a receiver catches
-:class:`FabricError` (or one of its subclasses) and never has to guess which library-level
-exception a malformed packet might trigger. Each error carries a short ``reason`` code so that
-callers can count rejections by cause without parsing messages.
+"""Typed exceptions of the message fabric: a receiver catches :class:`FabricError` and never
+guesses which library exception a malformed packet triggers; each carries a ``reason`` code to
+count rejections by cause (the codes: docs/wire-format.md, docs/status.md).
 """
 
 from __future__ import annotations
@@ -28,33 +25,19 @@ class _ReasonError(FabricError, ValueError):
 
 
 class CodecError(_ReasonError):
-    """A message could not be encoded or decoded.
-
-    ``reason`` is one of:
-
-    * ``malformed``: the bytes are not a well-formed message (bad msgpack, truncation,
-      trailing bytes, bad array header).
-    * ``schema``: well-formed, but not a known message (schema version, unknown type tag,
-      missing or extra fields, non-string map keys, out-of-range values).
-    * ``type``: a field or array has the wrong type/dtype, or the message is not of the
-      expected class.
-    * ``oversize``: a size limit was exceeded.
-    * ``shape``: array shapes disagree with each other or with the payload length.
-    """
+    """A message could not be encoded or decoded: ``malformed`` (not well-formed msgpack or array
+    header), ``schema`` (not a known message), ``type`` (wrong type/dtype or class), ``oversize``
+    (a limit), ``shape`` (array shapes disagree with each other or the payload)."""
 
     REASONS = frozenset({"malformed", "schema", "type", "oversize", "shape"})
 
 
 class SignatureError(_ReasonError):
-    """A signed control-plane envelope was rejected.
-
-    ``reason`` is one of ``unsigned`` (not an envelope at all), ``malformed`` (an envelope
-    whose framing is broken), ``bad_signature`` (tag mismatch: wrong secret, or any signed
-    byte changed), ``stale`` (timestamp outside the accepted window), ``replay`` (nonce
-    already seen), ``key_id`` (signed with another secret: another run or a rotated key),
-    ``no_identity`` / ``bad_identity`` (the sender's certified signature is missing or does not
-    verify) and ``unauthorized`` (a verified sender that may not send this on this key).
-    """
+    """A signed envelope was rejected: ``unsigned`` (not an envelope), ``malformed`` (broken
+    framing), ``bad_signature`` (tag mismatch), ``stale`` (timestamp outside the window),
+    ``replay`` (nonce seen), ``key_id`` (another secret: another run or a rotated key),
+    ``no_identity`` / ``bad_identity`` (certified signature missing or not verifying),
+    ``unauthorized`` (a verified sender that may not send this on this key)."""
 
     REASONS = frozenset({"unsigned", "bad_signature", "stale", "replay", "malformed", "key_id", "no_identity",
                          "bad_identity", "unauthorized"})

@@ -1,17 +1,10 @@
 """Who sent a message: per-process Ed25519 identities certified by the run's operator key.
 
-The run secret (HMAC, :mod:`dvla.fabric.signing`) proves a message comes from *a* member of the
-run. It cannot say *which* member: every process holds it. An :class:`Identity` can. The
-operator (``dvla up``, and the tools that share its run directory) holds one Ed25519 key; for
-every process it launches it makes a fresh key pair and a certificate, the operator's signature
-over ``(run, kind, name, public key)``. A process signs each envelope's HMAC tag with its own
-key and ships its name, kind, public key and certificate in the envelope; a receiver that knows
-only the operator's public key checks the certificate, then the signature, then whether that
-kind of sender may send that message on that key (:func:`authorize`). So a compromised rollout
-can sign as itself only: weights need the actor's key, commands and status queries the
-operator's, status and eval replies the key of the role they name.
-
-Credentials travel to a process in one environment variable (:data:`IDENTITY_ENV`, never a
+The run secret proves a message comes from *a* member of the run; an :class:`Identity` says which.
+The operator (``dvla up`` and tools sharing its run directory) certifies a fresh key pair per
+process (its signature over ``(run, kind, name, public key)``); receivers check the certificate,
+the signature, then :func:`authorize`, so a compromised rollout can sign as itself only
+(docs/security.md). Credentials travel in one environment variable (:data:`IDENTITY_ENV`, never a
 command line): ``dvla-id1:<run>:<kind>:<name>:<seed hex>:<certificate hex>:<operator public hex>``.
 """
 

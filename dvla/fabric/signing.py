@@ -1,23 +1,12 @@
 """Signed envelopes: HMAC-SHA256 with the run secret, plus the sender's Ed25519 signature.
 
-This module owns authentication of messages (weights, commands, status, trajectories, ...): a
-:class:`Signer` wraps an already-encoded payload (see :mod:`dvla.fabric.codec`) in an envelope,
-a :class:`Verifier` checks it and returns the payload. Every process of a run shares one secret
-(:func:`load_secret`): the HMAC tag proves the sender is a member of the run and covers the
-Zenoh key expression (a message signed for one key cannot be moved to another) and an optional
-*binding* (a query's nonce, so a reply cannot answer any other query). A process with an
-:class:`~dvla.fabric.identity.Identity` also signs the tag with its own key and ships its
-certificate, so a receiver knows *which* member sent it (:func:`dvla.fabric.identity.authorize`
-decides whether that member may).
-
-The envelope's layout (magic, key id, sender, timestamp, nonce, optional identity block,
-payload, HMAC tag, optional Ed25519 signature) is drawn byte by byte in docs/wire-format.md.
-
-Freshness: an envelope is accepted if ``|now - ts_ns| <= max_age`` and its nonce has not been
-seen. Nonces are remembered for ``max_age`` (at most ``replay_window`` of them); when the store
-is full the oldest entry is dropped and its timestamp becomes that sender's *horizon*: anything
-from that sender stamped at or before it is refused as stale, so a dropped nonce can never be
-replayed. Memory is therefore bounded whatever the message rate (the horizon map is capped too).
+A :class:`Signer` wraps an encoded payload in an envelope, a :class:`Verifier` checks it and
+returns the payload. The HMAC tag (one secret per run, :func:`load_secret`) proves run membership
+and covers the key expression and an optional *binding* (a query's nonce); with an
+:class:`~dvla.fabric.identity.Identity` the sender also signs the tag and ships its certificate,
+so a receiver knows which member sent it (:func:`dvla.fabric.identity.authorize` decides what it
+may send). Layout, freshness and the replay horizon: docs/wire-format.md, section 4; bounded
+memory whatever the message rate: docs/security.md.
 """
 
 from __future__ import annotations
@@ -193,12 +182,9 @@ def _parse(env: memoryview) -> _Parsed:
 
 
 class Verifier:
-    """Checks envelopes sealed with the same secret; thread-safe.
-
-    With ``operator`` (the run's operator public key) and ``run``, every envelope must also
-    carry an identity certified by that operator and signed by it (reason ``no_identity`` or
-    ``bad_identity`` otherwise). ``clock`` (ns) is injectable for tests; it must be the wall
-    clock in production because timestamps come from other hosts.
+    """Checks envelopes sealed with the same secret; thread-safe. With ``operator`` (the run's
+    operator public key) and ``run``, every envelope must also carry an identity that operator
+    certified. ``clock`` (ns) must be the wall clock outside tests: timestamps come from other hosts.
     """
 
     def __init__(self, secret: bytes, max_age_s: float = 30.0, replay_window: int = 4096, *,
@@ -332,13 +318,9 @@ def _secret_from_text(raw: bytes, origin: str) -> bytes:
 
 
 def load_secret(path: str | None, env_var: str = "DVLA_SECRET") -> bytes:
-    """Load the run's shared secret from ``path`` if given, else from environment variable ``env_var``.
-
-    The content may be hex (decoded) or raw bytes (used as-is); surrounding whitespace is ignored
-    so ``echo <secret> > file`` and ``export DVLA_SECRET=<secret>`` give the same key.
-    Raises :class:`SecretError` naming the file or variable when missing, unreadable or shorter
-    than :data:`MIN_SECRET_BYTES` bytes.
-    """
+    """The run's shared secret from ``path``, else from environment variable ``env_var``: hex or raw
+    bytes, surrounding whitespace ignored. :class:`SecretError` names the file or variable when
+    missing, unreadable or shorter than :data:`MIN_SECRET_BYTES`."""
     if path is not None:
         try:
             with open(path, "rb") as f:

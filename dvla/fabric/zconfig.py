@@ -61,10 +61,8 @@ def plane_config(
     attributes such as dvla's `TlsConfig`) makes the session speak TLS: every endpoint must then
     be a ``tls/host:port`` locator, and without it none may be.
 
-    `max_message_size` (bytes; None: Zenoh's 1 GiB) caps the messages this session receives:
-    a larger one is dropped by Zenoh while it reassembles the fragments (at most this many bytes
-    are buffered for it), and the session stays up. It bounds what arrives over links, not what
-    a local peer hands over in shared memory (``shared_memory=True``).
+    `max_message_size` (bytes; None: Zenoh's 1 GiB) caps what this session reassembles from
+    links (a larger message is dropped, the session stays up); shared memory is not bounded by it.
     """
     if mode not in ("peer", "client", "router"):
         raise ValueError(f"zenoh mode must be peer, client or router, got {mode!r}")

@@ -1,26 +1,10 @@
-"""Environments of the learning task: creation, grouped stepping and evaluation.
+"""Environments of the learning task: :func:`make_env` (a ManiSkill3 id, ``"libero"`` or a user
+``"module:factory"``), :class:`EnvGroup` (``n`` one-env simulators stepped in this process, numpy
+arrays with the env axis first, auto-reset included) and :func:`run_eval_episodes`.
 
-This module owns everything that touches a simulator:
-
-* :func:`make_env` builds one Gymnasium env from a :class:`~dvla.config.TaskConfig` (a ManiSkill3
-  id, ``"libero"`` for LIBERO's tasks (:mod:`dvla.learn.libero`), or a user ``"module:factory"``).
-* :class:`EnvGroup` steps ``n`` such envs sequentially in one process and hides the simulator's
-  types: callers get numpy arrays with a leading env axis, auto-reset included.
-* :func:`run_eval_episodes` plays deterministic episodes and reports success rates.
-
-Observations come in two forms, described by :attr:`EnvGroup.obs_spec`:
-
-* flat (``obs_mode="state"`` or any env with a Box observation space): one float32 array
-  ``[n, D]``, whose spec is ``{"state": ArraySpec((D,), "float32")}``;
-* structured (``obs_mode="rgb"``): a dict of arrays, every one with the env axis first:
-  ``"rgb"`` uint8 ``[n, H, W, 3 * cameras]`` (cameras side by side on the channel axis, kept
-  uint8 all the way to the policy), ``"proprio"`` float32 ``[n, 18]`` (``agent.qpos`` then
-  ``agent.qvel``) and ``"tokens"`` int32 ``[n, L]`` (the task instruction, see
-  :mod:`dvla.learn.vla.tokenizer`). These names are exactly the trajectory chunk's obs keys.
-  An env whose Dict observation already has ``rgb`` and ``proprio`` (LIBERO) is taken as it is;
-  an env with an ``instruction`` attribute (LIBERO) gives each episode its own instruction.
-
-Torch is used only to unwrap ManiSkill's tensors and to call the policy during evaluation.
+Observations are flat (``{"state": [n, D]}``) or structured (``rgb`` / ``proprio`` / ``tokens``,
+the chunk's obs keys: docs/policies.md, "Observations a policy sees"); :attr:`EnvGroup.obs_spec`
+describes them. An env that already gives ``rgb`` and ``proprio`` (LIBERO) is taken as it is.
 """
 
 from __future__ import annotations
@@ -50,10 +34,7 @@ def obs_as_dict(obs: Any) -> dict[str, np.ndarray]:
 
 
 def obs_to_torch(obs: Any, device: Any = "cpu") -> Any:
-    """What a policy is called with: a tensor for flat observations, a dict of tensors otherwise.
-
-    Dtypes are kept (images stay uint8; the policy converts them).
-    """
+    """What a policy is called with: a tensor (flat) or a dict of tensors; dtypes kept (uint8 images)."""
     import torch
 
     if isinstance(obs, dict):
@@ -79,14 +60,8 @@ def is_maniskill(task: TaskConfig) -> bool:
 def sim_layout(task: TaskConfig, n: int, cuda: bool | None = None, batching: str | None = None) -> tuple[str, bool]:
     """``(sim backend, one scene?)`` for a group of ``n`` envs of ``task`` on this machine
     (``cuda``: whether it has a CUDA device; ``batching``: ``task.env_batching`` unless given).
-
-    ManiSkill's own rule decides ``auto``: a scene of more than one env goes to ``physx_cuda`` on a
-    CUDA machine, a one-env scene stays on ``physx_cpu`` (it steps faster there and its
-    observations need no device -> host copy). With ``env_batching: auto`` the envs share one
-    scene exactly when the backend is ``physx_cuda``, except for GRPO (its groups share seeded
-    initial states, which one scene does not give). LIBERO always loops; a user factory
-    (``module:factory``) builds one batched env exactly when ``env_batching`` is ``scene``.
-    Raises EnvSetupError for a layout ManiSkill cannot build (several envs in one CPU scene).
+    The rule and its table: docs/envs.md, "Two ways to hold a rollout's envs". Raises
+    EnvSetupError for a layout ManiSkill cannot build (several envs in one CPU scene).
     """
     batching = batching or task.env_batching
     if not is_maniskill(task):
@@ -259,9 +234,8 @@ class EnvGroup:
     different processes must therefore get seeds further apart than the episodes they will play
     (e.g. ``seed * 10**6``), or they replay each other's initial states.
 
-    ``ignore_terminations=True`` plays every episode to its time limit (success does not end
-    it); ``terminated`` is then always False. Evaluation uses this so "success at end" means
-    something for tasks that terminate on success.
+    ``ignore_terminations=True`` plays every episode to its time limit (``terminated`` always
+    False), so evaluation's "success at end" means something for tasks that end on success.
 
     ``task.action_chunk`` K > 1 makes one :meth:`step` play K simulator steps open loop with the
     K actions laid side by side (``act_dim`` is K times the env's); rewards add up, success is
@@ -355,21 +329,15 @@ class EnvGroup:
         return self._episode_seeds.copy()
 
     def reset(self, seed: int | None = None) -> Any:
-        """Start a fresh episode in every env; returns the observations (see module docstring).
-
-        With ``seed`` the seed schedule restarts from it, so two resets with the same seed replay
-        the same initial states.
-        """
+        """Start a fresh episode in every env and return the observations; ``seed`` restarts the
+        seed schedule from it (two resets with one seed replay the same initial states)."""
         if seed is not None:
             self._base = seed
             self._episode_index[:] = 0
         return self._reset_all([self._next_seed(i) for i in range(self.n)])
 
     def reset_seeded(self, seeds: Any) -> Any:
-        """Reset env i with ``seeds[i]`` now (e.g. several envs sharing one initial state).
-
-        Later auto-resets continue the group's own schedule.
-        """
+        """Reset env i with ``seeds[i]`` now; later auto-resets continue the group's own schedule."""
         seeds = np.asarray(seeds, dtype=np.int64).reshape(-1)
         if seeds.shape[0] != self.n:
             raise ValueError(f"need {self.n} seeds, got {seeds.shape[0]}")
@@ -510,13 +478,9 @@ def run_eval_episodes(
     """Play ``n_episodes`` episodes with deterministic actions (the policy mean); None when
     ``stop`` (a ``threading.Event``) is set before they are all played.
 
-    Episode j starts from seed ``seed + j``, so two calls with the same seed see the same
-    initial states. Pass ``group`` to reuse envs between evaluations (it is reset here): one made
-    with ``ignore_terminations=True`` plays every episode to the time limit, one without ends an
-    episode where the env terminates it (ManiSkill: at success). A group made here follows
-    ``task.eval.full_episodes``. Env i plays episodes i, i + n, ...: every episode that is started
-    is counted, so short (successful) episodes are not over-represented; an env whose episodes
-    are all played is no longer stepped.
+    Episode j starts from seed ``seed + j``. ``group`` reuses envs between evaluations (reset
+    here); a group made here follows ``task.eval.full_episodes``. Env i plays episodes i, i + n,
+    ...: every started episode is counted, so short (successful) ones are not over-represented.
 
     Returns success_once (fraction of episodes with a success at any step) with its 95 % Wilson
     interval (success_once_low, success_once_high), success_at_end (success at the last step),

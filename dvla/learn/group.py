@@ -1,15 +1,11 @@
 """The learner group: the actors of a run as data-parallel ranks over ``torch.distributed``.
 
-Every rank learns on the trajectories of its own rollouts. Gradients are averaged by
-``DistributedDataParallel``; everything else that must agree is summed across ranks with
-:meth:`LearnerGroup.sum` or :func:`all_reduce_sum` (docs/learners.md lists what), so every rank
-holds bit-identical parameters after each update. Rank 0 publishes and checkpoints; at start it
-hands its state to the others with :meth:`LearnerGroup.sync_from_root`.
-
-A group of one (a run with one actor) opens no process group: every method is then local.
-Rendezvous is torch.distributed's TCP store on rank 0's node (``init_method``), as ``torchrun``
-does it; a collective that waits longer than the group's timeout raises, and the role exits so
-the orchestrator restarts the whole group from its last checkpoint.
+Gradients are averaged by ``DistributedDataParallel``; whatever else must agree is summed with
+:meth:`LearnerGroup.sum` / :func:`all_reduce_sum` (docs/learners.md lists what), so every rank
+holds bit-identical parameters. Rank 0 publishes, checkpoints and hands its state to the others
+at start (:meth:`LearnerGroup.sync_from_root`). A group of one opens no process group. A
+collective that waits past the group's timeout raises, and the role exits so the orchestrator
+restarts the whole group from its last checkpoint.
 """
 
 from __future__ import annotations

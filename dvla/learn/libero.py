@@ -1,18 +1,11 @@
-"""LIBERO tasks as Gymnasium envs for dvla's env layer (``task.env: libero``, docs/libero.md).
+"""LIBERO tasks as Gymnasium envs for dvla's env layer (``task.env: libero``, docs/libero.md, which
+says what each seed plays and what success, reward, observations and actions are).
 
-This module owns everything LIBERO-specific: pointing the ``hf-libero`` package (the optional
-``libero`` extra) at its config file and at the assets directory of ``task.libero.assets``,
-choosing MuJoCo's offscreen GL backend, and turning one LIBERO task into a Gymnasium env whose
-observations are already dvla's structured form (``rgb``, ``proprio``; :class:`EnvGroup` adds the
-instruction's ``tokens``). Nothing here is imported until a LIBERO env is made. docs/libero.md
-says which task and initial state each seed plays, what success, reward, observations and
-actions are.
-
-hf-libero prompts on ``input()`` unless a config file exists under ``$LIBERO_CONFIG_PATH`` and
-downloads assets it cannot find: neither may happen in a non-interactive multi-process run, so
-dvla writes the config file into a directory of its own (:func:`config_dir`, never the user's
-home) and hands LIBERO the assets directory through the package's assets-path cache, both before
-the import.
+Observations are already dvla's structured form (``rgb``, ``proprio``; :class:`EnvGroup` adds
+``tokens``); nothing here is imported until a LIBERO env is made. hf-libero prompts on ``input()``
+without a config file and downloads assets it cannot find, neither possible in a non-interactive
+run: dvla writes the config into a directory of its own (:func:`config_dir`, never the user's
+home) and hands over ``task.libero.assets`` through the package's assets-path cache, before the import.
 """
 
 from __future__ import annotations

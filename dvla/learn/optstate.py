@@ -1,9 +1,6 @@
 """Optimizer state as named tensors plus JSON, never a pickle: for checkpoints (safetensors) and
-for handing rank 0's state to the other ranks of the learner group.
-
-``optimizer.state_dict()`` is ``{"state": {param index: {name: tensor or number}},
-"param_groups": [{hyper-parameters..., "params": [indices]}]}``. Tensors become
-``state.<index>.<name>``; numbers, and the param groups, go into the JSON text.
+for handing rank 0's state to the other ranks of the learner group. Tensors of
+``optimizer.state_dict()`` become ``state.<index>.<name>``; numbers and param groups go to the JSON.
 """
 
 from __future__ import annotations

@@ -45,10 +45,7 @@ class Policy(Protocol):
 def sample_actions(policy: Any, obs: Any, deterministic: bool = False,
                    generator: torch.Generator | None = None) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
     """(action, logprob, extras) from the policy's optional ``sample``, else from ``act`` (value
-    dropped); ``extras`` is empty for policies without an ``extras_spec``.
-
-    ``generator`` (the noise source, for reproducible sampling) is passed on to policies whose
-    ``sample``/``act`` take a ``generator`` keyword; others draw from torch's global generator."""
+    dropped). ``generator`` goes to a ``sample``/``act`` that takes one; others use torch's global one."""
     sample = getattr(policy, "sample", None)
     extra = {"generator": generator} if generator is not None and _takes_generator(sample or policy.act) else {}
     if sample is not None:
@@ -122,11 +119,8 @@ def policy_obs_arg(obs_spec: Mapping[str, Any]) -> Any:
 
 
 def make_policy(spec: str, obs: Any, act_dim: int, **kwargs: Any) -> nn.Module:
-    """Build a policy from a registry name or ``"module:Class"``.
-
-    ``obs`` is an int D (flat observations), or an ObsSpec, which is turned into D when it only
-    holds ``"state"`` (see :func:`policy_obs_arg`).
-    """
+    """Build a policy from a registry name or ``"module:Class"``; ``obs`` is an int D or an ObsSpec
+    (:func:`policy_obs_arg`)."""
     if isinstance(obs, Mapping):
         obs = policy_obs_arg(obs)
     try:
@@ -141,12 +135,9 @@ def make_policy(spec: str, obs: Any, act_dim: int, **kwargs: Any) -> nn.Module:
 
 @torch.no_grad()
 def fold_moments(mean: Tensor, var: Tensor, count: Tensor, x: Tensor) -> None:
-    """Fold the rows of ``x`` [n, D] into running ``mean``/``var``/``count`` buffers in place.
-
-    Chan et al.'s parallel update: exact for any split of the data. The batch's moments are
-    summed over the learner group first (dvla/learn/group.py), so every rank folds in the same
-    global batch and the buffers stay identical on every rank.
-    """
+    """Fold the rows of ``x`` [n, D] into running ``mean``/``var``/``count`` buffers in place (Chan et
+    al.'s parallel update), with the batch's moments summed over the learner group first so the
+    buffers stay identical on every rank."""
     x = x.to(torch.float64)
     moments = torch.cat([x.new_tensor([x.shape[0]]), x.sum(0), x.square().sum(0)])
     n_all, s, sq = all_reduce_sum(moments).split([1, x.shape[1], x.shape[1]])
@@ -193,15 +184,10 @@ def _mlp(n_in: int, hidden: Sequence[int], n_out: int, out_std: float) -> nn.Seq
 
 @register_policy("mlp")
 class MLPPolicy(nn.Module):
-    """Gaussian actor and value critic, two separate tanh MLPs.
-
-    The action std is a state-independent parameter (log-std initialised to ``init_log_std``).
-    The actor's last layer starts tiny so the initial mean action is near zero.
-
-    ``obs_norm=True`` standardises observations with running mean/variance buffers updated by
-    :meth:`observe` (the learner calls it); the buffers travel with the state dict, so rollouts
-    normalise exactly like the learner.
-    """
+    """Gaussian actor and value critic, two separate tanh MLPs; a state-independent log-std, and an
+    actor whose last layer starts tiny (initial mean action near zero). ``obs_norm=True``
+    standardises observations with running buffers that :meth:`observe` updates and the state
+    dict carries, so rollouts normalise exactly like the learner."""
 
     def __init__(
         self,
@@ -257,13 +243,8 @@ class MLPPolicy(nn.Module):
     @torch.no_grad()
     def sample(self, obs: Tensor, deterministic: bool = False,
                generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
-        """``act`` without running the critic (what rollouts and the evaluator need).
-
-        The Gaussian is written out instead of built as a ``Normal``: a = mean + std * eps,
-        log p(a) = sum(-eps^2 / 2 - log_std - log(2 pi) / 2), the same value `evaluate`'s
-        ``Normal.log_prob`` gives the learner. For a small batch the distribution object is a
-        large share of the call.
-        """
+        """``act`` without the critic. The Gaussian is written out (for a small batch a ``Normal``
+        object is a large share of the call); it gives `evaluate`'s ``Normal.log_prob`` value."""
         mean = self.actor(self._normalise(obs))
         log_std = self.log_std.expand_as(mean)
         if deterministic:

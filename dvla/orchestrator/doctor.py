@@ -1,11 +1,9 @@
 """`dvla doctor`'s checks: can this host run the roles (of a topology, when one is given)?
 
-Each check returns a :class:`CheckResult`: ok, warn, fail or skip, what was found, and for a
-problem the command that fixes it. A check is *required* when the host cannot run its roles
-without it (a simulator needs a Vulkan device, `emulate: netns` needs namespaces and `tc`, a
-remote node needs a working ssh login); a required check that fails is ``fail``, an optional one
-``warn``. Anything slow or able to crash (importing torch, SAPIEN's device query) runs in a
-subprocess with a timeout, so one broken driver cannot hang or kill the doctor.
+A failing check is ``fail`` when the host cannot run its roles without it (``required``), else
+``warn``, with the command that fixes it. Anything slow or able to crash (importing torch,
+SAPIEN's device query) runs in a subprocess with a timeout, so one broken driver cannot hang or
+kill the doctor.
 """
 
 from __future__ import annotations

@@ -1,8 +1,6 @@
-"""One evaluation from the blocks of several evaluators (``count: N`` evaluators in a topology).
-
-The orchestrator joins the blocks of one window of ``every_versions`` versions into one
-:class:`EvalResult` over all their episodes; a window some evaluator skipped is dropped, and
-counted, once a later one completes (docs/evaluation.md).
+"""One evaluation from the blocks of several evaluators (``count: N``): the blocks of one window of
+``every_versions`` versions join into one :class:`EvalResult`; a window some evaluator skipped is
+dropped, and counted, once a later one completes (docs/evaluation.md).
 """
 
 from __future__ import annotations

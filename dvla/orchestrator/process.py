@@ -1,8 +1,6 @@
 """What the orchestrator starts: the plan of a run's processes, each supervised process, and the
-interface that runs a process elsewhere (a network namespace, an SSH host).
-
-Data types only: this module imports nothing else of the orchestrator, so every other module of
-it (plan, launcher, netns, ssh) may import these types without importing each other.
+interface that runs a process elsewhere (a network namespace, an SSH host). It imports nothing
+else of the orchestrator, so plan, launcher, netns and ssh share these types without importing each other.
 """
 
 from __future__ import annotations

@@ -1,14 +1,9 @@
 """`dvla plan --simulate`: a whole-pipeline model of a topology at any size (docs/scale.md).
 
-- :func:`tile` repeats a topology's racks up to N nodes in R racks (the cluster it stands for);
-- :func:`version_bytes` is what one weight version puts on the wire for a model size and encoding;
-- :func:`simulate_pipeline` is a SimPy discrete-event run of the pipeline: rollouts produce env
-  steps at a measured rate over data links shared max-min fairly, learner ranks take their batch
-  once every rank has it (DDP) and spend compute plus a ring all-reduce per optimizer step, rank 0
-  publishes, versions travel the replication tree (:mod:`.simulate`, chunk by chunk) and reach
-  the rollouts, which act with them: policy lag is what results;
-- :func:`speedup_table` runs it from 8 to 1,024 nodes and names where and why speedup stops
-  being linear.
+:func:`tile` repeats a topology's racks up to N nodes; :func:`version_bytes` is one weight
+version's wire size; :func:`simulate_pipeline` is a SimPy discrete-event run of rollouts, shared
+data links, DDP learner ranks and the replication tree (:mod:`.simulate`), from which policy lag
+results; :func:`speedup_table` runs it from 8 to 1,024 nodes and names where speedup stops being linear.
 """
 
 from __future__ import annotations
@@ -112,12 +107,9 @@ def check_inputs(cfg: SimulateConfig, topo: Topology) -> None:
 
 
 def tile(topo: Topology, nodes: int | None, racks: int | None) -> Topology:
-    """The topology's racks repeated until it has `nodes` nodes in `racks` racks.
-
-    Rack i of the result takes its role pattern from the topology's rack ``i mod R0``, its node j
-    from that rack's node ``j mod n``; every repetition keeps its actors (so learner ranks grow
-    with the cluster, as the topology places them) and replicators; evaluators only in the
-    first. Hosts become names (the result is modelled, never started)."""
+    """The topology's racks repeated until it has `nodes` nodes in `racks` racks: rack i copies rack
+    ``i mod R0``, node j that rack's node ``j mod n``; actors (learner ranks grow with the cluster)
+    and replicators repeat, evaluators stay in the first; hosts become names (never started)."""
     template = [r for r in topo.racks if r.nodes]
     total0 = sum(len(r.nodes) for r in template)
     if nodes is None and racks is None:

@@ -46,11 +46,9 @@ REMOTE_STOP_GRACE_S = 10.0
 #: environment variables a remote role gets from the orchestrator's environment, when set there
 FORWARDED_ENV = ("DVLA_LOG_LEVEL", "OMP_NUM_THREADS", "PYTHONUNBUFFERED")
 #: what a remote role may send back into the local run directory: its own files directly inside
-#: these directories (its summary ``summaries/<role>.json``, its chunk counters
-#: ``counters/<role>.<incarnation>.<pid>``) and, from an actor, these top-level files (the root
-#: actor's version ledger). Nothing else (checkpoints, role configs, caches, topology.yaml,
-#: state.json, the secret) is sent, and a result tar holding anything else is refused whole.
-#: (directory -> what follows "<role>." in a file name there)
+#: these directories (directory -> what follows "<role>." there: ``summaries/<role>.json``,
+#: ``counters/<role>.<incarnation>.<pid>``) and, from an actor, these top-level files; a result
+#: tar holding anything else (checkpoints, configs, the secret...) is refused whole.
 RESULT_DIRS = {"summaries": re.compile(r"json"), "counters": re.compile(r"[0-9]{1,10}\.[0-9]{1,10}")}
 RESULT_FILES = ("versions.csv",)
 #: marks a remote run directory as dvla's own: only a directory holding it is ever deleted
@@ -124,11 +122,9 @@ class SshTarget:
 
 
 def check_host(target: SshTarget, prepare: tuple[str, str] | None = None) -> dict[str, Any]:
-    """Log in once and ask the remote Python about itself; raise :class:`SshError` (one line) if
-    the host, the login or the remote dvla fails. Returns what the remote side reported.
-
-    With `prepare` (remote run directory, run token) the remote side also makes that directory
-    the run's (:func:`prepare_run_dir`); one that is not dvla's own is an SshError naming it."""
+    """Log in once and return what the remote Python reports about itself; :class:`SshError` (one
+    line) if the host, the login or the remote dvla fails. With `prepare` (remote run directory,
+    run token) the remote side also makes that directory the run's (:func:`prepare_run_dir`)."""
     timeout = target.ssh.connect_timeout_s + 20
     argv = target.argv(target.python_command("-m", "dvla.orchestrator.ssh", "probe"))
     header = json.dumps({"run_dir": prepare[0], "token": prepare[1]}) + "\n" if prepare else ""
@@ -270,12 +266,9 @@ def result_path_problem(member: tarfile.TarInfo, role: str) -> str | None:
 
 
 def unpack_results(path: Path, run_dir: Path, role: str, host: str = "remote node") -> list[str]:
-    """Unpack remote role `role`'s result tar into `run_dir`; delete the tar.
-
-    Every member is checked first (:func:`result_path_problem`): one that is not a result file
-    of this role (a checkpoint, a role config, a link, ``../x``, another role's summary...)
-    refuses the whole tar with :class:`ResultsRefused` naming `host` and the member, and nothing
-    of it is unpacked."""
+    """Unpack remote role `role`'s result tar into `run_dir`; delete the tar. One member that is not
+    a result file of this role (:func:`result_path_problem`) refuses the whole tar with
+    :class:`ResultsRefused` naming `host` and the member, and nothing is unpacked."""
     if not path.exists():
         return []
     names: list[str] = []

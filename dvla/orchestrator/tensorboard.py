@@ -1,25 +1,14 @@
 """TensorBoard event files of a run (``runs/<run>/tb``), written by the orchestrator from what it
 collects anyway (every role's status, every eval result), indexed by the learner's env steps.
 
-Namespaces, as the field uses them:
-
-- ``train/``: the actor's last learning statistics (losses, ``approx_kl``, clip fraction, ``lr``,
-  entropy, ...; whatever its learner reports) and ``updates_refused_nonfinite``;
-- ``rollout/``: env steps/s (learner) and env steps produced, inference latency p50/p99;
-- ``env/``: the training episodes: success rate, mean return and length over the rollouts'
-  recent episodes (weighted by their episode counts);
-- ``eval/``: evaluation results (``success_once`` and its 95 % interval ``success_low`` /
-  ``success_high``, ``success_at_end``, ``return_mean``, version), and per task for envs that
-  name their tasks (LIBERO): ``eval/task/<task>/success`` and ``.../episodes``;
-- ``time/``: per role kind and lane, the busy and wait fractions and items/s of the lanes (mean
-  over the processes of that kind);
-- ``fabric/``: per plane, sent/received bytes and rejected/dropped message counts summed over
-  every role;
-- ``weights/``: published version, policy lag (mean, p99) and bytes per published version.
-
-Uses ``torch.utils.tensorboard`` (the ``tensorboard`` package writes the files). Both writing
-methods return the scalars they wrote, so the same values can go elsewhere too (W&B:
-``wandb_log.py``) without being computed twice.
+Namespaces: ``train/`` (the actor's learning statistics, ``updates_refused_nonfinite``),
+``rollout/`` (env steps/s, env steps produced, inference latency p50/p99), ``env/`` (training
+episodes' success, return and length, weighted by episode counts), ``eval/`` (``success_once``
+with ``success_low``/``success_high``, ``success_at_end``, ``return_mean``, version; per task for
+LIBERO: ``eval/task/<task>/success`` and ``.../episodes``), ``time/`` (per role kind and lane:
+busy and wait fractions, items/s), ``fabric/`` (per plane: bytes, rejected and dropped messages)
+and ``weights/`` (published version, policy lag mean/p99, bytes per version). Both writers return
+the scalars they wrote, so W&B (``wandb_log.py``) gets the same values without recomputing them.
 """
 
 from __future__ import annotations

@@ -1,12 +1,9 @@
 """Durable checkpoints of the learner group (written by rank 0), and the version high-water mark.
 
-docs/learners.md ("Checkpoints") draws ``RUN_DIR/checkpoints/`` and why a crash at any point
-leaves the previous checkpoint whole (temporary name, fsync, rename, MANIFEST.json last).
-Nothing is unpickled on load: the run directory is input like any other, so a checkpoint is
-exactly the two safetensors files the manifest names, in a ``v########`` directory; anything else
-(a ``torch.save`` pickle under either name, an ``optimizer.pt``, a ``dir`` pointing elsewhere)
-is refused with a CheckpointError naming the file. The weights' checksum and each file's sha256
-are verified before anything is applied.
+Layout and crash safety: docs/learners.md ("Checkpoints"). Nothing is unpickled: a checkpoint is
+exactly the two safetensors files its manifest names; anything else (a ``torch.save`` pickle, an
+``optimizer.pt``, a ``dir`` pointing elsewhere) is refused with a CheckpointError naming the file,
+and the weights' checksum and each file's sha256 are verified before anything is applied.
 """
 
 from __future__ import annotations

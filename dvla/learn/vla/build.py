@@ -94,11 +94,9 @@ def _save_tokenizer(path: Path, words: Iterable[str]) -> int:
 def save_random_checkpoint(path: str | Path, family: str, *, action_dim: int, max_chunk: int = 8,
                            size: str = "test", seed: int = 0, dtype: str = "float32", n_bins: int = 256,
                            denoise_steps: int = 4, instruction_words: Iterable[str] = ()) -> Path:
-    """Write a random-initialised checkpoint for ``family`` to ``path`` (created or overwritten).
-
-    Real transformers classes with the sizes of ``size`` (:data:`SIZES`); action bounds [-1, 1].
-    ``instruction_words``: texts whose words join the tokenizer's vocabulary (the INSTRUCTIONS
-    table and common LIBERO words are always in). ``"0.5b"`` allocates ~2 GB: GPU machines only."""
+    """Write a random-initialised checkpoint for ``family`` to ``path``: real transformers classes of
+    :data:`SIZES` ``size``, action bounds [-1, 1]; the words of ``instruction_words``, the
+    INSTRUCTIONS table and common LIBERO words join the tokenizer's vocabulary."""
     import torch
     from safetensors.torch import save_file
     from transformers import AutoModelForImageTextToText

@@ -1,17 +1,11 @@
-"""Checkpoint directories of the Hugging Face VLA policies (``vla-tokens``, ``vla-flow``).
+"""Checkpoint directories of the Hugging Face VLA policies (``vla-tokens``, ``vla-flow``): one local
+directory read with ``local_files_only=True``, same files at the same path on every host
+(docs/policies.md, "The checkpoint directory", lists every file and ``dvla_policy.json`` key).
 
-A checkpoint is one local directory, read with ``local_files_only=True`` (nothing is downloaded
-at run time; every host running a role needs the same files at the same path): the VLM
-(``config.json``, ``model.safetensors`` or shards), its tokenizer, an optional
-``preprocessor_config.json``, ``dvla_policy.json`` (the action head) and, for the flow family,
-``action_expert.safetensors``. docs/policies.md ("The checkpoint directory") lists every file and
-every ``dvla_policy.json`` key.
-
-:func:`check_checkpoint` checks all of this before anything loads and raises
-:class:`CheckpointError` with one line naming the path and what is wrong. :func:`content_hash`
-fingerprints the files the policy reads (the frozen base of a LoRA run is never shipped, so hosts
-compare hashes instead). This module imports neither torch nor transformers: the CLI checks a
-topology's checkpoint with it. :mod:`.build` writes random-initialised checkpoints.
+:func:`check_checkpoint` raises :class:`CheckpointError`, one line naming the path and what is
+wrong; :func:`content_hash` fingerprints the files the policy reads (a LoRA run's frozen base is
+never shipped, so hosts compare hashes). No torch or transformers here: the CLI imports it.
+:mod:`.build` writes random-initialised checkpoints.
 """
 
 from __future__ import annotations
@@ -170,12 +164,9 @@ _HASH_CACHE: dict[tuple, str] = {}
 
 
 def content_hash(path: str | Path) -> str:
-    """xxh3-128 hex over the names and bytes of the files a policy reads from ``path``.
-
-    Config, tokenizer, dvla_policy.json and every safetensors file, in name order, streamed in
-    8 MiB blocks: two hosts with the same files agree, a host with other base weights does not.
-    Cached per process on (name, size, mtime), since every copy of a policy asks (a rollout builds
-    two)."""
+    """xxh3-128 hex over the names and bytes of the files a policy reads from ``path`` (config,
+    tokenizer, dvla_policy.json, every safetensors file), cached per process on (name, size,
+    mtime) since every copy of a policy asks."""
     path = Path(path).expanduser().resolve()
     files = sorted(p for p in path.iterdir() if p.is_file() and _HASHED.fullmatch(p.name))
     key = (str(path),) + tuple((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in files)

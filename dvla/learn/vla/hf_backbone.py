@@ -1,31 +1,19 @@
 """The transformers vision-language model under ``vla-tokens`` and ``vla-flow``.
 
-:class:`HFBackbone` loads the checkpoint's VLM with ``local_files_only=True`` (after
-:func:`~.checkpoint.check_checkpoint`), turns dvla observations into the model's prefix and runs
-its language model on embeddings:
+:class:`HFBackbone` loads the checkpoint's VLM (``local_files_only``, after
+:func:`~.checkpoint.check_checkpoint`) and turns dvla observations into its prefix: one image per
+camera resized to the vision tower's ``image_size`` and normalised with
+``preprocessor_config.json``'s mean/std (0.5/0.5 without one), through ``get_image_features``;
+the instruction ids (the checkpoint's own tokenizer, pads masked) through
+``get_input_embeddings()``; then the language model on ``inputs_embeds`` with ``position_ids``
+counting real tokens only (padding never shifts a later token). A prefix-LM model (PaliGemma)
+attends bidirectionally, as pi0's prefix does; Llava stays causal.
 
-* **Images.** ``rgb`` uint8 ``[B, H, W, 3 * cams]`` -> one image per camera, resized to the vision
-  tower's ``image_size`` with ``F.interpolate`` (bilinear, antialiased), scaled to [0, 1] and
-  normalised with ``preprocessor_config.json``'s ``image_mean`` / ``image_std`` (0.5 / 0.5 without
-  one). The model's own ``get_image_features`` (vision tower + multi-modal projector) gives
-  ``cams * patches`` prefix tokens.
-* **Instruction.** ``tokens`` int32 ``[B, L]`` are ids of the checkpoint's own tokenizer (see
-  :func:`tokenize_instruction`), right-padded with ``pad_id``; pads are masked. Their embeddings
-  come from ``get_input_embeddings()`` (Gemma's sqrt(width) scale included).
-* **Language model.** ``inputs_embeds`` + ``attention_mask`` with ``position_ids`` counting real
-  tokens only (so padding never shifts a later token's position). Llava's LM is causal; a prefix-LM
-  model (PaliGemma, whose ``forward`` takes ``token_type_ids``) attends bidirectionally over the
-  whole sequence, as pi0's prefix does.
-
-Dropout is zeroed in the config before loading (``evaluate`` must be a pure function); vision
-parameters no forward reads are frozen (:func:`_never_read`). ``dtype`` is the parameters' dtype;
-with ``"bfloat16"`` forwards run under ``torch.autocast(bfloat16)`` and callers cast every output
-to float32 before a log-prob or value. The image statistics are non-persistent buffers: they
-follow ``.to(device)`` but never enter the state dict.
-
-:func:`apply_lora` injects peft LoRA adapters (``lora_dropout=0``) into a module in place, from a
-fixed seed so every host builds the same initial adapters, and keeps them float32 whatever the
-base's dtype (so do the policies' own heads): only the frozen base is held in bf16.
+Dropout is zeroed before loading (``evaluate`` must be a pure function); vision parameters no
+forward reads are frozen. With ``dtype="bfloat16"`` forwards run under autocast and callers cast
+outputs to float32 before a log-prob or value; the image statistics are non-persistent buffers.
+:func:`apply_lora` adds peft adapters from a fixed seed (every host builds the same ones), kept
+float32 whatever the base's dtype.
 """
 
 from __future__ import annotations

@@ -1,19 +1,10 @@
 """``tiny-vla``: a small vision-language-action policy for structured (``obs_mode="rgb"``) observations.
 
-One transformer encoder reads a single token sequence::
-
-    [ACT] [VAL] | image patches (conv patchify) | proprioception | instruction words
-
-and two learned readout tokens give the outputs: ``[ACT]`` the mean of a Gaussian over the
-action (state-independent learned log-std), ``[VAL]`` the critic's value. Image, proprioception
-and word tokens get learned position (and type) embeddings; padding words are masked out. With
-``task.action_chunk`` K the action is K env actions side by side, so the head predicts K future
-actions at once.
-
-Sizes come from ``policy_kwargs`` (``d_model``, ``layers``, ``heads``, ``patch_size``,
-``mlp_ratio``) on top of a named preset (``size``, default ``tiny``: see :data:`PRESETS`); the
-image size is the task's ``image_size``. The ``tiny`` preset has about 0.4 M parameters and
-runs on a laptop CPU; ``1b`` is about a billion parameters for GPU machines.
+One transformer encoder reads ``[ACT] [VAL] | image patches | proprioception | instruction words``
+(padding words masked); ``[ACT]`` reads the mean of a Gaussian over the action (learned
+state-independent log-std; with ``task.action_chunk`` K, K actions side by side), ``[VAL]`` the
+value. Sizes: ``policy_kwargs`` on top of a named preset (``size``, default ``tiny``, about 0.4 M
+parameters; ``1b`` for GPU machines: see :data:`PRESETS`).
 """
 
 from __future__ import annotations
@@ -53,12 +44,9 @@ def _spec_shape(spec: Any) -> tuple[int, ...]:
 
 @register_policy("tiny-vla")
 class TinyVLA(nn.Module):
-    """Patch + word + proprioception transformer with Gaussian action and value readouts.
-
-    ``obs`` is the ObsSpec of structured observations: ``rgb`` (required, uint8 [H, W, C]),
-    ``proprio`` (float32 [P], optional) and ``tokens`` (int32 [L] with ``vocab``, optional).
-    ``observe`` keeps running mean/variance of ``proprio`` in buffers (they replicate with the
-    weights), so joint positions and velocities of any scale arrive standardised.
+    """Patch + word + proprioception transformer with Gaussian action and value readouts. ``obs``
+    needs ``rgb``; ``proprio`` and ``tokens`` are optional. ``observe`` keeps running moments of
+    ``proprio`` in buffers that replicate with the weights, so joints of any scale arrive standardised.
     """
 
     def __init__(

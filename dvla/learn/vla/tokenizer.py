@@ -1,17 +1,10 @@
 """The instruction tokeniser: text -> a fixed-length int32 id vector, offline and deterministic.
 
-Words are the maximal runs of ``[a-z0-9]`` in the lower-cased text. Each word maps to a bucket
-``FIRST_WORD_ID + fnv1a_32(word) % (vocab_size - FIRST_WORD_ID)``; id 0 pads, id 1 starts the
-sequence. Nothing is learned or downloaded, the same text gives the same ids on every machine and
-Python version (FNV-1a is fixed, unlike ``hash()``), and any word has an id. The price is that two
-words may share a bucket: with the default 4096 buckets, a 50-word instruction vocabulary has a
-collision with probability about 0.26 (birthday bound), harmless for telling a few tasks apart.
-Sequences longer than ``length`` are truncated (keeping the start).
-
-A policy loaded from a Hugging Face checkpoint (``policy_kwargs.checkpoint``, docs/policies.md)
-needs its own tokenizer's ids instead: :func:`instruction_tokenizer` gives the env that one,
-loaded from the checkpoint directory with ``local_files_only`` (nothing is downloaded), ids
-right-padded with the tokenizer's pad id (0 when it has none).
+Hashed words (FNV-1a, so every machine and Python version agrees; docs/policies.md,
+"Instructions"); two words may share a bucket (with 4096 buckets, a 50-word vocabulary collides
+with probability about 0.26), harmless for telling a few tasks apart. A Hugging Face checkpoint's
+policy needs its own tokenizer's ids instead: :func:`instruction_tokenizer` loads it from the
+checkpoint directory (``local_files_only``), right-padded with its pad id (0 when it has none).
 """
 
 from __future__ import annotations
