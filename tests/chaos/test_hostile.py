@@ -22,6 +22,8 @@ from __future__ import annotations
 import csv
 import json
 import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -31,10 +33,19 @@ from dvla.fabric.fabric import UNAUTHENTICATED
 from dvla.fabric.messages import Command
 
 from .hostile import FORGED_VERSION, Attacker, poisoned_chunk, rss_kib
-from .support import free_port_block, harness_fabric, pids_of_run, start_up, state, statuses, wait_for
+from .support import ROOT, free_port_block, harness_fabric, pids_of_run, start_up, state, statuses, wait_for
 
 #: RSS growth allowed per role across the flood: a fraction of its size plus a constant
 RSS_FACTOR, RSS_SLACK_KIB = 1.25, 64 * 1024
+
+
+def _status_cli(runs: Path) -> dict:
+    """`dvla status tiny -f json --timeout 2` in a process of its own: who answered, who stayed silent."""
+    out = subprocess.run([sys.executable, "-m", "dvla", "status", "tiny", "--runs", str(runs), "-f", "json",
+                          "--timeout", "2"], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stdout + out.stderr
+    doc = json.loads(out.stdout)
+    return {"answered": sorted(r["name"] for r in doc["roles"]), "silent": doc["silent"]}
 
 
 def _rejected(sts: dict, plane: str, reason: str) -> int:
@@ -81,14 +92,14 @@ def test_hostile_traffic_is_refused_counted_and_harmless(tmp_path: Path) -> None
             sent = atk.flood(seconds=8.0, evals=False)
             replayed = atk.replay()
             moved = atk.moved_weights()
-            t0 = time.monotonic()
-            during = statuses(fabric, timeout=2.0)
-            status_s = time.monotonic() - t0
+            # The operator's own `dvla status`, from a process of its own (the attacker is not in it):
+            # every role answers within the query's 2 s even now.
+            during = _status_cli(runs)
             sent.update(atk.flood(seconds=4.0, evals=False))
             replayed += atk.replay()
         assert replayed >= 20 and any(k.endswith("/cmd/all") for k, _ in atk.captured), "nothing signed was captured"
         assert moved > 0 and sent["forged_commands"] > 0 and sent["data_oversize"] > 0 and sent["data_forged_chunks"] > 0
-        assert set(during) == roles and status_s < 3.0, (sorted(during), status_s)  # answered within its 2 s
+        assert set(during["answered"]) == roles and during["silent"] == [], during
 
         # The run goes on: new versions after the flood, from the same processes.
         after = wait_for(lambda: (lambda s: s if set(s) == roles and s["actor-node0-0"].extra["published_version"]
