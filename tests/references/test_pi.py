@@ -21,6 +21,16 @@ ACTION_DIM = 7
 POLICIES = ["pi0", "pi05"]
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """The tiny models gain nothing from intra-op threads, and on a busy machine waiting for
+    them costs several times the work itself."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @functools.lru_cache(maxsize=None)
 def _checkpoint(name: str) -> tuple[dict, dict, dict]:
     """(state dict without ``model.``, config.json, vlm_config with SigLIP's head count, which

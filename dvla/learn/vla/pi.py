@@ -19,7 +19,9 @@ dtype); no scale on image tokens. Gemma RMSNorm ``x rsqrt(mean x^2 + 1e-6) (1 + 
 adaRMS ``(scale, shift, gate) = dense(cond).chunk(3)``, ``normed (1 + scale) + shift`` and the
 residual ``x + y gate``. RoPE (theta 10000) at the cumulative count of real tokens (suffix
 positions continue from the prefix's count). Attention: ``q k^T / sqrt(head_dim)`` plus an
-additive mask of -2.3819763e38 (finite, so a fully padded row stays finite), softmax in float32.
+additive mask of -2.3819763e38 (finite, so a fully padded row stays finite); LeRobot's eager
+softmax is float32, here PyTorch's ``scaled_dot_product_attention`` takes the same additive mask
+(its fused kernels accumulate in float32; float32 agrees with LeRobot to about 1e-6).
 Time sinusoid with periods from 4e-3 to 4.0 (config ``min_period`` / ``max_period``) in float64.
 
 **Sizes** all come from tensor shapes, except two head counts shapes cannot give: the Gemma towers
@@ -490,9 +492,8 @@ class PiModel(nn.Module):
                 v = torch.cat([past.values[i].to(v.dtype), v], dim=2)
             groups = q.shape[1] // k.shape[1]
             k, v = k.repeat_interleave(groups, dim=1), v.repeat_interleave(groups, dim=1)
-            scores = torch.matmul(q, k.transpose(2, 3)) * attn.head_dim ** -0.5
-            probs = torch.softmax(scores.float() + bias, dim=-1).to(q.dtype)
-            out = torch.matmul(probs, v).transpose(1, 2).reshape(*x.shape[:2], -1)
+            out = F.scaled_dot_product_attention(q, k, v, attn_mask=bias.to(q.dtype), scale=attn.head_dim ** -0.5)
+            out = out.transpose(1, 2).reshape(*x.shape[:2], -1)
             y = attn.o_proj(out)
             h = h + (y if gate is None else y * gate)
             x, gate = layer.post_attention_layernorm(h, cond)
