@@ -189,7 +189,8 @@ def _find_tokenizer(root: Path, given: str | Path | None, name: str | None, sour
         found = Path(given).expanduser() if Path(given).expanduser().is_dir() else _cached_repo(str(given))
         if not _has_tokenizer(found):
             raise CheckpointError(f"{given}: the tokenizer given (policy_kwargs.tokenizer) is neither a directory with "
-                                  f"{' / '.join(_TOKENIZER_FILES)} nor a repo in the Hugging Face cache ({_hf_cache()})")
+                                  f"{' / '.join(_TOKENIZER_FILES)} nor a repo in the Hugging Face cache "
+                                  f"({_hf_cache()})")
         return Path(os.path.abspath(found))
     if _has_tokenizer(root / "tokenizer"):
         return root / "tokenizer"
@@ -225,7 +226,8 @@ def _weight_files(root: Path) -> tuple[tuple[Path, ...], Path | None]:
             raise _fail(index, f"not a safetensors index ({type(err).__name__}: {err})") from None
         missing = [s for s in shards if not (root / s).is_file()]
         if missing or not shards:
-            raise _fail(root, f"{_INDEX} names shard {missing[0] if missing else '(none)'} which is not in the directory")
+            raise _fail(root, f"{_INDEX} names shard {missing[0] if missing else '(none)'}, which is not in the "
+                              "directory")
         return tuple(root / s for s in shards), index
     if not (root / _WEIGHTS).is_file():
         raise _fail(root, f"{_WEIGHTS} missing (nor {_INDEX} with shards)")
@@ -354,7 +356,8 @@ def _lerobot_fields(root: Path, config: Mapping[str, Any], family: str,
         action_dim = int(outputs[ACTION_KEY]["shape"][0]) if ACTION_KEY in outputs else max_action_dim
         if family == "smolvla":
             size = config.get("resize_imgs_with_padding")  # LeRobot stores (width, height) here
-            image_size = (int(size[1]), int(size[0])) if size else tuple(int(n) for n in inputs[cameras[0]]["shape"][1:])
+            image_size = ((int(size[1]), int(size[0])) if size
+                          else tuple(int(n) for n in inputs[cameras[0]]["shape"][1:]))
         else:
             image_size = tuple(int(n) for n in config.get("image_resolution") or (224, 224))
     except (KeyError, IndexError, TypeError, ValueError) as err:

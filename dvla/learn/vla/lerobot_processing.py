@@ -36,7 +36,7 @@ class Normalizer:
 
     def __init__(self, ck: LeRobotCheckpoint) -> None:
         self.ck = ck
-        self._modes = {STATE_KEY: ck.norm_modes.get("STATE", "IDENTITY"), ACTION_KEY: ck.norm_modes.get("ACTION", "IDENTITY")}
+        self._modes = {STATE_KEY: ck.norm_modes["STATE"], ACTION_KEY: ck.norm_modes["ACTION"]}
         #: features ("observation.state", "action") whose mode needs stats that the checkpoint lacks
         self.missing_stats = tuple(k for k, mode in self._modes.items() if mode != "IDENTITY" and k not in ck.stats)
         for key in self.missing_stats:
@@ -73,9 +73,10 @@ class Normalizer:
         return (x + 1.0) * span / 2.0 + s[low] if inverse else 2.0 * (x - s[low]) / span - 1.0
 
     def _check_dim(self, x: torch.Tensor, key: str, dim: int, width: int) -> None:
+        """With stats the dims must be the checkpoint's; without, anything the model's width holds."""
         n = x.shape[-1]
-        if (n != dim) if self._modes[key] != "IDENTITY" else not 1 <= n <= width:
-            want = f"{dim}" if self._modes[key] != "IDENTITY" else f"1 to {width}"
+        ok, want = (n == dim, str(dim)) if self._modes[key] != "IDENTITY" else (1 <= n <= width, f"1 to {width}")
+        if not ok:
             raise ValueError(f"{self.ck.path}: {key} has {n} dims, the checkpoint takes {want}")
 
     def normalize_state(self, state: torch.Tensor) -> torch.Tensor:
@@ -108,7 +109,8 @@ def resize_with_pad(images: torch.Tensor, height: int, width: int, *, centered: 
     """[B, C, h, w] -> [B, C, height, width] without distortion: bilinear resize (align_corners
     False) to fit, then zero padding. ``centered`` (pi0 / pi05, openpi's convention): padding split
     on both sides, uint8 rounded back to uint8, float clamped to [0, 1]. Not centered (smolvla):
-    padding on the top and left only, no clamp. An image already at the size is returned as is."""
+    padding on the top and left only, no clamp (uint8 is interpolated in float and rounded back in
+    both). An image already at the size is returned as is."""
     h, w = images.shape[-2:]
     if (h, w) == (height, width):
         return images
