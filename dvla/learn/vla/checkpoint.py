@@ -14,14 +14,14 @@ import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import xxhash
 
 from ..spec import PolicySetupError
 
 __all__ = ["CheckpointError", "CheckpointInfo", "check_checkpoint", "executed_chunk", "content_hash",
-           "FAMILIES", "POLICY_FILE", "EXPERT_FILE"]
+           "hash_files", "FAMILIES", "POLICY_FILE", "EXPERT_FILE"]
 
 FAMILIES = {"tokens": "vla-tokens", "flow": "vla-flow"}
 """dvla_policy.json family -> the policy name that loads it."""
@@ -56,8 +56,9 @@ def _fail(path: Path, what: str) -> CheckpointError:
     return CheckpointError(f"{path}: {' '.join(str(what).split())}")
 
 
-def _check_safetensors(file: Path) -> None:
-    """Header and size of one safetensors file: a truncated copy fails here, in one line."""
+def _check_safetensors(file: Path) -> dict[str, Any]:
+    """Header and size of one safetensors file: a truncated copy fails here, in one line. Returns
+    the header (tensor name -> dtype, shape, data_offsets, in the file's order)."""
     size = file.stat().st_size
     try:
         with open(file, "rb") as f:
@@ -70,6 +71,7 @@ def _check_safetensors(file: Path) -> None:
         raise _fail(file, f"corrupt safetensors file ({err})") from None
     if 8 + n + end > size:
         raise _fail(file, f"truncated safetensors file: its header needs {8 + n + end} bytes, the file has {size}")
+    return header
 
 
 def _weight_files(path: Path) -> tuple[Path, ...]:
@@ -165,15 +167,21 @@ _HASH_CACHE: dict[tuple, str] = {}
 
 def content_hash(path: str | Path) -> str:
     """xxh3-128 hex over the names and bytes of the files a policy reads from ``path`` (config,
-    tokenizer, dvla_policy.json, every safetensors file), cached per process on (name, size,
-    mtime) since every copy of a policy asks."""
+    tokenizer, dvla_policy.json, every safetensors file)."""
     path = Path(path).expanduser().resolve()
-    files = sorted(p for p in path.iterdir() if p.is_file() and _HASHED.fullmatch(p.name))
-    key = (str(path),) + tuple((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in files)
+    return hash_files([(p.name, p) for p in sorted(path.iterdir()) if p.is_file() and _HASHED.fullmatch(p.name)])
+
+
+def hash_files(files: Sequence[tuple[str, Path]]) -> str:
+    """xxh3-128 hex over ``(label, file)`` pairs: each label, size and content in order (labels, not
+    paths, so copies at other paths agree), cached per process on (path, size, mtime) since every
+    copy of a policy asks."""
+    stats = [(label, p, p.stat()) for label, p in files]
+    key = tuple((label, str(p), st.st_size, st.st_mtime_ns) for label, p, st in stats)
     if key not in _HASH_CACHE:
         h = xxhash.xxh3_128()
-        for p in files:
-            h.update(p.name.encode() + b"\0" + p.stat().st_size.to_bytes(8, "little"))
+        for label, p, st in stats:
+            h.update(label.encode() + b"\0" + st.st_size.to_bytes(8, "little"))
             with open(p, "rb") as f:
                 while block := f.read(_BLOCK):
                     h.update(block)
