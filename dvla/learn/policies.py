@@ -93,6 +93,10 @@ _LAZY: dict[str, str] = {
     # Hugging Face checkpoints (docs/policies.md): token actions and flow matching
     "vla-tokens": "dvla.learn.vla.token_action",
     "vla-flow": "dvla.learn.vla.flow",
+    # LeRobot's published flow-matching VLAs, loaded natively (docs/policies.md)
+    "pi0": "dvla.learn.vla.published",
+    "pi05": "dvla.learn.vla.published",
+    "smolvla": "dvla.learn.vla.published",
 }
 
 

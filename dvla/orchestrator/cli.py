@@ -7,7 +7,7 @@ import typer
 
 from benchmarks.cli import app as bench_app
 
-from .commands import doctor, down, logs, plan, status, up
+from .commands import doctor, down, export, logs, plan, status, up
 
 app = typer.Typer(
     name="dvla",
@@ -22,6 +22,7 @@ app.command("down")(down.down)
 app.command("logs")(logs.logs)
 app.command("plan")(plan.plan)
 app.command("doctor")(doctor.doctor)
+app.command("export")(export.export)
 app.add_typer(bench_app, name="bench")
 
 

@@ -196,3 +196,21 @@ def _read_json(path: Path) -> dict[str, Any] | None:
         raise CheckpointError(f"{path}: not a JSON object")
     return doc
 
+
+
+def read_current(directory: Path) -> tuple[int, dict[str, torch.Tensor]] | None:
+    """The current checkpoint's version and policy tensors (the replicated ones: a LoRA run's
+    adapters and heads), each file's sha256 checked against the manifest; None when there is none.
+    For readers outside the run (``dvla export``): nothing is applied to a live policy."""
+    manifest = _read_json(directory / MANIFEST)
+    if manifest is None:
+        return None
+    try:
+        name, files, version = str(manifest["dir"]), manifest["files"], int(manifest["version"])
+        digest = str(files["policy.safetensors"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise CheckpointError(f"{directory / MANIFEST}: malformed ({type(err).__name__}: {err})") from err
+    path = directory / name / "policy.safetensors"
+    if not _DIR_RE.fullmatch(name) or not path.is_file() or _sha256(path) != digest:
+        raise CheckpointError(f"{path}: missing or its sha256 differs from {directory / MANIFEST}")
+    return version, _read_safetensors(path)[0]
