@@ -287,7 +287,7 @@ class EnvGroup:
             from .vla.tokenizer import instruction_tokenizer
 
             #: the hashed tokenizer, or the policy checkpoint's own (docs/policies.md)
-            self.tokenizer = instruction_tokenizer(task.policy_kwargs, task.instruction_tokens)
+            self.tokenizer = instruction_tokenizer(task.policy_kwargs, task.instruction_tokens, task.policy)
             self._tokens = [self._instruction_tokens(env, i) for i, env in enumerate(self._envs)]
             self.instruction = self.instructions[0]
             self.obs_spec: ObsSpec | None = structured_spec(obs_space, task.instruction_tokens, self.tokenizer.vocab)

@@ -94,7 +94,7 @@ def obs_spec(task: TaskConfig) -> tuple[dict[str, Any], int]:
         "rgb": ArraySpec((s, s, 3 * cameras), "uint8"),
         "proprio": ArraySpec((PROPRIO_DIM,), "float32"),
         "tokens": ArraySpec((task.instruction_tokens,), "int32",
-                            vocab=instruction_tokenizer(task.policy_kwargs, task.instruction_tokens).vocab),
+                            vocab=instruction_tokenizer(task.policy_kwargs, task.instruction_tokens, task.policy).vocab),
     }
     return spec, ACT_DIM * task.action_chunk
 

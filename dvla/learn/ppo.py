@@ -221,6 +221,7 @@ class PPOLearner:
                 for rows in _slices(size, cfg.micro_batch or size, self.device)
             ])
         behaviour_kl = _approx_kl(start_logprobs - b["logprobs"])
+        behaviour_gap = float((start_logprobs - b["logprobs"]).abs().max())
         mb_size = size // cfg.minibatches
         stats: dict[str, list[float]] = {k: [] for k in ("pg_loss", "v_loss", "entropy", "approx_kl", "clipfrac")}
         epochs_run, stopped, refused = 0, False, ""
@@ -281,6 +282,7 @@ class PPOLearner:
             epochs_run=epochs_run,
             early_stop=float(stopped),
             behaviour_kl=behaviour_kl,
+            behaviour_gap=behaviour_gap,
             lr=self.optimizer.param_groups[0]["lr"],
             batch_size=size,
             update_s=time.perf_counter() - started,

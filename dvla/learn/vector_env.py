@@ -107,7 +107,7 @@ class VectorEnvGroup:
             from .vla.instructions import instruction_for
             from .vla.tokenizer import instruction_tokenizer
 
-            self.tokenizer = instruction_tokenizer(task.policy_kwargs, task.instruction_tokens)
+            self.tokenizer = instruction_tokenizer(task.policy_kwargs, task.instruction_tokens, task.policy)
             text = task.instruction if task.instruction is not None else instruction_for(task.env)
             self.instruction = text
             self.instructions: list[str | None] = [text] * n

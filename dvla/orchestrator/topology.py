@@ -473,20 +473,25 @@ def _checkpoint_problems(topo: Topology) -> Problems:
     family; nothing is loaded), so a bad one is one line before anything starts. A path missing
     on this machine is left to the roles when some node is remote (it may exist only there)."""
     from dvla.learn.vla.checkpoint import FAMILIES, CheckpointError, check_checkpoint  # no torch: file checks only
+    from dvla.learn.vla.lerobot_format import LEROBOT_FAMILIES, check_lerobot
 
     task = topo.task
     family = {policy: family for family, policy in FAMILIES.items()}.get(task.policy)
-    if family is None:
+    if family is None and task.policy not in LEROBOT_FAMILIES:
         return
     path = task.policy_kwargs.get("checkpoint")
     if not isinstance(path, str) or not path:
         yield "task.policy_kwargs", (f"policy {task.policy!r} needs policy_kwargs.checkpoint: a local checkpoint "
-                                     "directory (docs/policies.md)")
+                                     "directory (docs/policies.md)" + (" or a cached Hugging Face repo id"
+                                                                       if family is None else ""))
         return
     if any(node.host not in LOCAL_HOSTS for _rack, node in topo.nodes()) and not os.path.exists(path):
         return
     try:
-        check_checkpoint(path, family)
+        if family is None:  # a LeRobot directory, or a Hugging Face repo id in the local cache
+            check_lerobot(path, task.policy, tokenizer=task.policy_kwargs.get("tokenizer"))
+        else:
+            check_checkpoint(path, family)
     except CheckpointError as err:
         yield "task.policy_kwargs.checkpoint", str(err)
 

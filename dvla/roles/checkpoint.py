@@ -8,36 +8,26 @@ and the weights' checksum and each file's sha256 are verified before anything is
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
-import re
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
-from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 
+from ..learn.checkpoint_files import DIR_RE, FILES, MANIFEST, CheckpointError, read_json, read_safetensors, sha256
 from ..learn.optstate import optimizer_from_tensors, optimizer_to_tensors
 from ..replication import replicated_tensors
 
-MANIFEST = "MANIFEST.json"
 HIGH_WATER = "high_water.json"
 #: version numbers reserved per write of the high-water mark (one fsync per this many versions)
 RESERVE = 16
-#: the files of one checkpoint, all safetensors (tensors plus JSON metadata: no pickle)
-FILES = ("policy.safetensors", "optimizer.safetensors")
-#: name of a checkpoint's directory
-_DIR_RE = re.compile(r"v[0-9]{8}")
-#: how files that are not safetensors begin: pickle protocol 2+ and torch.save's zip archive
-_PICKLE_MAGIC = (b"\x80", b"PK\x03\x04")
 
 
-class CheckpointError(RuntimeError):
-    """A checkpoint that cannot be used as it is (named file, what is wrong)."""
+
 
 
 @dataclass(frozen=True)
@@ -65,12 +55,12 @@ def save_checkpoint(directory: Path, state_dict: dict[str, torch.Tensor], optimi
     save_file(tensors, str(tmp / "optimizer.safetensors"), metadata={"dvla.optimizer": meta})
     for f in ("policy.safetensors", "optimizer.safetensors"):
         _fsync(tmp / f)
-        files[f] = _sha256(tmp / f)
+        files[f] = sha256(tmp / f)
     final = directory / name
     shutil.rmtree(final, ignore_errors=True)
     os.replace(tmp, final)
     _fsync(directory)
-    previous = _read_json(directory / MANIFEST)
+    previous = read_json(directory / MANIFEST)
     _write_json(directory / MANIFEST, {"format": 1, "version": version, "env_steps": env_steps, "checksum": checksum,
                                        "dir": name, "files": files})
     for old in directory.glob("v*"):  # keep this checkpoint and the one before it
@@ -94,8 +84,8 @@ def load_checkpoint(directory: Path, policy: torch.nn.Module, optimizer: torch.o
     """Restore the current checkpoint into ``policy`` and ``optimizer`` (None when there is none).
     ``flat_checksum(policy)`` gives the checksum of the policy's flat weights, checked against
     the manifest's after loading. Raises CheckpointError before applying anything that fails."""
-    manifest = _read_json(directory / MANIFEST)
-    high_doc = _read_json(directory / HIGH_WATER) or {}
+    manifest = read_json(directory / MANIFEST)
+    high_doc = read_json(directory / HIGH_WATER) or {}
     if manifest is None:
         return None
     try:
@@ -104,15 +94,15 @@ def load_checkpoint(directory: Path, policy: torch.nn.Module, optimizer: torch.o
         high = int(high_doc.get("version", 0))
     except (KeyError, TypeError, ValueError) as err:
         raise CheckpointError(f"{directory / MANIFEST}: malformed ({type(err).__name__}: {err})") from err
-    if not _DIR_RE.fullmatch(name) or not isinstance(files, dict) or sorted(files) != sorted(FILES):
+    if not DIR_RE.fullmatch(name) or not isinstance(files, dict) or sorted(files) != sorted(FILES):
         raise CheckpointError(f"{directory / MANIFEST}: does not name a checkpoint (expected 'dir' v######## and"
                               f" 'files' exactly {', '.join(FILES)})")
     where = directory / name
     for f, digest in files.items():
-        if not (where / f).is_file() or _sha256(where / f) != digest:
+        if not (where / f).is_file() or sha256(where / f) != digest:
             raise CheckpointError(f"{where / f}: missing or its sha256 differs from {directory / MANIFEST}")
-    weights, _ = _read_safetensors(where / "policy.safetensors")
-    tensors, meta = _read_safetensors(where / "optimizer.safetensors")
+    weights, _ = read_safetensors(where / "policy.safetensors")
+    tensors, meta = read_safetensors(where / "optimizer.safetensors")
     try:
         opt_state = optimizer_from_tensors(tensors, meta["dvla.optimizer"], optimizer.state_dict())
     except (KeyError, ValueError, TypeError, AttributeError) as err:
@@ -138,19 +128,7 @@ def load_checkpoint(directory: Path, policy: torch.nn.Module, optimizer: torch.o
     return Checkpoint(version, env_steps, checksum, max(version, high))
 
 
-def _read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
-    """Tensors and metadata of a safetensors file. Anything else is refused unread: never
-    ``torch.load`` or pickle, whose loading runs code the file chooses."""
-    with open(path, "rb") as f:
-        head = f.read(4)
-    if head.startswith(_PICKLE_MAGIC):
-        raise CheckpointError(f"{path}: a pickle (torch.save) file, refused unread: checkpoints are safetensors only")
-    try:
-        with safe_open(str(path), framework="pt") as f:
-            return {k: f.get_tensor(k) for k in f.keys()}, dict(f.metadata() or {})
-    except (SafetensorError, OSError, ValueError) as err:
-        reason = str(err).splitlines()[0] if str(err) else type(err).__name__
-        raise CheckpointError(f"{path}: not a safetensors file, refused ({reason})") from err
+
 
 
 def optimizer_tensors(optimizer: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], str]:
@@ -158,12 +136,7 @@ def optimizer_tensors(optimizer: torch.optim.Optimizer) -> tuple[dict[str, torch
     return optimizer_to_tensors(optimizer.state_dict())
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(1 << 20):
-            h.update(block)
-    return h.hexdigest()
+
 
 
 def _fsync(path: Path) -> None:
@@ -185,32 +158,6 @@ def _write_json(path: Path, doc: dict[str, Any]) -> None:
     _fsync(path.parent)
 
 
-def _read_json(path: Path) -> dict[str, Any] | None:
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        return None
-    except ValueError as err:
-        raise CheckpointError(f"{path}: not JSON ({err})") from err
-    if not isinstance(doc, dict):
-        raise CheckpointError(f"{path}: not a JSON object")
-    return doc
 
 
 
-def read_current(directory: Path) -> tuple[int, dict[str, torch.Tensor]] | None:
-    """The current checkpoint's version and policy tensors (the replicated ones: a LoRA run's
-    adapters and heads), each file's sha256 checked against the manifest; None when there is none.
-    For readers outside the run (``dvla export``): nothing is applied to a live policy."""
-    manifest = _read_json(directory / MANIFEST)
-    if manifest is None:
-        return None
-    try:
-        name, files, version = str(manifest["dir"]), manifest["files"], int(manifest["version"])
-        digest = str(files["policy.safetensors"])
-    except (KeyError, TypeError, ValueError) as err:
-        raise CheckpointError(f"{directory / MANIFEST}: malformed ({type(err).__name__}: {err})") from err
-    path = directory / name / "policy.safetensors"
-    if not _DIR_RE.fullmatch(name) or not path.is_file() or _sha256(path) != digest:
-        raise CheckpointError(f"{path}: missing or its sha256 differs from {directory / MANIFEST}")
-    return version, _read_safetensors(path)[0]

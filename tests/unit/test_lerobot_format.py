@@ -221,7 +221,7 @@ def test_no_tokenizer(tmp_path: Path) -> None:
     root = make_dir(tmp_path / "ckpt", tokenizer=False)
     assert_one_line(lambda: check_lerobot(root, "pi0"), root, "no tokenizer", "'google/paligemma-3b-pt-224'",
                     "policy_kwargs.tokenizer",
-                        "huggingface-cli download google/paligemma-3b-pt-224")
+                        "hf download google/paligemma-3b-pt-224")
     assert check_lerobot(root, "pi0", need_tokenizer=False).tokenizer_dir is None
     assert_one_line(lambda: check_lerobot(root, "pi0", tokenizer=tmp_path / "nowhere"), tmp_path / "nowhere",
                     "policy_kwargs.tokenizer")
@@ -230,7 +230,7 @@ def test_no_tokenizer(tmp_path: Path) -> None:
 def test_repo_id_not_in_cache(_empty_hub_cache: Path) -> None:
     assert_one_line(lambda: resolve_checkpoint("lerobot/pi05_base"), "lerobot/pi05_base",
                     "not a directory and not in the Hugging Face cache",
-                        str(_empty_hub_cache), "download it first: huggingface-cli download lerobot/pi05_base")
+                        str(_empty_hub_cache), "download it first: hf download lerobot/pi05_base")
     assert_one_line(lambda: resolve_checkpoint("/no/such/dir"), "/no/such/dir", "does not exist")
 
 

@@ -38,9 +38,11 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from .checkpoint import CheckpointError, _check_safetensors, _fail, hash_files
-from .tokenizer import _TOKENIZER_FILES
 
-__all__ = ["LEROBOT_FAMILIES", "NORM_MODES", "STATE_KEY", "ACTION_KEY", "LeRobotCheckpoint", "resolve_checkpoint",
+#: files that make a directory a Hugging Face tokenizer (any one of them)
+TOKENIZER_FILES = ("tokenizer.json", "tokenizer_config.json", "tokenizer.model")
+
+__all__ = ["TOKENIZER_FILES", "LEROBOT_FAMILIES", "NORM_MODES", "STATE_KEY", "ACTION_KEY", "LeRobotCheckpoint", "resolve_checkpoint",
            "check_lerobot", "read_state_dict", "content_hash", "export_lerobot"]
 
 LEROBOT_FAMILIES = ("pi0", "pi05", "smolvla")
@@ -149,7 +151,7 @@ def _cached_repo(repo_id: str) -> Path | None:
 
 
 def _download_hint(name: str) -> str:
-    return f"; download it first: huggingface-cli download {name}" if _REPO_ID.fullmatch(name) else ""
+    return f"; download it first: hf download {name}" if _REPO_ID.fullmatch(name) else ""
 
 
 def resolve_checkpoint(spec: str | Path) -> Path:
@@ -180,7 +182,7 @@ def _named_dir(root: Path, name: str) -> Path | None:
 
 
 def _has_tokenizer(directory: Path | None) -> bool:
-    return directory is not None and any((directory / f).is_file() for f in _TOKENIZER_FILES)
+    return directory is not None and any((directory / f).is_file() for f in TOKENIZER_FILES)
 
 
 def _find_tokenizer(root: Path, given: str | Path | None, name: str | None, source: str, need: bool) -> Path | None:
@@ -189,7 +191,7 @@ def _find_tokenizer(root: Path, given: str | Path | None, name: str | None, sour
         found = Path(given).expanduser() if Path(given).expanduser().is_dir() else _cached_repo(str(given))
         if not _has_tokenizer(found):
             raise CheckpointError(f"{given}: the tokenizer given (policy_kwargs.tokenizer) is neither a directory with "
-                                  f"{' / '.join(_TOKENIZER_FILES)} nor a repo in the Hugging Face cache "
+                                  f"{' / '.join(TOKENIZER_FILES)} nor a repo in the Hugging Face cache "
                                   f"({_hf_cache()})")
         return Path(os.path.abspath(found))
     if _has_tokenizer(root / "tokenizer"):

@@ -17,6 +17,8 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
+from .lerobot_format import LEROBOT_FAMILIES, TOKENIZER_FILES, check_lerobot
+
 __all__ = ["PAD_ID", "BOS_ID", "FIRST_WORD_ID", "DEFAULT_VOCAB_SIZE", "words", "word_id", "tokenize",
            "InstructionTokenizer", "instruction_tokenizer", "checkpoint_tokenizer_dir", "pad_id_of",
            "tokenize_instruction"]
@@ -82,8 +84,6 @@ def tokenize_instruction(tokenizer: Any, text: str, length: int) -> np.ndarray:
     return out
 
 
-#: files that make a directory a Hugging Face tokenizer (any one of them)
-_TOKENIZER_FILES = ("tokenizer.json", "tokenizer_config.json", "tokenizer.model")
 
 
 @dataclass(frozen=True)
@@ -105,18 +105,23 @@ class InstructionTokenizer:
         return self._encode(text)
 
 
-def checkpoint_tokenizer_dir(policy_kwargs: Mapping[str, Any]) -> str | None:
-    """The checkpoint directory whose tokenizer the instructions use: ``policy_kwargs.checkpoint``
-    when it holds tokenizer files, else None (the hashed tokenizer)."""
+def checkpoint_tokenizer_dir(policy_kwargs: Mapping[str, Any], policy: str = "") -> str | None:
+    """The directory whose tokenizer the instructions use: for a LeRobot checkpoint (``policy``
+    pi0, pi05 or smolvla) the one its policy loads (``policy_kwargs.tokenizer``, its
+    ``tokenizer/``, its processor's ``tokenizer_name``); else ``policy_kwargs.checkpoint`` when it
+    holds tokenizer files; else None (the hashed tokenizer)."""
     path = policy_kwargs.get("checkpoint")
-    if not isinstance(path, str) or not any(os.path.isfile(os.path.join(path, f)) for f in _TOKENIZER_FILES):
+    if policy in LEROBOT_FAMILIES and isinstance(path, str):
+        found = check_lerobot(path, policy, tokenizer=policy_kwargs.get("tokenizer")).tokenizer_dir
+        return None if found is None else str(found)
+    if not isinstance(path, str) or not any(os.path.isfile(os.path.join(path, f)) for f in TOKENIZER_FILES):
         return None
     return path
 
 
-def instruction_tokenizer(policy_kwargs: Mapping[str, Any], length: int) -> InstructionTokenizer:
+def instruction_tokenizer(policy_kwargs: Mapping[str, Any], length: int, policy: str = "") -> InstructionTokenizer:
     """The hashed tokenizer, or the checkpoint's own (see :func:`checkpoint_tokenizer_dir`)."""
-    path = checkpoint_tokenizer_dir(policy_kwargs)
+    path = checkpoint_tokenizer_dir(policy_kwargs, policy)
     if path is None:
         return InstructionTokenizer(length, DEFAULT_VOCAB_SIZE, PAD_ID, "hashed", lambda text: tokenize(text, length))
     return _hf_tokenizer(os.path.abspath(path), length)

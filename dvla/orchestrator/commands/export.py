@@ -27,8 +27,8 @@ def export(
     from ...learn.vla.checkpoint import CheckpointError
     from ...learn.vla.lerobot_format import LEROBOT_FAMILIES, check_lerobot, export_lerobot, read_state_dict
     from ...learn.vla.published import lora_scaling, merge_trained
-    from ...roles.checkpoint import CheckpointError as RunCheckpointError
-    from ...roles.checkpoint import read_current
+    from ...learn.checkpoint_files import CheckpointError as RunCheckpointError
+    from ...learn.checkpoint_files import read_current
     from ..topology import TopologyError, load_topology
 
     run_dir = runs / run
