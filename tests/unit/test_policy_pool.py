@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import gymnasium as gym
 import numpy as np
 import torch
 
@@ -155,3 +156,59 @@ def test_mlp_sample_matches_the_learners_normal_log_prob_and_distribution():
     many = torch.stack([policy.sample(obs)[0] for _ in range(4000)])
     torch.testing.assert_close(many.mean(0), mean, atol=0.03, rtol=0)
     torch.testing.assert_close(many.std(0), torch.full_like(mean, math.exp(-0.7)), atol=0.03, rtol=0)
+
+
+class _Recorder(gym.Env):
+    """A factory env that records every action it is stepped with."""
+
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (1,), np.float32)
+    action_space = gym.spaces.Box(-100.0, 100.0, (2,), np.float32)
+    played: list[np.ndarray] = []
+
+    def reset(self, *, seed=None, options=None):
+        return np.zeros(1, np.float32), {}
+
+    def step(self, action):
+        _Recorder.played.append(np.array(action, np.float32))
+        return np.zeros(1, np.float32), 0.0, False, False, {"success": False}
+
+
+
+def make_recorder(task, seed):
+    return _Recorder()
+
+
+def test_a_weight_swap_never_lands_inside_an_executed_action_chunk():
+    """The infer lane installs weights only before a decision, and the env plays a decision's K
+    actions open loop in one step: a version that arrives while a chunk plays (every decision
+    here) acts from the next decision on, and every simulator step of a chunk carries the
+    version that chose it (RLinf #514 is the bug this rules out)."""
+    from dvla.config import TaskConfig
+    from dvla.learn.envs import EnvGroup
+
+    k = 4
+    task = TaskConfig(env=f"{__name__}:make_recorder", action_chunk=k, max_episode_steps=10_000)
+    pool = PolicyPool(torch.nn.Linear(1, 2 * k))  # action = bias: the version's number in every element
+    n = pool.layout.numel
+
+    def version_weights(v: int) -> np.ndarray:
+        flat = np.zeros(n, np.float32)
+        flat[n - 2 * k:] = v  # weight [2k, 1] then bias [2k] in state-dict order
+        return flat
+
+    _Recorder.played.clear()
+    chose = []
+    with EnvGroup(task, 1, seed=0) as group:
+        obs = group.reset()
+        hold(pool, 1, version_weights(1))
+        for decision in range(6):
+            pool.maybe_swap()  # what the infer lane does before each decision (Rollout._act)
+            chose.append(pool.active_version)
+            with torch.no_grad():
+                action = pool.active(torch.as_tensor(obs)).numpy()
+            hold(pool, decision + 2, version_weights(decision + 2))  # arrives while the chunk plays
+            obs = group.step(action).next_obs
+    played = np.stack(_Recorder.played)
+    assert played.shape == (6 * k, 2) and chose == [1, 2, 3, 4, 5, 6]
+    for decision, version in enumerate(chose):
+        np.testing.assert_array_equal(played[decision * k:(decision + 1) * k], float(version))

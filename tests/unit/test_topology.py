@@ -29,8 +29,19 @@ BAD_FILES = sorted(BAD_DIR.glob("*.yaml"))
 GOOD_FILES = sorted(TOPOLOGY_DIR.glob("*.yaml"))
 #: local-libero.yaml names LIBERO's assets beside the repository: without them it cannot load
 _LIBERO_ASSETS = (TOPOLOGY_DIR / "../../shared/libero-assets").resolve()
-SHIPPED = [pytest.param(p, marks=pytest.mark.skipif(not _LIBERO_ASSETS.is_dir(), reason=f"no LIBERO assets at {_LIBERO_ASSETS}"))
-           if p.name == "local-libero.yaml" else p for p in GOOD_FILES]
+_REFERENCES = (TOPOLOGY_DIR / "../../shared/reference-checkpoints").resolve()  # where the shipped files point
+
+
+def _shipped(p: Path) -> object:
+    """A shipped topology, skipped where what it names beside the repository is absent."""
+    if "libero" in p.name and not _LIBERO_ASSETS.is_dir():
+        return pytest.param(p, marks=pytest.mark.skip(reason=f"no LIBERO assets at {_LIBERO_ASSETS}"))
+    if "../shared/reference-checkpoints" in p.read_text() and not _REFERENCES.is_dir():
+        return pytest.param(p, marks=pytest.mark.skip(reason=f"no reference checkpoints at {_REFERENCES}"))
+    return p
+
+
+SHIPPED = [_shipped(p) for p in GOOD_FILES]
 
 #: every problem renders as file:line: key.path: message
 PROBLEM_LINE_RE = re.compile(r"^.+:\d+: \S+: .+$")
@@ -407,6 +418,41 @@ def test_a_hf_policys_checkpoint_is_checked_before_anything_starts(tmp_path: Pat
     # the right family loads
     ok = MINIMAL + f"task:\n  obs_mode: rgb\n  policy: vla-flow\n  policy_kwargs: {{checkpoint: {flow}}}\n"
     assert parse_topology(ok, "t.yaml").task.policy == "vla-flow"
+
+
+def test_a_published_checkpoint_is_checked_before_anything_starts(tmp_path: Path) -> None:
+    """pi0 / pi05 / smolvla: a missing directory or repo id, another family's directory, weights
+    of another architecture than config.json says, or truncated weights are one problem line
+    naming the key and the path (nothing is loaded: file and header checks only)."""
+    import json
+    import shutil
+
+    from tests.references.conftest import reference_dir
+
+    pi05, smolvla = reference_dir("pi05"), reference_dir("smolvla")
+    base = MINIMAL + "task:\n  obs_mode: rgb\n  policy: pi05\n"
+    (msg,) = [p.message for p in _problems(base)]
+    assert "needs policy_kwargs.checkpoint" in msg
+    liar = tmp_path / "liar"  # pi0 weights under a config that says pi05
+    shutil.copytree(reference_dir("pi0"), liar)
+    cfg = json.loads((liar / "config.json").read_text())
+    (liar / "config.json").write_text(json.dumps({**cfg, "type": "pi05"}))
+    cut = tmp_path / "cut"
+    shutil.copytree(pi05, cut)
+    (cut / "model.safetensors").write_bytes((pi05 / "model.safetensors").read_bytes()[:100_000])
+    cases = {
+        str(tmp_path / "nope"): "does not exist",
+        "someone/not-cached": "Hugging Face cache",
+        str(smolvla): "smolvla",
+        str(liar): "pi0",
+        str(cut): "truncated",
+    }
+    for path, what in cases.items():
+        problems = _problems(base + f"  policy_kwargs: {{checkpoint: {path}}}\n")
+        assert len(problems) == 1 and problems[0].path == "task.policy_kwargs.checkpoint", (path, problems)
+        assert path in problems[0].message and what in problems[0].message and "\n" not in problems[0].message
+    ok = base + f"  policy_kwargs: {{checkpoint: {pi05}}}\n"
+    assert parse_topology(ok, "t.yaml").task.policy == "pi05"
 
 
 def test_the_schemas_policy_list_is_the_registry() -> None:
