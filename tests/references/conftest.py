@@ -10,6 +10,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 REFERENCES_ENV = "DVLA_REFERENCE_CHECKPOINTS"
+OFT_REFERENCES_ENV = "DVLA_REFERENCE_CHECKPOINTS_OFT"
 
 
 def reference_root() -> Path:
@@ -31,6 +32,16 @@ def load_reference(name: str) -> dict:
     from safetensors.torch import load_file
 
     return load_file(str(reference_dir(name) / "reference" / "reference.safetensors"))
+
+
+def oft_reference_root() -> Path:
+    """``$DVLA_REFERENCE_CHECKPOINTS_OFT``, else ``../shared/reference-checkpoints-oft``; the test
+    is skipped, naming the path and the variable, when it holds no OpenVLA reference set."""
+    path = Path(os.environ.get(OFT_REFERENCES_ENV) or ROOT.parent / "shared" / "reference-checkpoints-oft").resolve()
+    if not (path / "reference" / "openvla_reference.safetensors").is_file():
+        pytest.skip(f"OpenVLA reference checkpoints {path} not found: set {OFT_REFERENCES_ENV} or keep "
+                    "../shared/reference-checkpoints-oft")
+    return path
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
