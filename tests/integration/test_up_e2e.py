@@ -165,7 +165,7 @@ def test_up_with_two_evaluators_sharing_evaluations(tmp_path: Path) -> None:
     assert "  algorithm: ppo\n" in text and text.endswith("          - role: evaluator\n")
     text = text.replace("  algorithm: ppo\n", "  algorithm: ppo\n  eval: {episodes: 6, every_versions: 2, envs: 3}\n",
                         1) + "            count: 2\n"
-    run_dir = up_tiny_variant(tmp_path, text, 1600)
+    run_dir = up_tiny_variant(tmp_path, text, 4800)  # room for both evaluators to finish one on a loaded machine
     blocks = []
     for name in ("evaluator-node0-0", "evaluator-node0-1"):
         s = json.loads((run_dir / "summaries" / f"{name}.json").read_text())
