@@ -387,6 +387,7 @@ def test_pixel_values_resize_as_the_processor(tmp_path: Path) -> None:
     for tower, (mean, std) in enumerate(zip(ck.image_means, ck.image_stds)):
         want = (resized - torch.tensor(mean).view(-1, 1, 1)) / torch.tensor(std).view(-1, 1, 1)
         assert torch.equal(got[:, 3 * tower: 3 * tower + 3], want)
+    assert torch.equal(pixel_values(image.permute(0, 3, 1, 2), ck), got)  # channels first
     with pytest.raises(ValueError, match="uint8"):
         pixel_values(image.float(), ck)
     with pytest.raises(ValueError, match="2 camera image"):

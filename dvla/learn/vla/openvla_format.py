@@ -154,6 +154,11 @@ class _StorageType(NamedTuple):
     dtype: str
 
 
+class _Storage(NamedTuple):
+    dtype: str
+    key: str
+
+
 _STORAGE_DTYPES = {"FloatStorage": "F32", "BFloat16Storage": "BF16", "HalfStorage": "F16", "DoubleStorage": "F64",
                    "LongStorage": "I64", "IntStorage": "I32", "ShortStorage": "I16", "CharStorage": "I8",
                    "ByteStorage": "U8", "BoolStorage": "BOOL"}
@@ -161,13 +166,15 @@ _ITEMSIZE = {"F32": 4, "BF16": 2, "F16": 2, "F64": 8, "I64": 8, "I32": 4, "I16":
 
 
 def _rebuild_tensor(storage, offset, shape, stride, *_):
-    shape, stride = tuple(int(n) for n in shape), tuple(int(n) for n in stride)
+    if not isinstance(storage, _Storage) or not all(isinstance(n, int) and n >= 0 for n in (offset, *shape, *stride)):
+        raise pickle.UnpicklingError("a tensor without a storage of its own or with a malformed shape")
+    shape, stride = tuple(shape), tuple(stride)
     dense, step = [], 1
     for n in reversed(shape):
         dense.insert(0, step)
         step *= n
     contiguous = all(s == d for s, d, n in zip(stride, dense, shape) if n > 1)  # size-1 dims: any stride
-    return _TensorInfo(storage[0], shape, storage[1], int(offset), contiguous)
+    return _TensorInfo(storage.dtype, shape, storage.key, offset, contiguous)
 
 
 class _WeightsOnlyUnpickler(pickle.Unpickler):
@@ -188,7 +195,7 @@ class _WeightsOnlyUnpickler(pickle.Unpickler):
     def persistent_load(self, pid: Any) -> Any:
         if not (isinstance(pid, tuple) and len(pid) == 5 and pid[0] == "storage" and isinstance(pid[1], _StorageType)):
             raise pickle.UnpicklingError(f"unknown persistent id {str(pid)[:60]}")
-        return pid[1].dtype, str(pid[2])
+        return _Storage(pid[1].dtype, str(pid[2]))
 
 
 def _pickle_member(archive: zipfile.ZipFile, file: Path) -> str:

@@ -77,17 +77,20 @@ def _camera(images: Any, ck: OpenVLACheckpoint) -> torch.Tensor:
     x = torch.as_tensor(images)
     if x.ndim == 3:
         x = x[None]
+    if x.ndim == 4 and x.shape[-1] != 3 and x.shape[1] == 3:  # channels first
+        x = x.permute(0, 2, 3, 1)
     if x.dtype != torch.uint8 or x.ndim != 4 or x.shape[-1] != 3:
-        raise ValueError(f"{ck.path}: images must be uint8 [H, W, 3] or [B, H, W, 3], got {x.dtype} {tuple(x.shape)}")
+        raise ValueError(f"{ck.path}: images must be uint8 [B, H, W, 3] (or [H, W, 3], [B, 3, H, W]), got {x.dtype} "
+                         f"{tuple(x.shape)}")
     if tuple(x.shape[1:3]) != ck.image_size:  # "resize-naive": straight to the size, aspect not kept
         x = _resize(x, *ck.image_size)
     return x.permute(0, 3, 1, 2).to(torch.float32).div(255)
 
 
 def pixel_values(images: Any, ck: OpenVLACheckpoint, *, dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """The model's pixel values [B, 6 * ck.num_images, H, W] from one camera (uint8 [H, W, 3] or
-    [B, H, W, 3], numpy or torch) or a list of ``ck.num_images`` cameras (OFT on LIBERO: primary,
-    then wrist). Per camera, as PrismaticImageProcessor: bicubic resize to ``ck.image_size`` (none
+    """The model's pixel values [B, 6 * ck.num_images, H, W] from one camera (uint8 [B, H, W, 3],
+    [H, W, 3] or [B, 3, H, W], numpy or torch) or a list of ``ck.num_images`` cameras (OFT on
+    LIBERO: primary, then wrist). Per camera, as PrismaticImageProcessor: bicubic resize to ``ck.image_size`` (none
     when already there), /255, then the DINOv2 tower's normalisation (3 channels) and the SigLIP
     tower's (3 channels); cameras concatenated on channels as OFT does."""
     cameras = list(images) if isinstance(images, (list, tuple)) else [images]
