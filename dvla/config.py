@@ -378,7 +378,8 @@ class TaskConfig:
     #: than one env needs physx_cuda) or "auto" (scene where the backend resolves to physx_cuda).
     #: Evaluators follow "auto". See docs/envs.md
     env_batching: Literal["auto", "scene", "loop"] = "auto"
-    #: policy registry name ("mlp", "tiny-vla", "vla-tokens", "vla-flow", "pi0", "pi05", "smolvla") or
+    #: policy registry name ("mlp", "tiny-vla", "vla-tokens", "vla-flow", "pi0", "pi05", "smolvla", "openvla",
+    #: "openvla-oft") or
     #: "module:Class" of a user policy (docs/policies.md)
     policy: str = "mlp"
     #: keyword arguments for the policy constructor
@@ -474,7 +475,7 @@ class TaskConfig:
 OBS_MODES = ("state", "rgb")
 """ManiSkill observation modes the env adapter understands (dvla/learn/envs.py)."""
 POLICY_OBS = {"mlp": "state", "tiny-vla": "rgb", "vla-tokens": "rgb", "vla-flow": "rgb", "pi0": "rgb", "pi05": "rgb",
-              "smolvla": "rgb"}
+              "smolvla": "rgb", "openvla": "rgb", "openvla-oft": "rgb"}
 """Registered policies (dvla/learn/policies.py) and the observations they read (a user
 "module:Class" policy: any)."""
 

@@ -97,6 +97,9 @@ _LAZY: dict[str, str] = {
     "pi0": "dvla.learn.vla.published",
     "pi05": "dvla.learn.vla.published",
     "smolvla": "dvla.learn.vla.published",
+    # OpenVLA / OpenVLA-OFT checkpoints (the Prismatic Hugging Face layout), loaded natively
+    "openvla": "dvla.learn.vla.openvla_policy",
+    "openvla-oft": "dvla.learn.vla.openvla_policy",
 }
 
 

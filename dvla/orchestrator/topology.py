@@ -474,10 +474,11 @@ def _checkpoint_problems(topo: Topology) -> Problems:
     on this machine is left to the roles when some node is remote (it may exist only there)."""
     from dvla.learn.vla.checkpoint import FAMILIES, CheckpointError, check_checkpoint  # no torch: file checks only
     from dvla.learn.vla.lerobot_format import LEROBOT_FAMILIES, check_lerobot
+    from dvla.learn.vla.openvla_format import OPENVLA_FAMILIES, check_openvla
 
     task = topo.task
     family = {policy: family for family, policy in FAMILIES.items()}.get(task.policy)
-    if family is None and task.policy not in LEROBOT_FAMILIES:
+    if family is None and task.policy not in LEROBOT_FAMILIES + OPENVLA_FAMILIES:
         return
     path = task.policy_kwargs.get("checkpoint")
     if not isinstance(path, str) or not path:
@@ -488,8 +489,11 @@ def _checkpoint_problems(topo: Topology) -> Problems:
     if any(node.host not in LOCAL_HOSTS for _rack, node in topo.nodes()) and not os.path.exists(path):
         return
     try:
-        if family is None:  # a LeRobot directory, or a Hugging Face repo id in the local cache
-            check_lerobot(path, task.policy, tokenizer=task.policy_kwargs.get("tokenizer"))
+        kwargs = task.policy_kwargs
+        if task.policy in OPENVLA_FAMILIES:  # a Prismatic directory, or a cached repo id
+            check_openvla(path, task.policy, dataset=kwargs.get("dataset"), chunk_size=kwargs.get("chunk_size"))
+        elif family is None:  # a LeRobot directory, or a Hugging Face repo id in the local cache
+            check_lerobot(path, task.policy, tokenizer=kwargs.get("tokenizer"))
         else:
             check_checkpoint(path, family)
     except CheckpointError as err:
