@@ -43,6 +43,7 @@ from ..spec import ArraySpec
 from .checkpoint import CheckpointError
 from .hf_backbone import SampleAndAct, apply_lora, float32_head, freeze_all_but_lora, seeded, torch_dtype
 from .openvla_format import check_openvla, content_hash, read_oft_components, read_state_dict
+from .tokenizer import decode_instructions
 from .openvla_processing import encode_prompts, load_tokenizer, normalize_proprio, pixel_values, unnormalize_actions
 
 __all__ = ["OpenVLAPolicy", "OpenVLAOFTPolicy", "LORA_TARGETS"]
@@ -104,15 +105,7 @@ class _OpenVLABase(SampleAndAct, nn.Module):
         device = rgb.device
         images = [rgb[..., 3 * c: 3 * c + 3].cpu() for c in self.cameras]
         pv = pixel_values(images if len(images) > 1 else images[0], self.ck).to(device)
-        texts = []
-        for row in obs["tokens"].to("cpu", torch.int64).numpy():
-            key = row.tobytes()
-            text = self._texts.get(key)
-            if text is None:
-                text = self.tokenizer.decode([int(i) for i in row], skip_special_tokens=True).strip()
-                if len(self._texts) < 4096:
-                    self._texts[key] = text
-            texts.append(text)
+        texts = decode_instructions(self.tokenizer, obs["tokens"], self._texts)
         ids, mask = encode_prompts(self.tokenizer, texts)
         return pv, ids.to(device), mask.to(device)
 

@@ -53,6 +53,7 @@ from ..spec import ArraySpec
 from .checkpoint import CheckpointError
 from .hf_backbone import SampleAndAct, apply_lora, float32_head, freeze_all_but_lora, pooled, seeded, torch_dtype
 from .lerobot_format import LeRobotCheckpoint, check_lerobot, content_hash, read_state_dict
+from .tokenizer import decode_instructions
 from .lerobot_processing import Normalizer, Prompter, load_tokenizer, model_images, pad_to
 
 __all__ = ["PublishedFlowPolicy", "Pi0Policy", "Pi05Policy", "SmolVLAPolicy", "LORA_DEFAULTS", "gaussian_logpdf",
@@ -169,18 +170,6 @@ class PublishedFlowPolicy(SampleAndAct, nn.Module):
 
     # --- observations -> the model's inputs -----------------------------------------------------
 
-    def _texts_of(self, tokens: Tensor) -> list[str]:
-        out = []
-        for row in tokens.to("cpu", torch.int64).numpy():
-            key = row.tobytes()
-            text = self._texts.get(key)
-            if text is None:
-                text = self.tokenizer.decode([int(i) for i in row], skip_special_tokens=True).strip()
-                if len(self._texts) < 4096:
-                    self._texts[key] = text
-            out.append(text)
-        return out
-
     def _inputs(self, obs: Mapping[str, Tensor]) -> tuple[list[Tensor], list[Tensor], Tensor, Tensor, Tensor]:
         rgb = obs["rgb"]
         b, device = rgb.shape[0], rgb.device
@@ -192,7 +181,7 @@ class PublishedFlowPolicy(SampleAndAct, nn.Module):
         else:
             raw = torch.zeros(b, 0, device=device)
         state = self.normalizer.normalize_state(raw) if self.state_index else raw
-        texts = self._texts_of(obs["tokens"]) if "tokens" in obs else [""] * b
+        texts = decode_instructions(self.tokenizer, obs["tokens"], self._texts) if "tokens" in obs else [""] * b
         tokens, token_mask = self.prompter.encode(texts, state)
         return imgs, masks, tokens.to(device), token_mask.to(device), pad_to(state, self.model.max_state_dim)
 

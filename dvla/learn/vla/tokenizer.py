@@ -21,7 +21,7 @@ from .lerobot_format import LEROBOT_FAMILIES, TOKENIZER_FILES, check_lerobot
 
 __all__ = ["PAD_ID", "BOS_ID", "FIRST_WORD_ID", "DEFAULT_VOCAB_SIZE", "words", "word_id", "tokenize",
            "InstructionTokenizer", "instruction_tokenizer", "checkpoint_tokenizer_dir", "pad_id_of",
-           "tokenize_instruction"]
+           "tokenize_instruction", "decode_instructions"]
 
 PAD_ID = 0
 """Fills the sequence after the last word; models mask it out."""
@@ -136,3 +136,19 @@ def _hf_tokenizer(path: str, length: int) -> InstructionTokenizer:
     except (OSError, ValueError) as err:
         raise ValueError(f"{path}: cannot load its tokenizer ({str(err).splitlines()[0]})") from err
     return InstructionTokenizer(length, len(tok), pad_id_of(tok), path, lambda text: tokenize_instruction(tok, text, length))
+
+
+def decode_instructions(tokenizer: Any, tokens: Any, cache: dict[bytes, str], limit: int = 4096) -> list[str]:
+    """The instruction text of each row of ``tokens`` ([B, L] ids of ``tokenizer``, a torch tensor),
+    special tokens dropped: what a policy that builds its own prompt reads from the env's ids.
+    Rows seen before come from ``cache`` (at most ``limit`` entries: instructions repeat)."""
+    out = []
+    for row in tokens.to("cpu").numpy().astype(np.int64):
+        key = row.tobytes()
+        text = cache.get(key)
+        if text is None:
+            text = tokenizer.decode([int(i) for i in row], skip_special_tokens=True).strip()
+            if len(cache) < limit:
+                cache[key] = text
+        out.append(text)
+    return out
