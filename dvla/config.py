@@ -705,8 +705,15 @@ class RolePlacement:
     #: lanes pinned to cores of their own, e.g. `{sim: [0]}`; the process's other threads (other
     #: lanes, Zenoh's I/O) stay on `cpus` (None: no lane is pinned apart)
     lane_cpus: dict[str, tuple[int, ...]] | None = None
+    #: rollouts: simulator worker processes per rollout process stepping its envs (0: the envs
+    #: are stepped in the rollout process itself; "auto": one per core the rollout may run on,
+    #: the node's cores shared among its rollouts). See docs/envs.md, "Simulator workers"
+    sim_workers: int | Literal["auto"] = rule(0, check=lambda w: None if w == "auto" or w >= 0 else (
+        f"{w} (expected 0 for none, a number of worker processes, or auto)"))
 
     def problems(self) -> Problems:
+        if self.sim_workers != 0 and self.role != "rollout":
+            yield "sim_workers", f"{self.sim_workers!r} is a rollout setting, this placement is a {self.role}"
         yield from cpu_list_problems(self.cpus, "cpus")
         for lane, cpus in (self.lane_cpus or {}).items():
             if lane not in ROLE_LANES[self.role]:
@@ -947,6 +954,10 @@ class RoleConfig:
     lane_cpus: dict[str, tuple[int, ...]] | None = None
     #: sync mode: env steps a rollout ships per policy version (its share of one learner batch)
     lockstep_steps: int = 0
+    #: rollouts: simulator worker processes (RolePlacement.sim_workers) and the rollout processes
+    #: on this node ("auto" shares the node's cores among them)
+    sim_workers: int | Literal["auto"] = 0
+    node_rollouts: int = 1
     #: actors: this process's rank in the learner group (None for other roles)
     group: GroupRank | None = None
     #: evaluators: (index, count) among the run's evaluators; each evaluation's episodes are cut
@@ -969,10 +980,11 @@ class RoleConfig:
 
 def unwrap_optional(hint: Any) -> tuple[Any, bool]:
     """``X | None`` -> (X, True); anything else -> (hint, False)."""
-    if typing.get_origin(hint) not in (typing.Union, types.UnionType):
+    args = typing.get_args(hint)
+    if typing.get_origin(hint) not in (typing.Union, types.UnionType) or type(None) not in args:
         return hint, False
-    (inner,) = [a for a in typing.get_args(hint) if a is not type(None)]  # the schema has no other unions
-    return inner, True
+    rest = tuple(a for a in args if a is not type(None))
+    return (rest[0] if len(rest) == 1 else typing.Union[rest]), True  # type: ignore[return-value]
 
 
 def _from_plain(hint: Any, value: Any) -> Any:

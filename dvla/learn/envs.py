@@ -248,12 +248,17 @@ class EnvGroup:
 
     def __init__(
         self, task: TaskConfig, n: int, seed: int, *, ignore_terminations: bool = False, group_size: int = 1,
-        backend: str | None = None,
+        backend: str | None = None, part: tuple[int, int] | None = None,
     ):
         if n < 1:
             raise ValueError(f"an EnvGroup needs at least one env, got n={n}")
-        if group_size < 1 or n % group_size:
-            raise ValueError(f"group_size {group_size} must be >= 1 and divide the group's {n} envs")
+        #: (first, total): these n envs are envs first .. first + n - 1 of a group of `total` held by
+        #: several processes (dvla/learn/simworkers.py); seeds follow the whole group's schedule
+        self.first, self.total = part if part is not None else (0, n)
+        if not 0 <= self.first <= self.total - n:
+            raise ValueError(f"part {part}: envs {self.first} .. {self.first + n - 1} are not inside a group of {self.total}")
+        if group_size < 1 or n % group_size or self.first % group_size:
+            raise ValueError(f"group_size {group_size} must be >= 1 and divide the group's {n} envs (and its first, {self.first})")
         if task.action_chunk < 1:
             raise ValueError(f"task.action_chunk must be >= 1, got {task.action_chunk}")
         self.task = task
@@ -263,7 +268,7 @@ class EnvGroup:
         self._envs: list[Any] = []
         try:
             for i in range(n):
-                self._envs.append(make_env(task, seed + i, backend=backend))
+                self._envs.append(make_env(task, seed + self.first + i, backend=backend))
         except BaseException:
             self.close()
             raise
@@ -300,6 +305,7 @@ class EnvGroup:
         self._episode_seeds = np.zeros(n, dtype=np.int64)
         self._succeeded = np.zeros(n, dtype=bool)
         self._obs: dict[str, np.ndarray] | None = None
+        self._pending: Any = None
 
     def _instruction_tokens(self, env: Any, i: int) -> np.ndarray:
         """Tokens of env i's instruction: ``task.instruction``, else the env's own (LIBERO: its
@@ -349,7 +355,7 @@ class EnvGroup:
         return self._out(self._obs, copy=True)
 
     def _next_seed(self, i: int) -> int:
-        s = self._base + (int(self._episode_index[i]) * self.n + i) // self.group_size
+        s = self._base + (int(self._episode_index[i]) * self.total + self.first + i) // self.group_size
         self._episode_index[i] += 1
         return s
 
@@ -428,6 +434,18 @@ class EnvGroup:
         return StepResult(
             self._out(next_obs, copy=True), reward, terminated, truncated, self._out(final_obs), success, done
         )
+
+    def step_async(self, actions: Any) -> None:
+        """Hand over the next step's actions; :meth:`step_wait` plays them (here, in the caller's
+        thread: a group of worker processes starts stepping at once, dvla/learn/simworkers.py)."""
+        self._pending = actions
+
+    def step_wait(self) -> StepResult:
+        """The result of the actions given to :meth:`step_async`."""
+        actions, self._pending = self._pending, None
+        if actions is None:
+            raise RuntimeError("step_wait() without step_async()")
+        return self.step(actions)
 
     def close(self) -> None:
         for env in self._envs:

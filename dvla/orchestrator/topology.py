@@ -20,6 +20,7 @@ import math
 import os
 import re
 import sys
+import types
 import typing
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, Literal
@@ -197,6 +198,8 @@ def _describe_hint(hint: Any) -> str:
         text = _SCALARS[inner]
     elif origin is Literal:
         text = "one of " + ", ".join(str(a) for a in typing.get_args(inner))
+    elif origin in (typing.Union, types.UnionType):  # a scalar or a word, e.g. int | Literal["auto"]
+        text = " or ".join(_describe_hint(a) for a in typing.get_args(inner))
     elif origin is tuple:
         text = f"a list (of {_describe_hint(typing.get_args(inner)[0])})"
     elif origin is dict or dataclasses.is_dataclass(inner):
@@ -246,6 +249,8 @@ def _read(node: Node, hint: Any, path: str, ctx: _Context) -> Any:
         return _read_dict(node, hint, inner, path, ctx)
     if origin is Literal:
         return _read_literal(node, hint, inner, path, ctx)
+    if origin in (typing.Union, types.UnionType):
+        return _read_union(node, hint, inner, path, ctx)
     if inner in _SCALARS:
         return _read_scalar(node, hint, inner, path, ctx)
     raise TypeError(f"unsupported type in the topology schema at {path}: {hint!r}")
@@ -275,6 +280,23 @@ def _read_scalar(node: Node, hint: Any, kind: type, path: str, ctx: _Context) ->
     elif kind is str and value is not None:
         advice = " (quote it to make it a string)"
     return _mismatch(node, hint, path, ctx, advice)
+
+
+def _read_union(node: Node, hint: Any, inner: Any, path: str, ctx: _Context) -> Any:
+    """A scalar read as the first arm of the union that takes its YAML type (``int | Literal["auto"]``:
+    an integer, else the word)."""
+    if not isinstance(node, ScalarNode):
+        return _mismatch(node, hint, path, ctx)
+    value = ctx.construct(node, path)
+    if value is INVALID:
+        return INVALID
+    for arm in typing.get_args(inner):
+        if typing.get_origin(arm) is Literal:
+            if any(type(value) is type(o) and value == o for o in typing.get_args(arm)):
+                return value
+        elif type(value) is arm:
+            return _read(node, arm, path, ctx)
+    return _mismatch(node, hint, path, ctx)
 
 
 def _read_literal(node: Node, hint: Any, inner: Any, path: str, ctx: _Context) -> Any:

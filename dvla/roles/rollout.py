@@ -4,12 +4,17 @@ Lanes (and what flows between them):
 - ``sim``:   steps env group A while ``infer`` computes actions for group B (double-buffered
              sampling); writes each transition into its group's chunk, taken from the
              group's pool of chunks allocated once (``ChunkSpec.zeros``).
-- ``infer``: policy forward for one group's observations; swaps in new weights between two
-             batches, never during one.
+- ``infer``: policy forward for one group's observations, then hands the group its actions
+             (``step_async``: simulator workers start stepping at once); swaps in new weights
+             between two batches, never during one.
 - ``ship``:  encodes and publishes finished chunks on the data plane and gives them back to
              the pool.
 - ``sync``:  receives weight versions into the held weights (see weightsync.py); ``infer``
              installs the newest between two batches (``PolicyPool``).
+
+With ``sim_workers`` (dvla/learn/simworkers.py) the envs live in worker processes, each holding
+a slice of both groups: a group's step runs on every worker at once, its arrays in shared
+memory; the lanes, the chunks and the policy copy are the same.
 
 Where all the rollout's envs share one simulator scene (ManiSkill on a GPU, docs/envs.md) there
 is one group whose steps stay tensors on the sim device (a ``DeviceChunk``), copied to the host
@@ -38,8 +43,9 @@ from ..config import RoleConfig, resolve_device
 from ..fabric import Fabric, TrajectoryChunk
 from ..learn import make_env_group, make_policy
 from ..learn.policies import extras_spec, sample_actions
-from ..learn.envs import chunk_spec, env_groups, obs_as_dict, obs_to_torch
+from ..learn.envs import EnvSetupError, chunk_spec, env_groups, obs_as_dict, obs_to_torch
 from ..learn.grpo import grpo_envs
+from ..learn.simworkers import SimWorkers, auto_workers
 from ..learn.vector_env import DeviceChunk
 from ..ledger import RolloutLedger
 from ..replication import HeldWeights, ParamLayout, bind_flat, unflatten_into
@@ -74,6 +80,8 @@ class Actions(NamedTuple):
     version: int
     #: the policy's per-step extras for them (name -> [n, ...]; empty for Gaussian policies)
     extras: dict[str, Any]
+    #: the infer lane already handed them to the group (``step_async``); sync mode: the sim lane does
+    dispatched: bool = False
 
 
 @dataclass
@@ -162,11 +170,22 @@ class Rollout:
         self.groups: list[_Group] = []
         self._noise = torch.Generator(device=self.device)
         seed = cfg.seed * 10_000
-        # one simulator scene of every env (ManiSkill on a GPU), or two double-buffered groups
+        # one simulator scene of every env (ManiSkill on a GPU), or two double-buffered groups,
+        # stepped here or by simulator worker processes
+        workers = auto_workers(cfg.node_rollouts) if cfg.sim_workers == "auto" else cfg.sim_workers
         sizes, one_scene = env_groups(task)
+        if workers and one_scene:
+            raise EnvSetupError(f"sim_workers {cfg.sim_workers}: worker processes step one-env scenes, and this "
+                                "rollout's envs share one simulator scene (env_batching); set env_batching: loop")
+        #: the simulator worker processes (None: the envs are stepped in this process)
+        self.sim_workers = (SimWorkers(task, sizes, [seed + gid * 1000 for gid in range(len(sizes))], workers,
+                                       **grpo_envs(task)) if workers else None)
         for gid, size in enumerate(sizes):
-            envs = make_env_group(task, size, seed + gid * 1000, batching="scene" if one_scene else "loop",
-                                  **grpo_envs(task))
+            if self.sim_workers is not None:
+                envs = self.sim_workers.groups[gid]
+            else:
+                envs = make_env_group(task, size, seed + gid * 1000, batching="scene" if one_scene else "loop",
+                                      **grpo_envs(task))
             self.groups.append(_Group(gid, envs, envs.reset()))
         g0 = self.groups[0].envs
         policy = make_policy(task.policy, g0.obs_spec, g0.act_dim, **task.policy_kwargs)
@@ -227,6 +246,9 @@ class Rollout:
                 return
             with ctx.busy():
                 item = self._act(gid)
+                if not self.sync_mode:  # sync: the sim lane first checks the version
+                    self.groups[gid].envs.step_async(item.actions)
+                    item = item._replace(dispatched=True)
             self.to_sim.put(item, ctx.stop, stats=ctx.stats)
             ctx.count()
 
@@ -264,7 +286,9 @@ class Rollout:
                 self.to_infer.put(a.gid, ctx.stop, stats=ctx.stats)
                 continue
             with ctx.busy():
-                self._record_step(g, a)
+                if not a.dispatched:
+                    g.envs.step_async(a.actions)
+                self._record_step(g, a, g.envs.step_wait())
                 ctx.count(g.envs.n)
             if g.t == self.spec.T:
                 self._finish_chunk(g, ctx)
@@ -273,23 +297,30 @@ class Rollout:
     def _sim_random(self, ctx: LaneContext) -> None:
         """sim_only mode: step every group with uniform random actions; nothing leaves the process."""
         rng = np.random.default_rng(self.cfg.seed)
+
+        def start(e: Any) -> None:  # every group in flight at once: all the workers step
+            e.step_async(rng.uniform(e.action_low, e.action_high, (e.n, e.act_dim)).astype(np.float32))
+
+        for g in self.groups:
+            start(g.envs)
         while ctx.running:
             for g in self.groups:
                 with ctx.busy():
                     e = g.envs
-                    actions = rng.uniform(e.action_low, e.action_high, (e.n, e.act_dim)).astype(np.float32)
-                    step = e.step(actions)
+                    step = e.step_wait()
                     g.obs = step.next_obs
                     self.env_steps += e.n
                     self.episodes += int(step.episode_done.sum())
+                    start(e)
                 ctx.count(e.n)
 
-    def _record_step(self, g: _Group, a: Actions) -> None:
+    def _record_step(self, g: _Group, a: Actions, step: Any) -> None:
+        """Write one transition of ``g``: the observations acted on (``g.obs``, still intact: a
+        worker writes the next ones into the other buffer), ``a`` and the step's result."""
         actions, logprobs, version = a.actions, a.logprobs, a.version
         m, t = g.dev or g.chunk, g.t  # numpy into the chunk, or tensors on the sim device
         for k, v in obs_as_dict(g.obs).items():
             m.obs[k][t] = v
-        step = g.envs.step(actions)
         m.actions[t] = actions  # as sampled: the log-probs are of these, the env clips
         m.logprobs[t] = logprobs
         for k, v in a.extras.items():
@@ -403,6 +434,8 @@ class Rollout:
             "swap_deferred": self.pool.swap_deferred,
             "versions_overwritten": self.pool.overwritten,
             "weights": self.weights.status(),
+            # per simulator worker: pid, envs, busy/wait seconds and shares of its lifetime
+            "sim_workers": self.sim_workers.status() if self.sim_workers is not None else [],
             **held_status(self.pool.held),
         }
 
@@ -414,6 +447,8 @@ class Rollout:
         self.ledger.close()
         for g in self.groups:
             g.envs.close()
+        if self.sim_workers is not None:
+            self.sim_workers.close()
 
 
 def noise_seed(process_seed: int, group: int, step: int) -> int:

@@ -467,3 +467,33 @@ def test_the_schemas_policy_list_is_the_registry() -> None:
     assert out.stdout.startswith("True"), out.stdout + out.stderr
     (problem,) = _problems(MINIMAL + "task:\n  policy: mpl\n")
     assert problem.path == "task.policy" and "did you mean 'mlp'?" in problem.message
+
+
+#: MINIMAL with its roles in flow style
+FLOW = MINIMAL.replace("        roles:\n          - role: actor\n          - role: rollout\n",
+                       "        roles: [{role: actor}, {role: rollout}]\n")
+
+
+@pytest.mark.parametrize("value, expected", [("2", 2), ("0", 0), ("auto", "auto")])
+def test_sim_workers_is_a_count_or_auto(value: str, expected: object) -> None:
+    text = FLOW.replace("{role: rollout}", f"{{role: rollout, sim_workers: {value}}}")
+    placement = parse_topology(text).racks[0].nodes[0].roles[1]
+    assert placement.sim_workers == expected and type(placement.sim_workers) is type(expected)
+
+
+@pytest.mark.parametrize("roles, message", [
+    ("{role: rollout, sim_workers: many}", "expected an integer or one of auto, got string 'many'"),
+    ("{role: rollout, sim_workers: -1}", "-1 (expected 0 for none, a number of worker processes, or auto)"),
+    ("{role: rollout, sim_workers: true}", "expected an integer or one of auto, got boolean true"),
+    ("{role: rollout, sim_workers: [2]}", "expected an integer or one of auto, got a list"),
+])
+def test_bad_sim_workers_are_refused_naming_the_key(roles: str, message: str) -> None:
+    with pytest.raises(TopologyError) as info:
+        parse_topology(FLOW.replace("{role: rollout}", roles), "t.yaml")
+    text = str(info.value)
+    assert "roles[1].sim_workers" in text and message in text, text
+
+
+def test_sim_workers_belong_to_rollouts() -> None:
+    with pytest.raises(TopologyError, match=r"roles\[0\]\.sim_workers: 2 is a rollout setting, this placement is a actor"):
+        parse_topology(FLOW.replace("{role: actor}", "{role: actor, sim_workers: 2}"), "t.yaml")
