@@ -122,7 +122,8 @@ class SimWorkers:
     ``ignore_terminations`` as :class:`EnvGroup`'s."""
 
     def __init__(self, task: TaskConfig, sizes: list[int], seeds: list[int], workers: int, *,
-                 group_size: int = 1, ignore_terminations: bool = False, backend: str | None = None) -> None:
+                 group_size: int = 1, ignore_terminations: bool = False, backend: str | None = None,
+                 label: str = "") -> None:
         if workers < 1:
             raise ValueError(f"sim workers must be >= 1, got {workers}")
         slices = [split_envs(n, workers, group_size, g) for g, n in enumerate(sizes)]
@@ -130,6 +131,8 @@ class SimWorkers:
         workers = min(workers, max(sum(1 for _, c in s if c) for s in slices))
         slices = [split_envs(n, workers, group_size, g) for g, n in enumerate(sizes)]
         self.task, self.sizes = task, list(sizes)
+        #: shown in the workers' command lines (``ps``, ``pgrep -f RUN_DIR``): whose workers they are
+        self.label = label
         self.workers: list[_Worker] = []
         self._fd = os.memfd_create("dvla-sim", os.MFD_CLOEXEC)
         self._mem: mmap.mmap | None = None
@@ -169,7 +172,8 @@ class SimWorkers:
         env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
         try:
             proc = subprocess.Popen(
-                [sys.executable, "-m", "dvla.learn.simworkers", str(theirs.fileno()), str(self._fd), str(os.getpid())],
+                [sys.executable, "-m", "dvla.learn.simworkers", str(theirs.fileno()), str(self._fd), str(os.getpid()),
+                 *([self.label] if self.label else [])],
                 pass_fds=(theirs.fileno(), self._fd), env=env, stdin=subprocess.DEVNULL,
             )
         finally:

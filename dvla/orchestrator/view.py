@@ -75,6 +75,10 @@ def _lanes(s: RoleStatus) -> str:
         cores = pinned.get(lane)
         at = "@" + ",".join(str(c) for c in cores) if cores and cores != own else ""
         cells.append(f"{lane}{at} {100 * util:.0f}%")
+    workers = s.extra.get("sim_workers") or []
+    if workers:  # a rollout's simulator worker processes: each one's busy share ("dead" once it is gone)
+        shares = [f"{100 * float(w.get('busy', 0.0)):.0f}%" if w.get("alive", True) else "dead" for w in workers]
+        cells.append(f"| workers {'/'.join(shares)}")
     return " ".join(cells)
 
 

@@ -179,7 +179,7 @@ class Rollout:
                                 "rollout's envs share one simulator scene (env_batching); set env_batching: loop")
         #: the simulator worker processes (None: the envs are stepped in this process)
         self.sim_workers = (SimWorkers(task, sizes, [seed + gid * 1000 for gid in range(len(sizes))], workers,
-                                       **grpo_envs(task)) if workers else None)
+                                       label=f"{cfg.run_dir}/{cfg.name}", **grpo_envs(task)) if workers else None)
         for gid, size in enumerate(sizes):
             if self.sim_workers is not None:
                 envs = self.sim_workers.groups[gid]

@@ -190,3 +190,79 @@ def _seed_env(task, seed):
             return np.array([self.seed_], np.float32), 0.0, True, False, {}
 
     return Env()
+
+
+TOPOLOGY = """\
+run: simw
+task:
+  env: PushCube-v1
+  envs_per_rollout: 4
+  chunk_steps: 10
+  ppo: {batch_steps: 400, minibatches: 4, update_epochs: 2}
+  budget: {max_env_steps: 6000}
+racks:
+  - name: rack0
+    nodes:
+      - name: node0
+        roles:
+          - role: actor
+          - {role: rollout, sim_workers: 2}
+"""
+
+
+@pytest.mark.timeout(600)
+def test_up_survives_a_killed_sim_worker_and_accounts_for_every_chunk(tmp_path: Path) -> None:
+    """kill -9 one simulator worker of a running `dvla up`: its rollout fails in one line naming the
+    worker, is restarted with fresh workers, the run ends by itself with every chunk accounted."""
+    import json
+    import subprocess
+    import sys
+
+    from .test_up_e2e import free_port_block, pids_of_run
+
+    topo = tmp_path / "simw.yaml"
+    topo.write_text(TOPOLOGY)
+    runs = tmp_path / "runs"
+    run_dir = runs / "simw"
+    up = subprocess.Popen([sys.executable, "-m", "dvla", "up", str(topo), "--runs", str(runs), "--base-port",
+                           str(free_port_block()), "--quiet"], cwd=ROOT, stdout=subprocess.PIPE,
+                          stderr=subprocess.STDOUT, text=True)
+
+    def status() -> dict:
+        st = subprocess.run([sys.executable, "-m", "dvla", "status", "simw", "--runs", str(runs), "-f", "json",
+                             "--timeout", "5"], capture_output=True, text=True, cwd=ROOT, timeout=60)
+        return json.loads(st.stdout) if st.returncode == 0 else {}
+
+    def rollout_extra() -> dict:
+        return next((r["extra"] for r in status().get("roles", []) if r["kind"] == "rollout"), {})
+
+    try:
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline:
+            assert up.poll() is None, up.communicate()[0]
+            extra = rollout_extra()
+            if extra.get("chunks_shipped", 0) >= 3 and len(extra.get("sim_workers", [])) == 2:
+                break
+            time.sleep(1.0)
+        else:
+            raise AssertionError("the rollout never shipped with two sim workers")
+        assert [w["envs"] for w in extra["sim_workers"]] == [2, 2] and all(w["alive"] for w in extra["sim_workers"])
+        assert all(w["env_steps"] > 0 and w["busy_s"] > 0 for w in extra["sim_workers"]), extra["sim_workers"]
+        victim = extra["sim_workers"][1]["pid"]
+        assert str(victim) in pids_of_run(run_dir), "a worker's command line names its run"
+        os.kill(victim, signal.SIGKILL)
+        out, _ = up.communicate(timeout=420)
+    finally:
+        if up.poll() is None:
+            up.kill()
+            up.wait()
+    assert up.returncode == 0, out
+    result = json.loads((run_dir / "result.json").read_text())
+    assert result["reason"] == "max_env_steps", result
+    assert result["accounting"]["unaccounted"] == 0, result["accounting"]
+    log = (run_dir / "logs" / "rollout-node0-0.log").read_text()
+    assert f"sim worker 1 (pid {victim}, envs 1-1 of group 0) was killed by signal 9" in log or \
+        f"sim worker 1 (pid {victim}, envs 1-1 of group 1) was killed by signal 9" in log, log[-3000:]
+    assert "restart 1" in log
+    assert not Path(f"/proc/{victim}").exists()
+    assert pids_of_run(run_dir) == []
