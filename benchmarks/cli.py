@@ -254,6 +254,58 @@ def envs(
         QUICK if quick else PROFILE, kinds, placement, runs, progress))
 
 
+@app.command("rollout")
+def rollout(
+    json_path: Annotated[Path, typer.Option("--json", help="write the results (JSON) here; the plot goes beside it (.png)")],
+    topology: Annotated[Optional[Path], typer.Argument(help="topology whose task the rollout runs (default: topologies/local-vla.yaml)")] = None,
+    workers: Annotated[Optional[str], typer.Option(help="comma-separated simulator worker counts (0: in the rollout process)")] = None,
+    envs_per_worker: Annotated[Optional[str], typer.Option(help="comma-separated envs per worker (both env groups)")] = None,
+    repeats: Annotated[Optional[int], typer.Option(help="interleaved (simulators alone, rollout) pairs per point")] = None,
+    window: Annotated[Optional[float], typer.Option(help="seconds measured per run, after the warm-up")] = None,
+    quick: Annotated[bool, typer.Option("--quick", help="W 1 and 2, 2 envs per worker, short windows (under 3 minutes here)")] = False,
+) -> None:
+    """One rollout's env steps/s as its simulator workers and their envs grow, next to the
+    simulators alone with the same workers and the policy alone at the same batch."""
+    import dataclasses
+    import os
+    import tempfile
+
+    from benchmarks.rollout import DEFAULT_TOPOLOGY, QUICK, Profile, format_table, plot, run_bench
+
+    profile = QUICK if quick else Profile()
+    try:
+        changes = {k: tuple(int(x) for x in v.split(",") if x.strip()) for k, v in
+                   (("workers", workers), ("envs_per_worker", envs_per_worker)) if v is not None}
+    except ValueError:
+        raise fail(f"--workers and --envs-per-worker take comma-separated integers, got {workers!r}, {envs_per_worker!r}")
+    if any(not v or min(v) < 0 for v in changes.values()) or 0 in changes.get("envs_per_worker", (1,)):
+        raise fail("--workers must be >= 0 and --envs-per-worker >= 1, at least one value each")
+    if repeats is not None:
+        if repeats < 1:
+            raise fail(f"--repeats must be >= 1, got {repeats}")
+        changes["repeats"] = repeats
+    if window is not None:
+        if not window > 0:
+            raise fail(f"--window must be > 0 seconds, got {window}")
+        changes["window_s"] = window
+    profile = dataclasses.replace(profile, **changes)
+    topo = topology or DEFAULT_TOPOLOGY
+    if not topo.is_file():
+        raise fail(f"{topo}: no such topology file")
+
+    def run(progress: Callable[[str], None]) -> dict:
+        with tempfile.TemporaryDirectory(prefix="dvla-bench-rollout-") as tmp:
+            os.environ["DVLA_BENCH_DIR"] = tmp  # the rollouts' counter files
+            doc = run_bench(topo.resolve(), profile, progress)
+        png = json_path.with_suffix(".png")
+        png.parent.mkdir(parents=True, exist_ok=True)
+        plot(doc, png)
+        doc["plot"] = str(png)
+        return doc
+
+    _run_and_save("rollout", json_path, format_table, run)
+
+
 @app.command("learners")
 def learners(
     json_path: Annotated[Path, typer.Option("--json", help="write the results (JSON) here")],

@@ -37,13 +37,13 @@ class ProbedRollout(Rollout):
         self._touched_before = False  # a staging write overlapped the previous inference batch
         self.step_cpu_s = 0.0
         for g in self.groups:
-            g.envs.step = self._timed(g.envs.step)
+            g.envs.step_wait = self._timed(g.envs.step_wait)
 
-    def _timed(self, step: Callable[[Any], Any]) -> Callable[[Any], Any]:
-        def timed(actions: Any) -> Any:
-            t0 = time.thread_time()  # the sim lane's own CPU clock
+    def _timed(self, step_wait: Callable[[], Any]) -> Callable[[], Any]:
+        def timed() -> Any:
+            t0 = time.thread_time()  # the sim lane's own CPU clock (envs stepped in this process)
             try:
-                return step(actions)
+                return step_wait()
             finally:
                 self.step_cpu_s += time.thread_time() - t0
         return timed
@@ -63,8 +63,10 @@ class ProbedRollout(Rollout):
         return out
 
     def status_extra(self) -> dict[str, Any]:
-        return {**super().status_extra(), "infer_latency_counts": self.infer_latency.counts(),
-                "env_step_cpu_s": self.step_cpu_s}
+        extra = super().status_extra()
+        # with simulator workers the steps' CPU is theirs (the sim lane only waits for them)
+        step_cpu = sum(w["cpu_s"] for w in extra["sim_workers"]) if extra["sim_workers"] else self.step_cpu_s
+        return {**extra, "infer_latency_counts": self.infer_latency.counts(), "env_step_cpu_s": step_cpu}
 
 
 class ProbeWrapper(CommandWrapper):

@@ -41,9 +41,9 @@ from .spec import ArraySpec, EnvSetupError, ObsSpec, StepResult
 
 __all__ = ["SimWorkers", "WorkerEnvGroup", "SimWorkerError", "split_envs", "auto_workers", "STAT_FIELDS"]
 
-#: per-worker figures in the shared block: seconds stepping, seconds waiting for a command, steps
-#: played (one per env group step), env steps
-STAT_FIELDS = ("busy_s", "wait_s", "steps", "env_steps")
+#: per-worker figures in the shared block: seconds stepping, seconds waiting for a command, CPU
+#: seconds stepping (what the simulator itself costs), steps played (one per env group step), env steps
+STAT_FIELDS = ("busy_s", "wait_s", "cpu_s", "steps", "env_steps")
 _ALIGN = 64
 #: seconds a worker may take to make its envs and answer the handshake (ManiSkill's first import
 #: and SAPIEN's renderer take several seconds; LIBERO loads its scenes)
@@ -380,7 +380,7 @@ def _serve(conn: Connection, memfd: int) -> None:
             msg = conn.recv_bytes()
         except (EOFError, OSError):
             return  # the rollout is gone
-        t1 = time.perf_counter()
+        t1, c1 = time.perf_counter(), time.thread_time()
         stats[1] += t1 - t0
         op = msg[:1]
         if op == b"Q":
@@ -403,12 +403,13 @@ def _serve(conn: Connection, memfd: int) -> None:
                 for flag, value in (("terminated", res.terminated), ("truncated", res.truncated),
                                     ("success", res.success), ("done", res.episode_done)):
                     arrays[f"{g}/{flag}"][sl] = value
-                stats[2] += 1
-                stats[3] += count
+                stats[3] += 1
+                stats[4] += count
         except Exception as err:  # noqa: BLE001 - reported as one line to the rollout
             conn.send_bytes(b"E" + f"{label(g)}: {task.env!r} {what}: {type(err).__name__}: {_line(err)}".encode())
             return
         stats[0] += time.perf_counter() - t1
+        stats[2] += time.thread_time() - c1
         conn.send_bytes(b"D" + str(g).encode())
 
 
