@@ -42,7 +42,8 @@ from .spec import ArraySpec, EnvSetupError, ObsSpec, StepResult
 __all__ = ["SimWorkers", "WorkerEnvGroup", "SimWorkerError", "split_envs", "auto_workers", "STAT_FIELDS"]
 
 #: per-worker figures in the shared block: seconds stepping, seconds waiting for a command, CPU
-#: seconds stepping (what the simulator itself costs), steps played (one per env group step), env steps
+#: seconds of the whole worker process while stepping (what the simulator costs, its renderer's
+#: threads included), steps played (one per env group step), env steps
 STAT_FIELDS = ("busy_s", "wait_s", "cpu_s", "steps", "env_steps")
 _ALIGN = 64
 #: seconds a worker may take to make its envs and answer the handshake (ManiSkill's first import
@@ -169,7 +170,10 @@ class SimWorkers:
 
     def _spawn(self, index: int, parts: list[tuple[int, int]]) -> _Worker:
         mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
-        env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+        # one core per worker: torch's and the software renderer's (Mesa lavapipe / llvmpipe) thread
+        # pools would otherwise each take every core (measured: 2 workers on 2 cores 1.48x one
+        # worker's env steps/s with them, 1.70x without; docs/envs.md)
+        env = {"LP_NUM_THREADS": "1", **os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
         try:
             proc = subprocess.Popen(
                 [sys.executable, "-m", "dvla.learn.simworkers", str(theirs.fileno()), str(self._fd), str(os.getpid()),
@@ -380,7 +384,7 @@ def _serve(conn: Connection, memfd: int) -> None:
             msg = conn.recv_bytes()
         except (EOFError, OSError):
             return  # the rollout is gone
-        t1, c1 = time.perf_counter(), time.thread_time()
+        t1, c1 = time.perf_counter(), time.process_time()
         stats[1] += t1 - t0
         op = msg[:1]
         if op == b"Q":
@@ -409,7 +413,7 @@ def _serve(conn: Connection, memfd: int) -> None:
             conn.send_bytes(b"E" + f"{label(g)}: {task.env!r} {what}: {type(err).__name__}: {_line(err)}".encode())
             return
         stats[0] += time.perf_counter() - t1
-        stats[2] += time.thread_time() - c1
+        stats[2] += time.process_time() - c1  # the renderer's threads included
         conn.send_bytes(b"D" + str(g).encode())
 
 
