@@ -262,6 +262,7 @@ def rollout(
     envs_per_worker: Annotated[Optional[str], typer.Option(help="comma-separated envs per worker (both env groups)")] = None,
     repeats: Annotated[Optional[int], typer.Option(help="interleaved (simulators alone, rollout) pairs per point")] = None,
     window: Annotated[Optional[float], typer.Option(help="seconds measured per run, after the warm-up")] = None,
+    warmup: Annotated[Optional[float], typer.Option(help="seconds after a run's first env step before its window opens")] = None,
     quick: Annotated[bool, typer.Option("--quick", help="W 1 and 2, 2 envs per worker, short windows (under 3 minutes here)")] = False,
 ) -> None:
     """One rollout's env steps/s as its simulator workers and their envs grow, next to the
@@ -288,6 +289,10 @@ def rollout(
         if not window > 0:
             raise fail(f"--window must be > 0 seconds, got {window}")
         changes["window_s"] = window
+    if warmup is not None:
+        if not warmup >= 0:
+            raise fail(f"--warmup must be >= 0 seconds, got {warmup}")
+        changes["warmup_s"] = warmup
     profile = dataclasses.replace(profile, **changes)
     topo = topology or DEFAULT_TOPOLOGY
     if not topo.is_file():
