@@ -308,7 +308,7 @@ def plot(doc: dict[str, Any], path: Path) -> None:
         xs = [r["envs"] for r in mine]
         label = "in-process" if w == 0 else f"W={w}"
         ax.plot(xs, [r["train_sps"] or float("nan") for r in mine], "-o", color=f"C{i}", label=f"{label}: rollout")
-        ax.plot(xs, [r["sim_only_sps"] or float("nan") for r in mine], "--", color=f"C{i}", label=f"{label}: simulators alone")
+        ax.plot(xs, [r["sim_only_sps"] or float("nan") for r in mine], "--x", color=f"C{i}", label=f"{label}: simulators alone")
     pol = sorted({(r["envs"], r["policy_sps"]) for r in rows if r["policy_sps"]})
     if pol:
         ax.plot([p[0] for p in pol], [p[1] for p in pol], ":", color="black", label="policy alone (batch: one env group)")

@@ -731,3 +731,15 @@ def test_status_shows_every_lane_utilisation_and_rollout_lag() -> None:
     assert by_name["rollout-node0-0"]["policy_lag"] == 2
     assert by_name["rollout-node0-0"]["lane_utilisation"] == {"sim": 0.81, "infer": 0.12}
     assert by_name["actor-node0-0"]["policy_lag"] is None
+
+
+def test_status_table_shows_each_sim_workers_busy_share() -> None:
+    from dvla.orchestrator.view import render_table
+
+    workers = [{"worker": 0, "pid": 11, "envs": 4, "alive": True, "busy": 0.97},
+               {"worker": 1, "pid": 12, "envs": 4, "alive": False, "busy": 0.4}]
+    statuses = {"rollout-node0-0": _status("rollout-node0-0", "rollout", 3, {"sim": 0.9}, sim_workers=workers),
+                "rollout-node0-1": _status("rollout-node0-1", "rollout", 3, {"sim": 0.9}, sim_workers=[])}
+    rows = _table_cells(render_table(statuses))
+    assert rows["rollout-node0-0"]["LANES (busy)"].endswith("| workers 97%/dead")
+    assert "workers" not in rows["rollout-node0-1"]["LANES (busy)"]
