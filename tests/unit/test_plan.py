@@ -210,3 +210,23 @@ def test_learner_group_settings_are_checked(learners: str, message: str | None) 
         return
     with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
         parse_topology(text)
+
+
+def test_sim_workers_reach_each_rollout_with_its_nodes_rollout_count() -> None:
+    text = """
+run: simw
+racks:
+  - name: r
+    nodes:
+      - name: a
+        roles: [{role: actor}, {role: rollout, count: 2, sim_workers: auto}, {role: evaluator}]
+      - name: b
+        roles: [{role: rollout, sim_workers: 3}]
+"""
+    plan = make_plan(parse_topology(text, "simw.yaml"), "/tmp/run")
+    by = {p.config.name: p.config for p in plan.processes}
+    assert [(by[n].sim_workers, by[n].node_rollouts) for n in ("rollout-a-0", "rollout-a-1", "rollout-b-0")] == [
+        ("auto", 2), ("auto", 2), (3, 1)]
+    assert by["actor-a-0"].sim_workers == 0 and by["evaluator-a-0"].sim_workers == 0
+    for cfg in by.values():
+        assert RoleConfig.from_json(cfg.to_json()) == cfg

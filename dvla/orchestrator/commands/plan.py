@@ -53,6 +53,7 @@ def plan(
             "connect": list(x.config.data.connect)},
             "cpus": list(x.config.cpus) if x.config.cpus else None,
             "lane_cpus": {k: list(v) for k, v in x.config.lane_cpus.items()} if x.config.lane_cpus else None,
+            "sim_workers": x.config.sim_workers,
         }
         for x in p.processes
     ]
@@ -122,12 +123,15 @@ def _group(p: Any) -> dict[str, Any]:
 
 
 def _pinning(proc: dict[str, Any]) -> str:
-    """`` cpus=1 sim@0`` for a pinned process (lanes pinned apart after its own cores), else ""."""
+    """`` cpus=1 sim@0`` for a pinned process (lanes pinned apart after its own cores), plus a rollout's
+    ``sim_workers=N``; else ""."""
     parts = []
     if proc["cpus"]:
         parts.append("cpus=" + ",".join(map(str, proc["cpus"])))
     for lane, cpus in (proc["lane_cpus"] or {}).items():
         parts.append(f"{lane}@" + ",".join(map(str, cpus)))
+    if proc["sim_workers"]:  # resolved by the rollout on its node ("auto": that node's cores)
+        parts.append(f"sim_workers={proc['sim_workers']}")
     return "  " + " ".join(parts) if parts else ""
 
 
