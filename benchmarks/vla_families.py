@@ -367,7 +367,8 @@ def format_families(doc: dict[str, Any]) -> list[str]:
             f"   wire {f['bytes_per_env_step']:.0f} B/env step ({f['extras_bytes_per_env_step']:.0f} B extras)",
         ]
         for b, c in f.get("calls", {}).items():
-            lines.append(f"    sample at batch {b:>4}: {c['aten_ops']:6d} aten ops per call   p50 {c['sample_ms_p50']:7.2f} ms")
+            lines.append(f"    sample at batch {b:>4}: {c['aten_ops']:6d} aten ops per call"
+                         f"   p50 {c['sample_ms_p50']:7.2f} ms")
         for name in ("whole", "micro"):
             m = lr[name]
             gpu = f"  peak GPU {m['peak_gpu_mb']:.0f} MB" if m.get("peak_gpu_mb") is not None else ""

@@ -83,7 +83,8 @@ def reference_sample(policy, obs, deterministic, generator):
     shape = (b, policy.chunk, policy.action_dim)
     x = torch.zeros(shape) if deterministic else torch.randn(shape, generator=generator)
     sde = policy.method == "sde"
-    j = torch.randint(0, K, (b,), generator=generator) if sde and not deterministic else torch.zeros(b, dtype=torch.long)
+    drawn = sde and not deterministic
+    j = torch.randint(0, K, (b,), generator=generator) if drawn else torch.zeros(b, dtype=torch.long)
     chain, logprob = [x], torch.zeros(b)
     for k in range(K):
         h = _expert(ex, x, torch.full((b,), k) / K, context, mask, extra)

@@ -279,7 +279,8 @@ class FlowVLA(SampleAndAct, nn.Module):
 
     def _step_bias(self, device: torch.device) -> Tensor:
         """:meth:`ActionExpert.step_bias` of the K step times t_k = k / K, [K, C, width]."""
-        return self.expert.step_bias(torch.arange(self.steps, device=device) / self.steps, self.chunk, self.backbone.dtype)
+        t = torch.arange(self.steps, device=device) / self.steps
+        return self.expert.step_bias(t, self.chunk, self.backbone.dtype)
 
     def _to_action(self, x: Tensor) -> Tensor:
         return self.low + (x.reshape(x.shape[0], -1) + 1.0) * 0.5 * (self.high - self.low)
