@@ -7,6 +7,7 @@ from the policy's public modules. Any change to the optimised loop that moves a 
 
 from __future__ import annotations
 
+import collections
 import math
 
 import numpy as np
@@ -134,3 +135,36 @@ def test_loop_gives_the_reference_actions_logprobs_and_chain(ckpt, method, deter
     one = {k: v[1:2] for k, v in obs.items()}
     torch.testing.assert_close(policy.evaluate(one, action[1:2], {k: v[1:2] for k, v in extras.items()})[0],
                                logprob[1:2], atol=1e-4, rtol=0)
+
+
+def _op_counts(fn) -> collections.Counter:
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Count(TorchDispatchMode):
+        seen: collections.Counter = collections.Counter()
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            Count.seen[func.__name__.split(".")[0]] += 1
+            return func(*args, **(kwargs or {}))
+
+    with Count():
+        fn()
+    return Count.seen
+
+
+@pytest.mark.parametrize("method", ["noise", "sde"])
+def test_a_denoising_step_is_only_the_experts_work_on_x(ckpt, method):
+    """One more step costs the matrix products of the expert on x and nothing the K steps share
+    (the context's keys and values, the time embedding); no call reads a tensor on the host."""
+    torch.set_num_threads(1)
+    counts = {}
+    for K in (4, 5):
+        policy = FlowVLA(SPEC, ACT_DIM, checkpoint=str(ckpt), method=method, denoise_steps=K)
+        obs = obs_batch(policy)
+        counts[K] = _op_counts(lambda: policy.sample(obs, generator=torch.Generator().manual_seed(0)))
+        assert counts[K]["_local_scalar_dense"] == 0  # .item(), bool(tensor), float(tensor)
+    step = counts[5] - counts[4]
+    # per block: self-attention q, k, v, o; cross-attention q, o; the MLP's two; then action_in,
+    # velocity_out and the noise head
+    assert step["addmm"] + step["mm"] == 8 * len(policy.expert.blocks) + 3, step
+    assert step["sin"] == step["cos"] == step["silu"] == 0, step

@@ -98,10 +98,10 @@ class _Block(nn.Module):
 def _additive_mask(mask: Tensor, dtype: torch.dtype) -> Tensor:
     """[N, 1, 1, S] additive attention mask (0 real, -inf pad) in the attention's dtype, made once
     per call (SDPA would turn a bool mask into this at every attention). Its rows are stored padded
-    to a multiple of 8 elements: CUDA's memory-efficient attention copies a mask whose strides are
+    to a multiple of 16 elements: CUDA's memory-efficient attention copies a mask whose strides are
     not (PyTorch's ``preprocess_mask``); the view is the first S columns."""
     n, s = mask.shape
-    padded = torch.zeros(n, 1, 1, -(-s // 8) * 8, dtype=dtype, device=mask.device)
+    padded = torch.zeros(n, 1, 1, -(-s // 16) * 16, dtype=dtype, device=mask.device)
     view = padded[..., :s]
     view.masked_fill_(~mask[:, None, None, :], float("-inf"))
     return view
