@@ -20,6 +20,9 @@ directory (``dvla.learn.vla.build``), with LoRA adapters:
   dvla's roles do.
 * **replication**: values a version carries (adapters and heads) against the model's
   parameters, and bytes per full version.
+* **calls**: one ``sample`` call on synthetic observations at each of ``call_batches``, without
+  the simulator: the aten operators it dispatches (a ``TorchDispatchMode`` counter; on CUDA each
+  is about one kernel launch, the figure that bounds a launch-bound call) and its latency p50.
 """
 
 from __future__ import annotations
@@ -71,10 +74,15 @@ class FamilyBenchConfig:
     #: timed updates per learner process; processes per setting (alternating)
     updates: int = 2
     rounds: int = 2
+    #: batch sizes of the per-call figures (aten operators per ``sample``, latency p50)
+    call_batches: tuple[int, ...] = (1, 16)
+    #: timed ``sample`` calls per batch size (after one warm-up call)
+    call_repeats: int = 20
 
     @staticmethod
     def quick() -> "FamilyBenchConfig":
-        return FamilyBenchConfig(steps=6, warmup_steps=1, batch=32, micro_batch=8, updates=1, rounds=1, image_size=32)
+        return FamilyBenchConfig(steps=6, warmup_steps=1, batch=32, micro_batch=8, updates=1, rounds=1, image_size=32,
+                                 call_repeats=3)
 
 
 def _task(cfg: FamilyBenchConfig, family: str, checkpoint: str) -> Any:
@@ -138,10 +146,70 @@ def _rollout(cfg: FamilyBenchConfig, task: Any, progress: Callable[[str], None])
             "act_ms_p50": percentile(act_ms, 50),
             "act_ms_p99": percentile(act_ms, 99),
         }
+        out["calls"] = measure_calls(policy, group.obs_spec, cfg.call_batches, cfg.call_repeats, cfg.device)
         rec.update(obs_spec=group.obs_spec, act_dim=group.act_dim, extras_spec=extras_spec(policy))
         return out, rec
     finally:
         group.close()
+
+
+def synthetic_obs(obs_spec: Any, batch: int, device: str, seed: int = 0) -> dict[str, Any]:
+    """A batch of random observations of ``obs_spec`` (uint8 images, float32, token ids)."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    out = {}
+    for name, spec in obs_spec.items():
+        shape = (batch, *spec.shape)
+        if spec.dtype == "uint8":
+            t = torch.randint(0, 256, shape, generator=g).to(torch.uint8)
+        elif spec.dtype.startswith("int"):
+            t = torch.randint(1, int(spec.vocab or 2), shape, generator=g).to(getattr(torch, spec.dtype))
+        else:
+            t = torch.randn(shape, generator=g)
+        out[name] = t.to(device)
+    return out
+
+
+def count_aten_ops(fn: Callable[[], Any]) -> int:
+    """Aten operators ``fn`` dispatches (views and metadata calls included: what the dispatcher sees)."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class _Count(TorchDispatchMode):
+        n = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # noqa: ANN001
+            _Count.n += 1
+            return func(*args, **(kwargs or {}))
+
+    with _Count():
+        fn()
+    return _Count.n
+
+
+def measure_calls(policy: Any, obs_spec: Any, batches: tuple[int, ...], repeats: int, device: str) -> dict[str, Any]:
+    """Per batch size: aten operators per ``sample`` call and its latency p50 (ms)."""
+    import torch
+
+    cuda = device.startswith("cuda")
+    out: dict[str, Any] = {}
+    for b in batches:
+        obs = synthetic_obs(obs_spec, b, device)
+        gen = torch.Generator(device=device).manual_seed(0)
+        call = lambda: policy.sample(obs, generator=gen)  # noqa: E731
+        call()  # warm-up
+        ops = count_aten_ops(call)
+        ms = []
+        for _ in range(repeats):
+            if cuda:
+                torch.cuda.synchronize()
+            t = time.perf_counter()
+            call()
+            if cuda:
+                torch.cuda.synchronize()
+            ms.append((time.perf_counter() - t) * 1e3)
+        out[str(b)] = {"aten_ops": ops, "sample_ms_p50": percentile(ms, 50)}
+    return out
 
 
 def _bytes_per_step(cfg: FamilyBenchConfig, rec: dict) -> dict[str, float]:
@@ -298,6 +366,9 @@ def format_families(doc: dict[str, Any]) -> list[str]:
             f"    rollout {f['env_steps_per_s']:7.1f} env steps/s   act p50 {f['act_ms_p50']:6.2f} ms  p99 {f['act_ms_p99']:6.2f} ms"
             f"   wire {f['bytes_per_env_step']:.0f} B/env step ({f['extras_bytes_per_env_step']:.0f} B extras)",
         ]
+        for b, c in f.get("calls", {}).items():
+            lines.append(f"    sample at batch {b:>4}: {c['aten_ops']:6d} aten ops per call"
+                         f"   p50 {c['sample_ms_p50']:7.2f} ms")
         for name in ("whole", "micro"):
             m = lr[name]
             gpu = f"  peak GPU {m['peak_gpu_mb']:.0f} MB" if m.get("peak_gpu_mb") is not None else ""

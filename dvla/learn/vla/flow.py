@@ -41,6 +41,7 @@ while the chain, the means, the sigmas and every log-prob are float32.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any, Mapping
 
 import torch
@@ -52,7 +53,7 @@ from ..spec import ArraySpec
 from .checkpoint import EXPERT_FILE, CheckpointError, check_checkpoint, content_hash, executed_chunk
 from .hf_backbone import HFBackbone, SampleAndAct, apply_lora, float32_head, freeze_all_but_lora, pooled, seeded
 
-__all__ = ["ActionExpert", "FlowVLA", "METHODS"]
+__all__ = ["ActionExpert", "ContextCache", "FlowVLA", "METHODS"]
 
 METHODS = ("noise", "sde")
 _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
@@ -64,12 +65,20 @@ class _Attention(nn.Module):
         self.heads = heads
         self.q_proj, self.k_proj, self.v_proj, self.o_proj = (nn.Linear(width, width) for _ in range(4))
 
-    def forward(self, x: Tensor, context: Tensor, mask: Tensor | None = None) -> Tensor:
+    def _split(self, t: Tensor) -> Tensor:
+        return t.view(t.shape[0], -1, self.heads, t.shape[-1] // self.heads).transpose(1, 2)
+
+    def keys_values(self, context: Tensor) -> tuple[Tensor, Tensor]:
+        """Keys and values of ``context`` [N, S, width], split into heads [N, heads, S, width / heads]."""
+        return self._split(self.k_proj(context)), self._split(self.v_proj(context))
+
+    def attend(self, x: Tensor, kv: tuple[Tensor, Tensor], mask: Tensor | None = None) -> Tensor:
         n, s, w = x.shape
-        split = lambda t: t.view(n, -1, self.heads, w // self.heads).transpose(1, 2)  # noqa: E731
-        out = F.scaled_dot_product_attention(split(self.q_proj(x)), split(self.k_proj(context)),
-                                             split(self.v_proj(context)), attn_mask=mask)
+        out = F.scaled_dot_product_attention(self._split(self.q_proj(x)), kv[0], kv[1], attn_mask=mask)
         return self.o_proj(out.transpose(1, 2).reshape(n, s, w))
+
+    def forward(self, x: Tensor, context: Tensor, mask: Tensor | None = None) -> Tensor:
+        return self.attend(x, self.keys_values(context), mask)
 
 
 class _Block(nn.Module):
@@ -79,15 +88,50 @@ class _Block(nn.Module):
         self.self_attn, self.cross_attn = _Attention(width, heads), _Attention(width, heads)
         self.fc1, self.fc2 = nn.Linear(width, mlp), nn.Linear(mlp, width)
 
-    def forward(self, h: Tensor, context: Tensor, mask: Tensor) -> Tensor:
+    def forward(self, h: Tensor, cross_kv: tuple[Tensor, Tensor], mask: Tensor) -> Tensor:
         x = self.norm1(h)
         h = h + self.self_attn(x, x)
-        h = h + self.cross_attn(self.norm2(h), context, mask)
+        h = h + self.cross_attn.attend(self.norm2(h), cross_kv, mask)
         return h + self.fc2(F.gelu(self.fc1(self.norm3(h))))
 
 
+def _additive_mask(mask: Tensor, dtype: torch.dtype) -> Tensor:
+    """[N, 1, 1, S] additive attention mask (0 real, -inf pad) in the attention's dtype, made once
+    per call (SDPA would turn a bool mask into this at every attention). Its rows are stored padded
+    to a multiple of 16 elements: CUDA's memory-efficient attention copies a mask whose strides are
+    not (PyTorch's ``preprocess_mask``); the view is the first S columns."""
+    n, s = mask.shape
+    padded = torch.zeros(n, 1, 1, -(-s // 16) * 16, dtype=dtype, device=mask.device)
+    view = padded[..., :s]
+    view.masked_fill_(~mask[:, None, None, :], float("-inf"))
+    return view
+
+
+@dataclass(frozen=True)
+class ContextCache:
+    """What the expert reads of the context, the same at every denoising step of a call: each
+    block's cross-attention keys and values and the additive pad mask."""
+
+    #: per block: keys, values [N, heads, S, width / heads]
+    kv: tuple[tuple[Tensor, Tensor], ...]
+    #: the context's real positions [N, S] (bool)
+    valid: Tensor
+    #: the additive mask [N, 1, 1, S] in the attention's dtype
+    mask: Tensor
+
+    def repeat_rows(self, n: int) -> "ContextCache":
+        """Every row ``n`` times in a row (``repeat_interleave``): one per denoising step."""
+        kv = tuple((k.repeat_interleave(n, 0), v.repeat_interleave(n, 0)) for k, v in self.kv)
+        valid = self.valid.repeat_interleave(n, 0)
+        return ContextCache(kv, valid, _additive_mask(valid, self.mask.dtype))
+
+
 class ActionExpert(nn.Module):
-    """The velocity network: action tokens attend to themselves and to the VLM's prefix."""
+    """The velocity network: action tokens attend to themselves and to the VLM's prefix.
+
+    A denoising call runs :meth:`cache` once on the context and :meth:`step_bias` once for its
+    step times, then :meth:`tokens` per step; ``forward`` is the three in one (one step, nothing
+    kept)."""
 
     def __init__(self, prefix_width: int, action_dim: int, max_chunk: int, *, width: int, layers: int, heads: int,
                  mlp: int) -> None:
@@ -107,21 +151,35 @@ class ActionExpert(nn.Module):
     def context(self, prefix_hidden: Tensor) -> Tensor:
         return self.context_norm(self.prefix_proj(prefix_hidden))
 
+    def cache(self, context: Tensor, context_mask: Tensor) -> ContextCache:
+        """Every block's cross-attention keys/values of ``context`` [N, S, width] and the pad mask."""
+        kv = tuple(block.cross_attn.keys_values(context) for block in self.blocks)
+        return ContextCache(kv, context_mask, _additive_mask(context_mask, kv[0][0].dtype) if kv else context_mask)
+
+    def step_bias(self, t: Tensor, chunk: int, dtype: torch.dtype) -> Tensor:
+        """What an action token adds to ``action_in(x)`` at times ``t`` [N]: its position plus the
+        time embedding ``time_out(silu(time_in(sinusoid(t))))``, [N, chunk, width]."""
+        half = self.width // 2
+        freqs = torch.exp(-math.log(1000.0) * torch.arange(half, device=t.device) / half)
+        angles = 100.0 * t.float().unsqueeze(-1) * freqs
+        temb = self.time_out(F.silu(self.time_in(torch.cat([angles.sin(), angles.cos()], -1).to(dtype))))
+        return self.positions[:chunk] + temb.unsqueeze(1)
+
+    def tokens(self, x: Tensor, bias: Tensor, cache: ContextCache, extra: Tensor | None = None) -> Tensor:
+        """Output tokens [N, C, width] for noisy actions ``x`` [N, C, action_dim]; ``bias``
+        [N or 1, C, width] from :meth:`step_bias`, ``cache`` from :meth:`cache`."""
+        c = x.shape[1]
+        h = self.action_in(x) + bias
+        if extra is not None:
+            h = torch.cat([extra.to(h.dtype), h], 1)
+        for block, kv in zip(self.blocks, cache.kv):
+            h = block(h, kv, cache.mask)
+        return self.norm(h)[:, -c:]
+
     def forward(self, x: Tensor, t: Tensor, context: Tensor, context_mask: Tensor,
                 extra: Tensor | None = None) -> Tensor:
         """Output tokens [N, C, width] for noisy actions ``x`` [N, C, action_dim] at times ``t`` [N]."""
-        half = self.width // 2
-        freqs = torch.exp(-math.log(1000.0) * torch.arange(half, device=x.device) / half)
-        angles = 100.0 * t.float().unsqueeze(-1) * freqs
-        temb = self.time_out(F.silu(self.time_in(torch.cat([angles.sin(), angles.cos()], -1).to(x.dtype))))
-        c = x.shape[1]
-        h = self.action_in(x) + self.positions[:c] + temb.unsqueeze(1)
-        if extra is not None:
-            h = torch.cat([extra.to(h.dtype), h], 1)
-        mask = context_mask[:, None, None, :]
-        for block in self.blocks:
-            h = block(h, context, mask)
-        return self.norm(h)[:, -c:]
+        return self.tokens(x, self.step_bias(t, x.shape[1], x.dtype), self.cache(context, context_mask), extra)
 
 
 def _gaussian_logpdf(x: Tensor, mu: Tensor, sigma: Tensor) -> Tensor:
@@ -208,16 +266,21 @@ class FlowVLA(SampleAndAct, nn.Module):
             value = self.value_head(pooled(hidden, mask)).squeeze(-1)
         return context, mask, extra, value
 
-    def _step(self, x: Tensor, k: Tensor, context: Tensor, mask: Tensor, extra: Tensor | None) -> tuple[Tensor, Tensor]:
-        """Float32 (mean, sigma) of x_{k+1} given x_k ``x`` [N, C, D] at step indices ``k`` [N]."""
-        device = x.device
-        with self.backbone.forward_context(device):
-            h = self.expert(x.to(self.backbone.dtype), k.float() / self.steps, context, mask, extra)
-            velocity = self.expert.velocity_out(h)
-        with float32_head(device):
+    def _step(self, x: Tensor, bias: Tensor, cache: ContextCache, extra: Tensor | None) -> tuple[Tensor, Tensor]:
+        """Float32 (mean, sigma) of x_{k+1} given x_k ``x`` [N, C, D]; ``bias`` the step's
+        :meth:`ActionExpert.step_bias` rows. Runs inside the backbone's ``forward_context``: the
+        one step function of ``sample`` and ``evaluate``."""
+        h = self.expert.tokens(x.to(self.backbone.dtype), bias, cache, extra)
+        velocity = self.expert.velocity_out(h)
+        with float32_head(x.device):
             mu = x + velocity.float() / self.steps
             sigma = self.sigma_min + (self.sigma_max - self.sigma_min) * torch.sigmoid(self.noise_head(h.float()))
         return mu, sigma
+
+    def _step_bias(self, device: torch.device) -> Tensor:
+        """:meth:`ActionExpert.step_bias` of the K step times t_k = k / K, [K, C, width]."""
+        t = torch.arange(self.steps, device=device) / self.steps
+        return self.expert.step_bias(t, self.chunk, self.backbone.dtype)
 
     def _to_action(self, x: Tensor) -> Tensor:
         return self.low + (x.reshape(x.shape[0], -1) + 1.0) * 0.5 * (self.high - self.low)
@@ -227,26 +290,36 @@ class FlowVLA(SampleAndAct, nn.Module):
     def _sample(self, obs: Mapping[str, Tensor], deterministic: bool,
                 generator: torch.Generator | None) -> tuple[Tensor, Tensor, dict[str, Tensor], Tensor]:
         context, mask, extra, value = self._context(obs)
-        b, device = context.shape[0], context.device
+        b, device, K = context.shape[0], context.device, self.steps
         shape = (b, self.chunk, self.action_dim)
         noise = lambda: torch.randn(shape, generator=generator, device=device)  # noqa: E731
+        sde = self.method == "sde"
+        # the draws in the order the chain uses them (x_0, sde's step, eps_0 .. eps_{K-1}): the
+        # loop below then reads no generator and touches no host value
         x = torch.zeros(shape, device=device) if deterministic else noise()
-        if self.method == "sde" and not deterministic:
-            j = torch.randint(0, self.steps, (b,), generator=generator, device=device)
+        if sde and not deterministic:
+            j = torch.randint(0, K, (b,), generator=generator, device=device)
         else:
             j = torch.zeros(b, dtype=torch.long, device=device)
+        eps = [] if deterministic else [noise() for _ in range(K)]
+        chosen = j.unsqueeze(0) == torch.arange(K, device=device).unsqueeze(1)  # [K, b]: sde's stochastic step
+        stochastic = chosen.float().view(K, b, 1, 1)
         chain, logprob = [x], torch.zeros(b, device=device)
-        for k in range(self.steps):
-            mu, sigma = self._step(x, torch.full((b,), k, device=device), context, mask, extra)
-            x = mu
-            if not deterministic:
-                stochastic = torch.ones(b, device=device) if self.method == "noise" else (j == k).float()
-                x = mu + sigma * noise() * stochastic.view(b, 1, 1)
-            lp = _gaussian_logpdf(x, mu, sigma).sum((1, 2))
-            logprob += lp if self.method == "noise" else torch.where(j == k, lp, torch.zeros_like(lp))
-            chain.append(x)
-        extras = {"chain": torch.stack(chain, 1).reshape(b, self.steps + 1, self.act_dim)}
-        if self.method == "sde":
+        with self.backbone.forward_context(device):
+            cache, bias = self.expert.cache(context, mask), self._step_bias(device)
+            for k in range(K):
+                mu, sigma = self._step(x, bias[k], cache, extra)
+                if deterministic:
+                    x = mu
+                elif sde:
+                    x = mu + sigma * eps[k] * stochastic[k]
+                else:
+                    x = mu + sigma * eps[k]
+                lp = _gaussian_logpdf(x, mu, sigma).sum((1, 2))
+                logprob += torch.where(chosen[k], lp, 0.0) if sde else lp
+                chain.append(x)
+        extras = {"chain": torch.stack(chain, 1).reshape(b, K + 1, self.act_dim)}
+        if sde:
             extras["denoise_index"] = j.to(torch.int32).view(b, 1)
         return self._to_action(x), logprob, extras, value
 
@@ -255,18 +328,20 @@ class FlowVLA(SampleAndAct, nn.Module):
         if not extras or "chain" not in extras:
             raise ValueError("vla-flow: evaluate needs extras['chain'] (the denoising chain sample() returned)")
         context, mask, extra, value = self._context(obs)
-        b, k_steps = context.shape[0], self.steps
+        b, k_steps, device = context.shape[0], self.steps, context.device
         chain = extras["chain"].float().view(b, k_steps + 1, self.chunk, self.action_dim)
-        if self.method == "noise":  # every step at once: B * K rows, each with its sample's context
-            rep = lambda t: None if t is None else t.repeat_interleave(k_steps, 0)  # noqa: E731
-            k = torch.arange(k_steps, device=chain.device).repeat(b)
-            x, target = chain[:, :-1].flatten(0, 1), chain[:, 1:].flatten(0, 1)
-            mu, sigma = self._step(x, k, rep(context), rep(mask), rep(extra))
-        else:
-            k = extras["denoise_index"].long().view(b)
-            rows = torch.arange(b, device=chain.device)
-            x, target = chain[rows, k], chain[rows, k + 1]
-            mu, sigma = self._step(x, k, context, mask, extra)
+        with self.backbone.forward_context(device):
+            cache, bias = self.expert.cache(context, mask), self._step_bias(device)
+            if self.method == "noise":  # every step at once: B * K rows, each with its sample's context
+                k = torch.arange(k_steps, device=device).repeat(b)
+                x, target = chain[:, :-1].flatten(0, 1), chain[:, 1:].flatten(0, 1)
+                rep_extra = None if extra is None else extra.repeat_interleave(k_steps, 0)
+                mu, sigma = self._step(x, bias[k], cache.repeat_rows(k_steps), rep_extra)
+            else:
+                k = extras["denoise_index"].long().view(b)
+                rows = torch.arange(b, device=device)
+                x, target = chain[rows, k], chain[rows, k + 1]
+                mu, sigma = self._step(x, bias[k], cache, extra)
         logprob = _gaussian_logpdf(target, mu, sigma).view(b, -1).sum(-1)
         entropy = (0.5 + _HALF_LOG_2PI + sigma.log()).view(b, -1).sum(-1)
         return logprob, entropy, value
