@@ -5,7 +5,8 @@ starts ``ssh ... HOST -- PYTHON -m dvla.orchestrator.ssh serve`` and writes the 
 secrets as one JSON line on its stdin (never a command line); the remote :func:`serve` runs the
 role, stops it when that stdin closes (how the orchestrator, or its death, says stop), and sends
 the role's result files back as a tar that the local side checks member by member. A remote run
-directory is only deleted when it carries dvla's token file (:func:`run_dir_action`).
+directory is only deleted when it carries dvla's token file (:func:`run_dir_action`). The Slurm
+launcher (dvla.orchestrator.slurm) runs the same remote half as a job step, through srun.
 """
 
 from __future__ import annotations
@@ -171,6 +172,11 @@ class SshWrapper(CommandWrapper):
     def remote_run_dir(self, target: SshTarget) -> str:
         return str(PurePosixPath(target.ssh.workdir) / self.topo.run)
 
+    def in_place(self, target: SshTarget) -> bool:
+        """Whether the role on `target` works in the orchestrator's own run directory (same
+        filesystem: nothing to prepare or send back); never over SSH."""
+        return False
+
     def check_all(self) -> None:
         """Probe every remote host once, in parallel, and prepare its run directory; raise one
         :class:`SshError` for the first failure."""
@@ -209,6 +215,7 @@ class SshWrapper(CommandWrapper):
             "module": module,
             "config": json.loads(proc.config.to_json()),
             "run_dir": self.remote_run_dir(target),
+            "in_place": self.in_place(target),
             "token": self.token,
             "secret_env": proc.config.secret_env,
             "secret": self.secret_hex,
@@ -377,11 +384,13 @@ def serve() -> int:
     header = json.loads(line)
     config = header["config"]
     run_dir = Path(os.path.expanduser(header["run_dir"])).absolute()
-    try:
-        prepare_run_dir(run_dir, header["token"])
-    except RunDirError as err:
-        print(f"dvla ssh serve: {err}", file=sys.stderr, flush=True)
-        return NOT_OURS
+    in_place = bool(header.get("in_place"))  # the orchestrator's own run directory: its files stay there
+    if not in_place:
+        try:
+            prepare_run_dir(run_dir, header["token"])
+        except RunDirError as err:
+            print(f"dvla ssh serve: {err}", file=sys.stderr, flush=True)
+            return NOT_OURS
     config["run_dir"] = str(run_dir)
     roles_dir = run_dir / "roles"
     roles_dir.mkdir(exist_ok=True)
@@ -430,7 +439,8 @@ def serve() -> int:
         time.sleep(0.1)
     code = child.returncode
     try:
-        stdout.write(_results_tar(run_dir, config["name"], started))
+        if not in_place:
+            stdout.write(_results_tar(run_dir, config["name"], started))
         stdout.flush()
     except (BrokenPipeError, OSError):
         pass  # the orchestrator is gone: nobody to send results to
