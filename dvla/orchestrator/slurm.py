@@ -20,6 +20,7 @@ topology (settings from ``DVLA_*`` environment variables, see :func:`main`).
 from __future__ import annotations
 
 import ipaddress
+import json
 import os
 import re
 import shlex
@@ -273,6 +274,9 @@ class GenerateSettings:
     max_env_steps: int = 400000
     base_port: int = 17400
     remote_workdir: str = "/tmp/dvla"
+    #: the `task:` mapping to use instead of ``{env: task_env}`` (its budget's max_env_steps is
+    #: set to `max_env_steps`), e.g. a topology file's task section
+    task: dict | None = None
     #: "auto", "ssh" or "slurm" (written as the topology's `launcher`)
     launcher: str = "auto"
     #: a dry run: a host without an address is left without one instead of refused
@@ -295,9 +299,11 @@ def generate_topology(job: SlurmJob, s: GenerateSettings) -> tuple[str, list[str
              f"run: {s.run}", f"base_port: {s.base_port}"]
     if s.launcher != "auto":
         lines.append(f"launcher: {s.launcher}")
-    lines += ["task:", f"  env: {s.task_env}", f"  budget: {{max_env_steps: {s.max_env_steps}}}"]
+    task = dict(s.task) if s.task is not None else {"env": s.task_env}
+    task["budget"] = {**(task.get("budget") or {}), "max_env_steps": s.max_env_steps}
     if job.gpus:
-        lines.append("  device: cuda")
+        task.setdefault("device", "cuda")
+    lines.append("task: " + json.dumps(task))  # JSON is YAML: one line, every value quoted as needed
     lines += ["ssh:", f"  python: {s.python}", f"  workdir: {s.remote_workdir}", "racks:"]
     index = {h: i for i, h in enumerate(job.hosts)}
     for rack, hosts in job.racks():
@@ -421,10 +427,21 @@ class SlurmWrapper(SshWrapper):
 # `python -m dvla.orchestrator.slurm topology OUT`
 
 
+def _task_section(path: str) -> dict:
+    """The `task:` mapping of a YAML file (ValueError naming the file when there is none)."""
+    import yaml
+
+    doc = yaml.safe_load(Path(path).read_text())
+    if not isinstance(doc, dict) or not isinstance(doc.get("task"), dict):
+        raise ValueError(f"DVLA_TASK_FILE={path}: no task: mapping in it")
+    return doc["task"]
+
+
 def main(argv: list[str] | None = None) -> int:
     """Write the generated topology of the enclosing job to OUT (its notes to stderr). Settings:
     DVLA_RUN, DVLA_PYTHON, DVLA_TASK_ENV, DVLA_ROLLOUTS_PER_NODE, DVLA_MAX_ENV_STEPS,
-    DVLA_BASE_PORT, DVLA_REMOTE_WORKDIR, DVLA_LAUNCHER, DVLA_DRY_RUN."""
+    DVLA_BASE_PORT, DVLA_REMOTE_WORKDIR, DVLA_LAUNCHER, DVLA_DRY_RUN, DVLA_TASK_FILE (a YAML
+    file whose `task:` mapping, a topology's for one, replaces DVLA_TASK_ENV)."""
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 2 or args[0] != "topology":
         print("usage: python -m dvla.orchestrator.slurm topology OUT (inside a Slurm job)", file=sys.stderr)
@@ -442,9 +459,10 @@ def main(argv: list[str] | None = None) -> int:
             max_env_steps=int(env.get("DVLA_MAX_ENV_STEPS", "400000")),
             base_port=int(env.get("DVLA_BASE_PORT", "17400")),
             remote_workdir=env.get("DVLA_REMOTE_WORKDIR") or f"/tmp/{env.get('USER', 'dvla')}/dvla-{job.job_id}",
-            launcher=env.get("DVLA_LAUNCHER", "auto"), dry_run=bool(env.get("DVLA_DRY_RUN")))
+            launcher=env.get("DVLA_LAUNCHER", "auto"), dry_run=bool(env.get("DVLA_DRY_RUN")),
+            task=_task_section(env["DVLA_TASK_FILE"]) if env.get("DVLA_TASK_FILE") else None)
         text, notes = generate_topology(job, settings)
-    except (SlurmError, ValueError) as err:
+    except (SlurmError, ValueError, OSError) as err:
         print(f"dvla slurm: {err}", file=sys.stderr)
         return 2
     for note in notes:

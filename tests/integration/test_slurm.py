@@ -242,7 +242,7 @@ def test_dry_run_expands_hosts_outside_a_cluster(tmp_path: Path) -> None:
     topo = (tmp_path / "slurm-manual.topology.yaml").read_text()
     for host in ("dvla-nohost-1", "dvla-nohost-2", "dvla-nohost-3"):
         assert f"host: {host}\n        roles:" in topo, topo  # no address line
-        assert f"dvla.sbatch: {host} does not resolve here" in dry.stderr, dry.stderr
+        assert f"dvla slurm: {host} does not resolve here" in dry.stderr, dry.stderr
 
 
 @needs_scontrol

@@ -100,6 +100,14 @@ def _generated(job: SlurmJob, **kw) -> str:
     return text
 
 
+def test_generated_topology_takes_a_task_section() -> None:
+    job = SlurmJob.from_env(JOB_ENV, fake_scontrol())
+    text = _generated(job, task={"env": "PushCube-v1", "ppo": {"batch_steps": 400}, "budget": {"max_wall_s": 60}},
+                      max_env_steps=1200)
+    task = parse_topology(text, "gen.yaml").task
+    assert task.ppo.batch_steps == 400 and task.budget.max_env_steps == 1200 and task.budget.max_wall_s == 60
+
+
 def test_generated_topology_plans_one_rack_per_leaf_switch() -> None:
     topo = parse_topology(_generated(SlurmJob.from_env(JOB_ENV, fake_scontrol())), "gen.yaml")
     assert [(r.name, [n.host for n in r.nodes]) for r in topo.racks] == [
@@ -120,7 +128,8 @@ def test_generated_topology_places_an_actor_per_gpu_of_the_first_node() -> None:
                             fake_scontrol(topology="", job=JOB_DETAIL_OUT, nodes=""))
     assert job.gpus == {"gpu-001": 4, "gpu-002": 2}
     text, notes = generate_topology(job, GenerateSettings(run="g", python="python3", dry_run=True))
-    assert "{role: actor, count: 4}" in text and "device: cuda" in text
+    topo = parse_topology(text, "gpu.yaml")
+    assert topo.task.device == "cuda" and topo.racks[0].nodes[0].role_counts()["actor"] == 4
     assert notes == [f"{h} does not resolve here: no address for it in this dry run" for h in ("gpu-001", "gpu-002")]
     with pytest.raises(SlurmError, match="cannot resolve gpu-001"):
         generate_topology(job, GenerateSettings(run="g", python="python3"))
