@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import pytest
+import yaml
 
 from .multinode_slurm import FINAL_STATES, MultiNodeSlurm, missing_tools, tail, tool
 from .test_up_e2e import free_port_block
@@ -56,9 +57,10 @@ def _pgrep(pattern: str, *, exact: bool = False) -> set[str]:
     return {p for p in out if p != str(os.getpid())}
 
 
-def _submit(cluster: MultiNodeSlurm, out_dir: Path, env: dict[str, str]) -> str:
+def _submit(cluster: MultiNodeSlurm, out_dir: Path, env: dict[str, str], *topology: str) -> str:
+    """sbatch the script as docs/slurm.md has it (three nodes, this machine's CPUs each); its job id."""
     sub = subprocess.run([tool("sbatch"), "--parsable", "-N", "3", "--ntasks-per-node=1", "-c", str(cluster.cpus),
-                          f"--output={out_dir}/dvla-%j.out", SBATCH_SCRIPT],
+                          f"--output={out_dir}/dvla-%j.out", SBATCH_SCRIPT, *topology],
                          capture_output=True, text=True, cwd=ROOT, env=cluster.env(**env), timeout=30)
     assert sub.returncode == 0, sub.stderr
     return sub.stdout.strip().split(";")[0]
@@ -118,9 +120,22 @@ def test_multinode_sbatch_roles_as_steps_racks_from_switches(tmp_path: Path) -> 
         # the remote rollouts' summaries came back from their nodes' workdirs
         assert (run_dir / "summaries" / "rollout-n2-0.json").exists(), sorted(os.listdir(run_dir))
 
-        # -- job 2: one step cancelled and restarted, then scancel --signal=TERM --batch ----------
-        job2 = _submit(cluster, tmp_path, {**env, "DVLA_RUN": "mn2", "DVLA_MAX_ENV_STEPS": "10000000",
-                                           "DVLA_BASE_PORT": str(free_port_block())})
+        # -- job 2: rank 0 on a remote node; one step cancelled and restarted; then
+        #    scancel --signal=TERM --batch; the checkpoint comes back to the run directory ---------
+        task = {**yaml.safe_load((ROOT / "topologies/tiny.yaml").read_text())["task"], "budget": {"max_env_steps": 10 ** 7}}
+        work = cluster.root / "work"
+
+        def node(i: int, roles: str) -> str:
+            return f"      - {{name: n{i}, host: {cluster.nodes[i]}, address: {cluster.addresses[cluster.nodes[i]]}, roles: {roles}}}"
+
+        topo2 = tmp_path / "mn2.yaml"
+        topo2.write_text("\n".join([
+            "run: mn2", f"base_port: {free_port_block()}", f"task: {json.dumps(task)}",
+            f"ssh: {{python: {sys.executable}, workdir: {work}}}", "racks:", "  - name: leaf0", "    nodes:",
+            node(0, "[{role: replicator}, {role: evaluator}]"), "  - name: leaf1", "    nodes:",
+            node(1, "[{role: actor}, {role: replicator}, {role: rollout}]"),
+            node(2, "[{role: replicator}, {role: rollout}]"), ""]))
+        job2 = _submit(cluster, tmp_path, env, str(topo2))
         output2, run2 = tmp_path / f"dvla-{job2}.out", runs / "mn2"
         deadline = time.monotonic() + 150
 
@@ -131,8 +146,8 @@ def test_multinode_sbatch_roles_as_steps_racks_from_switches(tmp_path: Path) -> 
                 assert time.monotonic() < deadline, f"{what} never happened\n{tail(output2, 40)}"
                 time.sleep(0.5)
 
-        def versions() -> int:
-            path = run2 / "versions.csv"
+        def versions() -> int:  # the actor's, in its node's working directory
+            path = work / "mn2" / "versions.csv"
             return len(path.read_text().splitlines()) if path.exists() else 0
 
         def step_of(name: str) -> dict[str, str] | None:
@@ -142,6 +157,7 @@ def test_multinode_sbatch_roles_as_steps_racks_from_switches(tmp_path: Path) -> 
         wait_for("a learned weight version with rollout-n2-0 up", lambda: versions() >= 2 and step_of("rollout-n2-0"))
         victim = step_of("rollout-n2-0")
         assert victim is not None and victim["nodes"] == n2, victim
+        assert step_of("actor-n1-0")["nodes"] == n1
         assert cluster.run("scancel", victim["id"]).returncode == 0
         wait_for("the cancelled rollout's new step", lambda: any(
             s["name"] == "rollout-n2-0" and s["id"] != victim["id"] for s in cluster.steps(job2)))
@@ -157,6 +173,12 @@ def test_multinode_sbatch_roles_as_steps_racks_from_switches(tmp_path: Path) -> 
         assert result2["accounting"]["unaccounted"] == 0, result2["accounting"]
         assert job["ExitCode"] == "130:0", f"{job}\n{text2}"  # dvla up's code for an interrupted run
         assert cluster.steps(job2) == []
+        # the remote rank 0's checkpoint came back: --resume on any node continues from it
+        manifest = json.loads((run2 / "checkpoints" / "MANIFEST.json").read_text())
+        assert manifest == json.loads((work / "mn2" / "checkpoints" / "MANIFEST.json").read_text())
+        assert (run2 / "checkpoints" / manifest["dir"] / "policy.safetensors").exists()
+        for log in [*(runs / "mn" / "logs").glob("*.log"), *(run2 / "logs").glob("*.log")]:
+            assert "Fatal Python error" not in log.read_text(errors="replace"), tail(log)
     finally:
         cluster.stop()
     print(f"three-node Slurm: cluster up in {cluster_up_s:.1f} s, job 1 {job1_s:.1f} s, "
