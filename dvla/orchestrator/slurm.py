@@ -344,6 +344,13 @@ def slurm_job_for(topo: Topology, env: Mapping[str, str] = os.environ) -> SlurmJ
 # Launching roles as job steps
 
 
+class StepTarget(SshTarget):
+    """A node of the job, as messages name it (its `ssh` settings give only python and workdir)."""
+
+    def label(self) -> str:
+        return f"{self.host} (Slurm step)"
+
+
 class SlurmWrapper(SshWrapper):
     """Starts each role as a step of `job` on its node; the roles of this host work in the run
     directory itself, those of other hosts in ``ssh.workdir`` there (results sent back as with SSH).
@@ -361,7 +368,7 @@ class SlurmWrapper(SshWrapper):
         for _rack, node in topo.nodes():
             host = self.slurm_host(node.host)
             if host is not None:
-                self.targets[node.name] = SshTarget(host, topo.ssh_for(node))
+                self.targets[node.name] = StepTarget(host, topo.ssh_for(node))
 
     def slurm_host(self, host: str) -> str | None:
         """The job's host a topology host names (this one for "localhost"), or None: a local

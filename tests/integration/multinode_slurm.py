@@ -23,7 +23,7 @@ from pathlib import Path
 SEARCH_PATH = os.pathsep.join([os.environ.get("PATH", ""), "/usr/sbin", "/sbin"])
 #: the daemons and clients the cluster needs (Debian: slurm-wlm, munge; util-linux; iproute2)
 TOOLS = ("munged", "slurmctld", "slurmd", "sbatch", "srun", "scontrol", "sinfo", "scancel", "squeue",
-         "nsenter", "unshare", "ip")
+         "nsenter", "unshare", "hostname", "ip")
 #: `scontrol show job` states after which a job does nothing more
 FINAL_STATES = {"COMPLETED", "FAILED", "CANCELLED", "TIMEOUT", "NODE_FAIL", "OUT_OF_MEMORY", "PREEMPTED",
                 "BOOT_FAIL", "DEADLINE"}

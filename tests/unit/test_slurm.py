@@ -192,3 +192,20 @@ def test_a_host_outside_the_job_is_refused_in_one_line(tmp_path) -> None:
     wrapper, _procs = _wrapper(tmp_path, other="elsewhere")
     with pytest.raises(SlurmError, match=r"two.yaml: node b: host 'elsewhere' is not a node of Slurm job 77"):
         wrapper.check_all()
+
+
+def test_doctor_checks_no_ssh_login_when_roles_start_as_steps(monkeypatch: pytest.MonkeyPatch) -> None:
+    from dvla.orchestrator.doctor import Needs, check_ssh
+
+    monkeypatch.setattr("dvla.orchestrator.slurm.shutil.which", lambda name: f"/usr/bin/{name}")
+    monkeypatch.setattr("dvla.orchestrator.slurm._scontrol", fake_scontrol())
+    for key, value in JOB_ENV.items():
+        monkeypatch.setenv(key, value)
+    topo = parse_topology(TWO_NODES.format(launcher="auto", other="dnb9851"))
+    [result] = check_ssh(topo, Needs(remote_nodes=("b",), topology=True))
+    assert "steps of Slurm job 77, not over SSH" in result.detail
+    monkeypatch.delenv("SLURM_JOB_ID")
+    monkeypatch.delenv("SLURM_JOB_NODELIST")
+    [result] = check_ssh(parse_topology(TWO_NODES.format(launcher="slurm", other="dnb9851")),
+                         Needs(remote_nodes=("b",), topology=True))
+    assert result.status == "fail" and "not inside a Slurm job" in result.detail
