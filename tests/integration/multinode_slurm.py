@@ -258,7 +258,10 @@ class MultiNodeSlurm:
                     proc.kill()
                     proc.wait()
         self._kill_in_namespaces()
-        for ns in self.made_netns:
+        for i, ns in enumerate(self.made_netns):
+            # the host end first: deleting it deletes its peer at once, whereas a namespace (and
+            # the veth in it) lingers until the kernel has let go of its last process
+            subprocess.run([tool("ip"), "link", "del", f"dvs{self.tag}h{i}"], capture_output=True)
             subprocess.run([tool("ip"), "netns", "del", ns], capture_output=True)
         if self.made_bridge:
             subprocess.run([tool("ip"), "link", "del", self.bridge], capture_output=True)
