@@ -9,10 +9,11 @@ a job step.
 Job 1 runs the generated topology (tiny.yaml's task, a small budget) to its end: every role is
 seen as a step of the job on its node (`squeue -s`), the generated racks are the two leaf
 switches and the weight tree enters leaf1 once, the run ends by itself with result.json and its
-accounting closes exactly. Job 2 runs with a large budget: one rollout's step is cancelled
-(`scancel JOB.STEP`) and comes back as a new step, then `scancel --signal=TERM --batch` stops
-the run in order (result.json, reason interrupted, accounting closed). Afterwards nothing is
-left: daemons, namespaces, bridge, processes, files.
+accounting closes exactly. Job 2 runs a topology file with rank 0 on a node other than the head
+and a large budget: one rollout's step is cancelled (`scancel JOB.STEP`) and comes back as a new
+step, then `scancel --signal=TERM --batch` stops the run in order (result.json, reason
+interrupted, accounting closed exactly) and rank 0's checkpoint is back in the run directory.
+Afterwards nothing is left: daemons, namespaces, bridge, processes, files.
 """
 
 from __future__ import annotations
@@ -137,7 +138,7 @@ def test_multinode_sbatch_roles_as_steps_racks_from_switches(tmp_path: Path) -> 
             node(2, "[{role: replicator}, {role: rollout}]"), ""]))
         job2 = _submit(cluster, tmp_path, env, str(topo2))
         output2, run2 = tmp_path / f"dvla-{job2}.out", runs / "mn2"
-        deadline = time.monotonic() + 150
+        deadline = time.monotonic() + 200
 
         def wait_for(what: str, ready) -> None:
             while not ready():
