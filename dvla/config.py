@@ -819,6 +819,11 @@ class Topology:
     mode: Literal["async", "sync", "sim_only"] = "async"
     #: "none" (all processes on loopback) or "netns" (a network namespace per node)
     emulate: Literal["none", "netns"] = "none"
+    #: how `dvla up` starts roles: "slurm" (every node's roles, this node's too, as steps of the
+    #: enclosing Slurm job, through srun: docs/slurm.md), "ssh" (this machine's roles as local
+    #: processes, other hosts' over SSH) or "auto" (slurm inside a Slurm job, i.e. with
+    #: SLURM_JOB_ID set and no netns emulation; else ssh)
+    launcher: Literal["auto", "ssh", "slurm"] = "auto"
     #: file holding the cluster secret (None: `dvla up` makes one per run)
     secret_file: str | None = rule(None, nonempty="a path, or null for a per-run secret", exists="secret file")
     #: first TCP port handed out to planes
@@ -870,6 +875,8 @@ class Topology:
                 if node.host not in LOCAL_HOSTS:
                     yield f"{key}.host", (f"remote host {show(node.host)} with emulate: netns (netns emulation runs every "
                                           f"node on this machine; expected {' or '.join(LOCAL_HOSTS)})")
+        if self.emulate == "netns" and self.launcher == "slurm":
+            yield "launcher", "slurm with emulate: netns (emulated nodes are namespaces of this machine, not Slurm nodes; expected auto or ssh)"
         evaluators = sum(c.get("evaluator", 0) for _n, c in counts)
         if evaluators > self.task.eval.episodes:
             yield "racks", (f"{evaluators} evaluators but task.eval.episodes is {self.task.eval.episodes} (each "

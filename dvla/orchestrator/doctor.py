@@ -23,6 +23,7 @@ from ..config import LIBERO_ASSETS_ENV, LIBERO_ENV, LIBERO_RENDERER_FIX, LiberoC
 from .launcher import last_line
 from .plan import make_plan, pinning_problems, role_cpus
 from .process import endpoint_address, is_local_host
+from .slurm import SlurmError, slurm_job_for
 from .ssh import SshError, check_host, remote_targets
 
 Status = Literal["ok", "warn", "fail", "skip"]
@@ -392,6 +393,12 @@ def check_netns(needs: Needs) -> CheckResult:
 def check_ssh(topo: Topology | None, needs: Needs) -> list[CheckResult]:
     if not needs.remote_nodes or topo is None:
         return [skip("ssh", "no remote nodes" if needs.topology else "give a TOPOLOGY to check its remote nodes")]
+    try:
+        job = slurm_job_for(topo)
+    except SlurmError as err:
+        return [outcome("ssh", False, str(err), fix="run it inside the Slurm job, or set launcher: ssh", required=True)]
+    if job is not None:
+        return [skip("ssh", f"remote roles start as steps of Slurm job {job.job_id}, not over SSH")]
     results = []
     for node, target in remote_targets(topo).items():
         fix = (f"key login must work without a prompt: ssh-copy-id -p {target.ssh.port} {target.destination}; "

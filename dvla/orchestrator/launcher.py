@@ -95,7 +95,7 @@ class Launcher:
                 stdin=subprocess.PIPE if payload is not None else subprocess.DEVNULL,
                 stdout=outf if outf is not None else logf,
                 stderr=logf if outf is not None else subprocess.STDOUT,
-                env=self.env if identity is None else {**self.env, IDENTITY_ENV: identity},
+                env=self.wrap.child_env(sup.proc, self.env if identity is None else {**self.env, IDENTITY_ENV: identity}),
                 start_new_session=True,
                 preexec_fn=die_with_parent,
             )

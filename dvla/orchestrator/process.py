@@ -94,6 +94,11 @@ class CommandWrapper:
         closing it asks the process to stop."""
         return None
 
+    def child_env(self, proc: Process, env: dict[str, str]) -> dict[str, str]:
+        """The environment the launched command gets (a wrapper whose command would carry the
+        environment elsewhere, as srun does, leaves the secrets out: they go on stdin)."""
+        return env
+
     def output_path(self, sup: Supervised) -> Path | None:
         """File for the process's stdout (None: stdout and stderr both go to the role's log)."""
         return None

@@ -32,6 +32,7 @@ from .netns import NetnsCluster, NetnsWrapper
 from .plan import make_plan, pinning_problems
 from .plots import plot_run
 from .process import Plan, is_local_host
+from .slurm import SlurmWrapper, slurm_job_for
 from .ssh import SshWrapper, write_private
 from .topology import dump_topology_yaml
 from .wandb_log import WandbLog, missing_wandb
@@ -260,7 +261,13 @@ class Up:
             self.netns = NetnsCluster(self.topo, self.plan)
             self.netns.create()
             self.launcher.wrap = NetnsWrapper()
-        if not self._all_local():
+        job = slurm_job_for(self.topo)
+        if job is not None:  # every node's roles as steps of the enclosing Slurm job
+            slurm = SlurmWrapper(self.topo, self.secret, self.launcher.env, job, self.run_dir, local=self.launcher.wrap)
+            slurm.check_all()  # one clear line naming the node, before anything starts
+            self.launcher.wrap = slurm
+            self.events.append(f"roles start as steps of Slurm job {job.job_id}")
+        elif not self._all_local():
             ssh = SshWrapper(self.topo, self.secret, self.launcher.env, local=self.launcher.wrap)
             ssh.check_all()  # one clear line naming the host, before anything starts
             self.launcher.wrap = ssh

@@ -5,7 +5,8 @@ starts ``ssh ... HOST -- PYTHON -m dvla.orchestrator.ssh serve`` and writes the 
 secrets as one JSON line on its stdin (never a command line); the remote :func:`serve` runs the
 role, stops it when that stdin closes (how the orchestrator, or its death, says stop), and sends
 the role's result files back as a tar that the local side checks member by member. A remote run
-directory is only deleted when it carries dvla's token file (:func:`run_dir_action`).
+directory is only deleted when it carries dvla's token file (:func:`run_dir_action`). The Slurm
+launcher (dvla.orchestrator.slurm) runs the same remote half as a job step, through srun.
 """
 
 from __future__ import annotations
@@ -51,6 +52,11 @@ FORWARDED_ENV = ("DVLA_LOG_LEVEL", "OMP_NUM_THREADS", "PYTHONUNBUFFERED")
 #: tar holding anything else (checkpoints, configs, the secret...) is refused whole.
 RESULT_DIRS = {"summaries": re.compile(r"json"), "counters": re.compile(r"[0-9]{1,10}\.[0-9]{1,10}")}
 RESULT_FILES = ("versions.csv",)
+#: the learner group's checkpoint, which travels with a remote rank-0 actor (docs/slurm.md,
+#: "Resume"): its manifest, the version high-water mark and the two files of the checkpoint
+#: directory the manifest names (the layout of docs/learners.md, "Checkpoints"); sent back with
+#: the actor's results and, when a continued run starts it on a node, to that node
+CHECKPOINT_MEMBER_RE = re.compile(r"checkpoints/(?:MANIFEST\.json|high_water\.json|v[0-9]{8}/(?:policy|optimizer)\.safetensors)")
 #: marks a remote run directory as dvla's own: only a directory holding it is ever deleted
 TOKEN_FILE = ".dvla-run-token"
 #: exit status of `probe` when the remote run directory exists but is not dvla's
@@ -171,6 +177,11 @@ class SshWrapper(CommandWrapper):
     def remote_run_dir(self, target: SshTarget) -> str:
         return str(PurePosixPath(target.ssh.workdir) / self.topo.run)
 
+    def in_place(self, target: SshTarget) -> bool:
+        """Whether the role on `target` works in the orchestrator's own run directory (same
+        filesystem: nothing to prepare or send back); never over SSH."""
+        return False
+
     def check_all(self) -> None:
         """Probe every remote host once, in parallel, and prepare its run directory; raise one
         :class:`SshError` for the first failure."""
@@ -209,13 +220,17 @@ class SshWrapper(CommandWrapper):
             "module": module,
             "config": json.loads(proc.config.to_json()),
             "run_dir": self.remote_run_dir(target),
+            "in_place": self.in_place(target),
             "token": self.token,
             "secret_env": proc.config.secret_env,
             "secret": self.secret_hex,
             "identity": identity,
             "env": self.env,
         }
-        return (json.dumps(header) + "\n").encode()
+        # a continued run's checkpoint goes to the node of its remote rank-0 actor, after the header
+        attached = b"" if header["in_place"] or not writes_checkpoints(proc.config) else checkpoint_tar(Path(proc.config.run_dir))
+        header["checkpoint_bytes"] = len(attached)
+        return (json.dumps(header) + "\n").encode() + attached
 
     def output_path(self, sup: Supervised) -> Path | None:
         if self.target(sup.proc) is None:
@@ -236,7 +251,8 @@ class SshWrapper(CommandWrapper):
                 why = "(no log)"
             notes.append(f"{sup.name}: ssh {target.label()} failed: {why}")
         try:
-            unpacked = unpack_results(path, sup.log_path.parent.parent, sup.name, target.label())
+            unpacked = unpack_results(path, sup.log_path.parent.parent, sup.name, target.label(),
+                                      checkpoints=writes_checkpoints(sup.proc.config))
             if unpacked:
                 log.info("%s: %d file(s) back from %s", sup.name, len(unpacked), target.host)
         except ResultsRefused as err:
@@ -247,14 +263,51 @@ class SshWrapper(CommandWrapper):
         return "; ".join(notes) or None
 
 
-def result_path_problem(member: tarfile.TarInfo, role: str) -> str | None:
+def writes_checkpoints(config: Any) -> bool:
+    """Whether the role of `config` (a RoleConfig, or its JSON form) writes the learner group's
+    checkpoints: an actor of rank 0 (or the only actor)."""
+    get = config.get if isinstance(config, dict) else lambda key: getattr(config, key, None)
+    group = get("group")
+    rank = group.get("rank") if isinstance(group, dict) else getattr(group, "rank", 0)
+    return get("kind") == "actor" and (group is None or rank == 0)
+
+
+def checkpoint_paths(run_dir: Path) -> list[Path]:
+    """The files of `run_dir`'s current checkpoint that travel (CHECKPOINT_MEMBER_RE), the
+    manifest last, so that it never names files not yet written; [] without a checkpoint."""
+    directory = run_dir / "checkpoints"
+    try:
+        current = json.loads((directory / "MANIFEST.json").read_text()).get("dir", "")
+    except (OSError, ValueError, AttributeError):
+        return []
+    paths = [directory / str(current) / f for f in ("policy.safetensors", "optimizer.safetensors")]
+    paths += [directory / "high_water.json", directory / "MANIFEST.json"]
+    return [p for p in paths if p.is_file() and not p.is_symlink()
+            and CHECKPOINT_MEMBER_RE.fullmatch(p.relative_to(run_dir).as_posix())]
+
+
+def checkpoint_tar(run_dir: Path) -> bytes:
+    """`run_dir`'s current checkpoint as a tar (b"" without one)."""
+    paths = checkpoint_paths(run_dir)
+    if not paths:
+        return b""
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as tar:
+        for path in paths:
+            tar.add(path, arcname=path.relative_to(run_dir).as_posix(), recursive=False)
+    return buf.getvalue()
+
+
+def result_path_problem(member: tarfile.TarInfo, role: str, checkpoints: bool = False) -> str | None:
     """Why a member of role `role`'s result tar may not be unpacked into the local run directory
-    (see RESULT_DIRS), or None."""
+    (see RESULT_DIRS; with `checkpoints`, a rank-0 actor's, also CHECKPOINT_MEMBER_RE), or None."""
     if not member.isfile():
         return "not a regular file (links, devices and directories are refused)"
     rel = PurePosixPath(member.name)
     if rel.is_absolute() or ".." in rel.parts:
         return "an absolute path or '..'"
+    if checkpoints and CHECKPOINT_MEMBER_RE.fullmatch(member.name):
+        return None
     parts = rel.parts
     if len(parts) == 1 and parts[0] in RESULT_FILES and role.startswith("actor-"):
         return None
@@ -265,7 +318,7 @@ def result_path_problem(member: tarfile.TarInfo, role: str) -> str | None:
     return f"not a result file of {role} (expected {expected}, or an actor's {', '.join(RESULT_FILES)})"
 
 
-def unpack_results(path: Path, run_dir: Path, role: str, host: str = "remote node") -> list[str]:
+def unpack_results(path: Path, run_dir: Path, role: str, host: str = "remote node", checkpoints: bool = False) -> list[str]:
     """Unpack remote role `role`'s result tar into `run_dir`; delete the tar. One member that is not
     a result file of this role (:func:`result_path_problem`) refuses the whole tar with
     :class:`ResultsRefused` naming `host` and the member, and nothing is unpacked."""
@@ -278,7 +331,7 @@ def unpack_results(path: Path, run_dir: Path, role: str, host: str = "remote nod
         with tarfile.open(path, "r:") as tar:
             members = tar.getmembers()
             for member in members:
-                problem = result_path_problem(member, role)
+                problem = result_path_problem(member, role, checkpoints)
                 if problem:
                     raise ResultsRefused(f"results from {host} refused, nothing unpacked: {member.name[:200]!r} is {problem}")
             for member in members:
@@ -349,22 +402,63 @@ def write_private(path: Path, text: str) -> None:
         f.write(text)
 
 
-def _results_tar(run_dir: Path, role: str, since: float) -> bytes:
+def _results_tar(run_dir: Path, role: str, since: float, checkpoints: bool = False) -> bytes:
     """Result files of `role` in the run directory (modified since it started), as a tar: only
-    what the local side accepts (:func:`result_path_problem`)."""
+    what the local side accepts (:func:`result_path_problem`); with `checkpoints` (a rank-0
+    actor) its current checkpoint too, last. Counter files go whatever their age: those of an
+    earlier incarnation killed with its step (so never sent) come back with the next one, and the
+    run's accounting stays exact."""
     buf = io.BytesIO()
     candidates = [run_dir / f for f in RESULT_FILES] + [p for d in RESULT_DIRS for p in sorted((run_dir / d).glob("*"))]
+    fresh = [p for p in candidates if not p.is_symlink() and p.is_file() and p.suffix not in (".tmp", ".part")
+             and (p.parent.name == "counters" or p.stat().st_mtime >= since)]
     with tarfile.open(fileobj=buf, mode="w") as tar:
-        for path in candidates:
-            if path.is_symlink() or not path.is_file() or path.suffix in (".tmp", ".part"):
-                continue
-            if path.stat().st_mtime < since:
-                continue
+        for path in fresh + (checkpoint_paths(run_dir) if checkpoints else []):
             info = tar.gettarinfo(path, arcname=path.relative_to(run_dir).as_posix())
-            if result_path_problem(info, role) is None:
+            if result_path_problem(info, role, checkpoints) is None:
                 with open(path, "rb") as f:
                     tar.addfile(info, f)
     return buf.getvalue()
+
+
+def _version_in(text: bytes | str | None) -> int:
+    """The "version" of a checkpoint manifest or high-water file (-1: none or unreadable)."""
+    try:
+        return int(json.loads(text or "")["version"])
+    except (ValueError, KeyError, TypeError):
+        return -1
+
+
+def unpack_checkpoint(data: bytes, run_dir: Path) -> bool:
+    """Write the checkpoint tar the orchestrator sent (CHECKPOINT_MEMBER_RE members only, each
+    through a temporary file; the manifest comes last) into `run_dir`, unless the checkpoint there
+    is as new (a restart on the same node whose results never came back): never backwards. The
+    high-water mark keeps the higher of the two. Returns whether anything was written."""
+    def read(path: Path) -> str | None:
+        try:
+            return path.read_text()
+        except OSError:
+            return None
+
+    with tarfile.open(fileobj=io.BytesIO(data), mode="r:") as tar:
+        members = tar.getmembers()
+        for member in members:
+            if not member.isfile() or not CHECKPOINT_MEMBER_RE.fullmatch(member.name):
+                raise ValueError(f"{member.name[:200]!r} is not a checkpoint file")
+        content = {m.name: tar.extractfile(m).read() for m in members}  # type: ignore[union-attr]
+    directory = run_dir / "checkpoints"
+    if _version_in(read(directory / "MANIFEST.json")) >= _version_in(content.get("checkpoints/MANIFEST.json")):
+        return False
+    here = read(directory / "high_water.json")
+    if _version_in(here) > _version_in(content.get("checkpoints/high_water.json")):
+        content["checkpoints/high_water.json"] = (here or "").encode()
+    for name, blob in content.items():  # in the tar's order: the manifest last
+        dest = run_dir.joinpath(*PurePosixPath(name).parts)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        tmp = dest.with_name(dest.name + ".part")
+        tmp.write_bytes(blob)
+        tmp.replace(dest)
+    return True
 
 
 def serve() -> int:
@@ -377,11 +471,19 @@ def serve() -> int:
     header = json.loads(line)
     config = header["config"]
     run_dir = Path(os.path.expanduser(header["run_dir"])).absolute()
-    try:
-        prepare_run_dir(run_dir, header["token"])
-    except RunDirError as err:
-        print(f"dvla ssh serve: {err}", file=sys.stderr, flush=True)
-        return NOT_OURS
+    in_place = bool(header.get("in_place"))  # the orchestrator's own run directory: its files stay there
+    if not in_place:
+        try:
+            prepare_run_dir(run_dir, header["token"])
+        except RunDirError as err:
+            print(f"dvla ssh serve: {err}", file=sys.stderr, flush=True)
+            return NOT_OURS
+    if header.get("checkpoint_bytes"):
+        try:
+            unpack_checkpoint(stdin.read(int(header["checkpoint_bytes"])), run_dir)
+        except (OSError, tarfile.TarError, ValueError) as err:
+            print(f"dvla ssh serve: the run's checkpoint could not be written to {run_dir}: {err}", file=sys.stderr, flush=True)
+            return 1
     config["run_dir"] = str(run_dir)
     roles_dir = run_dir / "roles"
     roles_dir.mkdir(exist_ok=True)
@@ -397,8 +499,11 @@ def serve() -> int:
     hangup = threading.Event()
 
     def watch_stdin() -> None:
+        # the file descriptor, not sys.stdin's buffered reader: a daemon thread blocked inside that
+        # reader holds its lock, and the interpreter then aborts at exit (the header was the last
+        # thing the orchestrator wrote, so the buffer holds nothing more)
         try:
-            while stdin.read(4096):
+            while os.read(stdin.fileno(), 4096):
                 pass
         except (OSError, ValueError):
             pass
@@ -430,7 +535,8 @@ def serve() -> int:
         time.sleep(0.1)
     code = child.returncode
     try:
-        stdout.write(_results_tar(run_dir, config["name"], started))
+        if not in_place:
+            stdout.write(_results_tar(run_dir, config["name"], started, writes_checkpoints(config)))
         stdout.flush()
     except (BrokenPipeError, OSError):
         pass  # the orchestrator is gone: nobody to send results to

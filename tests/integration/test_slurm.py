@@ -6,7 +6,7 @@ accounting, no cgroups), slurmctld and slurmd in the foreground, everything unde
 directory on ports of their own; no Slurm or munge file of the system is read or written. It then submits the batch
 script as docs/slurm.md tells users to, with the tiny topology as its argument, so the script's
 whole path runs for real: `scontrol show hostnames`, `dvla plan`, the `dvla doctor` preflight as
-an `srun` step, and `dvla up` as the batch step. While the job runs, `dvla status` (from outside
+an `srun` step, and `dvla up` as the batch step, which starts every role as a step of the job. While the job runs, `dvla status` (from outside
 the job) reaches the run and names every role; once it ends: the job completed with exit code
 0:0, the run reached its step budget with a final weight version, `dvla logs` reads a role's
 log, and the job's output file carries each stage. Afterwards the daemons are stopped and nothing
@@ -242,7 +242,7 @@ def test_dry_run_expands_hosts_outside_a_cluster(tmp_path: Path) -> None:
     topo = (tmp_path / "slurm-manual.topology.yaml").read_text()
     for host in ("dvla-nohost-1", "dvla-nohost-2", "dvla-nohost-3"):
         assert f"host: {host}\n        roles:" in topo, topo  # no address line
-        assert f"dvla.sbatch: {host} does not resolve here" in dry.stderr, dry.stderr
+        assert f"dvla slurm: {host} does not resolve here" in dry.stderr, dry.stderr
 
 
 @needs_scontrol
@@ -325,6 +325,7 @@ def test_sbatch_tiny_on_single_host_slurm(tmp_path: Path) -> None:
                   "this host can run its roles",  # dvla doctor, as an srun step
                   f"dvla: run tiny -> {run_dir}",  # dvla up, the batch step
                   "dvla: run tiny ended: max_env_steps"]
+        assert f"roles start as steps of Slurm job {job_id}" in text, text  # launcher: auto, inside a job
         positions = [text.find(s) for s in stages]
         assert -1 not in positions and positions == sorted(positions), f"{list(zip(stages, positions))}\n{text}"
     finally:

@@ -12,6 +12,7 @@ import typer
 from ...config import BudgetConfig, range_problems
 from ..netns import NetnsError
 from ..run import ORCHESTRATOR_LOG, ExitCode, Up, UpOptions, install_sigint, start_detached
+from ..slurm import SlurmError
 from ..ssh import SshError
 from ..view import render_table
 from ..wandb_log import open_hint
@@ -97,7 +98,7 @@ def _run_to_end(u: Up, shown_events: list[int]) -> int:
         typer.echo(f"  wandb: {open_hint(u.topo.logging.wandb, u.run_dir)}")
     try:
         code = u.run()
-    except (NetnsError, SshError) as err:  # the cluster could not be built or reached (nothing is left)
+    except (NetnsError, SshError, SlurmError) as err:  # the cluster could not be built or reached (nothing is left)
         typer.echo(f"dvla: {err}", err=True)
         return ExitCode.ROLE_FAILED
     for e in u.events[shown_events[0]:]:
