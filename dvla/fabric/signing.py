@@ -222,10 +222,12 @@ class Verifier:
             raise SignatureError("key_id", f"signed with key id {parsed.key_id.hex()}, ours is {self._kid.hex()} "
                                  f"(claimed sender {parsed.sender!r}; another run, or a rotated secret)")
         tag = self._check_tag(key_expr, bind, env, parsed)
+        if fresh:  # cheap checks first: a captured envelope with a flipped signature bit is a replay
+            self._check_fresh(parsed)
         if self._operator is not None:
             self._check_identity(parsed, tag)
         if fresh:
-            self._check_fresh(parsed)
+            self._remember(parsed)
         return Opened(parsed.sender, parsed.kind, env[parsed.payload_start: parsed.body_end], parsed.nonce)
 
     @staticmethod
@@ -267,16 +269,26 @@ class Verifier:
             raise SignatureError("bad_identity", f"signature of {parsed.sender!r} does not verify") from exc
 
     def _check_fresh(self, parsed: _Parsed) -> None:
+        """Raise stale/replay without remembering anything (the identity is not checked yet)."""
         now = self._clock()
         age = now - parsed.ts_ns
         if abs(age) > self.max_age_ns:
             raise SignatureError("stale", f"timestamp off by {age / 1e9:.3f}s (limit {self.max_age_ns / 1e9:.3f}s)")
         with self._lock:
             self._forget_older_than(now - self.max_age_ns)
-            if parsed.nonce in self._seen:
-                raise SignatureError("replay", f"nonce already seen from {parsed.sender!r}")
-            if parsed.ts_ns <= max(self._horizon.get(parsed.sender, -1), self._floor):
-                raise SignatureError("stale", f"timestamp at or before {parsed.sender!r}'s replay horizon")
+            self._check_unseen(parsed)
+
+    def _check_unseen(self, parsed: _Parsed) -> None:
+        if parsed.nonce in self._seen:
+            raise SignatureError("replay", f"nonce already seen from {parsed.sender!r}")
+        if parsed.ts_ns <= max(self._horizon.get(parsed.sender, -1), self._floor):
+            raise SignatureError("stale", f"timestamp at or before {parsed.sender!r}'s replay horizon")
+
+    def _remember(self, parsed: _Parsed) -> None:
+        """Accept the nonce of a fully verified envelope (checked again: another thread may have
+        accepted the same envelope meanwhile)."""
+        with self._lock:
+            self._check_unseen(parsed)
             self._seen[parsed.nonce] = (parsed.sender, parsed.ts_ns)
             while len(self._seen) > self.replay_window:
                 self._drop_oldest()
