@@ -79,12 +79,13 @@ class Identity:
         cert = key.sign(certificate_message(run, OPERATOR, OPERATOR, public))
         return Identity(run, OPERATOR, OPERATOR, key, cert, public)
 
-    def issue(self, kind: str, name: str) -> "Identity":
-        """A fresh identity for process `name` of `kind`, certified by this (operator) identity."""
+    def issue(self, kind: str, name: str, seed: bytes | None = None) -> "Identity":
+        """A fresh identity (or the one of the 32-byte `seed`) for process `name` of `kind`,
+        certified by this (operator) identity."""
         if self.kind != OPERATOR:
             raise IdentityError(f"{self.name} is a {self.kind}: only the operator issues identities")
         check_name("role", name)
-        key = Ed25519PrivateKey.generate()
+        key = Ed25519PrivateKey.from_private_bytes(seed) if seed is not None else Ed25519PrivateKey.generate()
         cert = self.key.sign(certificate_message(self.run, kind, name, _public_bytes(key)))
         return Identity(self.run, kind, name, key, cert, self.operator_public)
 

@@ -40,8 +40,12 @@ __all__ = [
     "new_secret",
 ]
 
-MAGIC = b"DVS2"
-"""First bytes of every signed envelope."""
+MAGIC = b"DVS3"
+"""First bytes of every signed envelope (DVS3: the payload starts 8-byte aligned; DVS2 did not pad)."""
+
+PAYLOAD_ALIGN = 8
+"""Zero bytes after the identity block put the payload at a multiple of this from the envelope's
+start, so the arrays of a received message stay aligned views of the received buffer."""
 
 MIN_SECRET_BYTES = 16
 """Shortest accepted shared secret."""
@@ -81,6 +85,10 @@ def _mac_prefix(key_expr: str, bind: bytes) -> bytes:
     return _KEY_LEN.pack(len(key)) + key + bytes((len(bind),)) + bind
 
 
+def _pad_after(header_len: int) -> int:
+    return -header_len % PAYLOAD_ALIGN
+
+
 def nonce_of(envelope: bytes | bytearray | memoryview) -> bytes:
     """The nonce of an envelope this process sealed (what a query's reply must be bound to)."""
     env = memoryview(envelope)
@@ -108,6 +116,7 @@ class Signer:
             kind = identity.kind.encode("utf-8")
             self._ident_block = bytes((len(kind),)) + kind + identity.public + identity.certificate
         self._flags = _FLAG_IDENTITY if identity is not None else 0
+        self._pad = bytes(_pad_after(_HEAD.size + len(name) + _TS_NONCE_LEN.size + len(self._ident_block)))
         self._clock = clock
 
     def seal(self, key_expr: str, payload: bytes | bytearray | memoryview, *, bind: bytes = b"") -> bytes:
@@ -117,7 +126,8 @@ class Signer:
         if size > 0xFFFFFFFF:
             raise ValueError(f"payload of {size} bytes exceeds the uint32 length field")
         header = b"".join((_HEAD.pack(MAGIC, self._kid, self._flags, self._sender_field[0]), self._sender_field[1:],
-                           _TS_NONCE_LEN.pack(self._clock(), os.urandom(NONCE_BYTES), size), self._ident_block))
+                           _TS_NONCE_LEN.pack(self._clock(), os.urandom(NONCE_BYTES), size), self._ident_block,
+                           self._pad))
         mac = hmac.new(self._secret, _mac_prefix(key_expr, bind), hashlib.sha256)
         mac.update(header)
         mac.update(payload)
@@ -174,6 +184,10 @@ def _parse(env: memoryview) -> _Parsed:
             sig_len = SIGNATURE_BYTES
     except UnicodeDecodeError as exc:
         raise SignatureError("malformed", "sender or kind is not UTF-8") from exc
+    pad = _pad_after(pos)
+    if any(env[pos: pos + pad]):
+        raise SignatureError("malformed", "non-zero padding before the payload")
+    pos += pad
     if pos + payload_len + TAG_BYTES + sig_len != len(env):
         raise SignatureError("malformed", f"payload length {payload_len} disagrees with envelope size {len(env)}")
     body_end = pos + payload_len
