@@ -141,6 +141,8 @@ class Fabric:
         self.identity = identity
         #: the one actor whose weights this process follows (None: any certified actor)
         self.weights_source: str | None = None
+        #: names whose credentials the operator revoked: whatever they sign is `unauthorized`
+        self.revoked: set[str] = set()
         self._signer = Signer(secret, name, identity=identity)
         self._verifier = Verifier(secret, max_age_s=max_age_s, run=run,
                                   operator=identity.operator_public if identity is not None else None)
@@ -238,6 +240,8 @@ class Fabric:
         """Why `sender` may not send this (None: it may, or this fabric checks no identities)."""
         if self.identity is None:
             return None
+        if sender in self.revoked:
+            return f"the credential of {kind} {sender!r} was revoked by the operator"
         return authorize(self.keys, key, sender, kind, query=query, weights_source=self.weights_source)
 
     def open_signed(self, key: str, raw: bytes, expect: type | tuple[type, ...] | None, *, query: bool = False,

@@ -19,12 +19,17 @@ from cryptography.hazmat.primitives.serialization import Encoding, NoEncryption,
 
 from .keys import KeySpace, check_name
 
-__all__ = ["IDENTITY_ENV", "OPERATOR", "Identity", "IdentityError", "authorize", "certificate_message"]
+__all__ = ["IDENTITY_ENV", "KINDS", "OPERATOR", "REVOKED_FILE", "Identity", "IdentityError", "authorize",
+           "certificate_message", "read_revoked"]
 
 #: environment variable carrying a process's credential
 IDENTITY_ENV = "DVLA_IDENTITY"
 #: kind (and name) of the operator's own identity: dvla up, dvla status / stop, the monitor
 OPERATOR = "operator"
+#: every kind of identity dvla issues
+KINDS = (OPERATOR, "actor", "replicator", "rollout", "evaluator")
+#: names whose credentials the operator revoked, one a line, in the run directory
+REVOKED_FILE = "revoked"
 _PREFIX = "dvla-id1"
 PUBLIC_BYTES = 32
 SIGNATURE_BYTES = 64
@@ -146,3 +151,12 @@ def authorize(keys: KeySpace, key: str, sender: str, kind: str, *, query: bool =
     if plane_kind == "data/traj":
         return None if sender == target and kind == "rollout" else f"trajectory on {target!r}'s key from {kind} {sender!r}"
     return None  # snapshot queries and keys dvla does not define: any certified member
+
+
+def read_revoked(run_dir: str | os.PathLike[str]) -> set[str]:
+    """The names revoked in `run_dir`'s :data:`REVOKED_FILE` (empty when there is none)."""
+    try:
+        with open(os.path.join(run_dir, REVOKED_FILE), encoding="utf-8") as f:
+            return {line.strip() for line in f if line.strip()}
+    except FileNotFoundError:
+        return set()

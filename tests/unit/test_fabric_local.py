@@ -11,6 +11,7 @@ import time
 import numpy as np
 
 from dvla.fabric import Fabric, TrajectoryChunk, plane_config
+from dvla.fabric.accounting import UNAUTHENTICATED
 from dvla.fabric.identity import Identity
 from dvla.fabric.messages import Command
 
@@ -89,6 +90,15 @@ def test_received_chunk_arrays_are_aligned_views_of_the_received_bytes():
             assert not arr.flags.owndata and not arr.flags.writeable
             assert _owner(arr) is received and np.shares_memory(arr, whole)
             assert arr.flags.aligned and (arr.ctypes.data - whole.ctypes.data) % 8 == 0
+        # Once the operator revokes the name, its chunks are refused and counted as foreign.
+        rx.revoked.add("rollout-a")
+        before = rx.accounting.get("data", "rejected.unauthorized", UNAUTHENTICATED)
+        tx.publish_traj(_chunk("rollout-a", 3))
+        deadline = time.monotonic() + 10
+        while rx.accounting.get("data", "rejected.unauthorized", UNAUTHENTICATED) == before and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert rx.accounting.get("data", "rejected.unauthorized", UNAUTHENTICATED) == before + 1
+        assert inbox.get(timeout=0.2) is None
     finally:
         tx.close()
         rx.close()
