@@ -4,6 +4,8 @@ open (tag, certificate, signature, binding) and decode with dvla's verifier and 
 
 from __future__ import annotations
 
+import hashlib
+import os
 import re
 from pathlib import Path
 
@@ -15,7 +17,8 @@ from dvla.fabric.codec import decode, encode
 from dvla.fabric.identity import Identity
 from dvla.fabric.keys import KeySpace
 from dvla.fabric.messages import Command, SnapshotRequest, WeightChunk, WeightManifest, WeightSnapshot
-from dvla.fabric.signing import Signer, Verifier
+from dvla.fabric.signing import Signer, Verifier, nonce_of
+from dvla.replication.encoding import checksum
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "wire-format.md"
 RUN = "run1"
@@ -42,33 +45,38 @@ def identities() -> tuple[Identity, Identity, Identity]:
 
 
 def manifest() -> WeightManifest:
-    from dvla.replication.encoding import checksum
-    import hashlib
-
     return WeightManifest(sender=ACTOR, version=1, base_version=-1, encoding="full", layout_hash="00" * 16,
                           n_chunks=1, total_bytes=16, checksum=checksum(PARAMS),
                           digest=hashlib.sha256(PARAMS.tobytes()).hexdigest(), numel=4, base_hash="", created_ns=TS)
 
 
-def build(monkeypatch) -> dict[str, bytes]:
-    """The vectors, sealed by dvla from the inputs the document states (nonces 00..0f, 10..1f, ...)."""
-    nonces = iter(bytes(range(16 * i, 16 * i + 16)) for i in range(16))
-    monkeypatch.setattr(signing.os, "urandom", lambda n: next(nonces))
+def _seal(signer: Signer, key: str, payload: bytes, first_nonce_byte: int, bind: bytes = b"") -> bytes:
+    """``signer.seal`` with the nonce ``first_nonce_byte, +1, ... +15`` (the only random input)."""
+    nonce = bytes(range(first_nonce_byte, first_nonce_byte + 16))
+    real = os.urandom
+    os.urandom = lambda n: nonce  # seal draws exactly one nonce, nothing else runs meanwhile
+    try:
+        return signer.seal(key, payload, bind=bind)
+    finally:
+        os.urandom = real
+
+
+def build() -> dict[str, bytes]:
+    """The vectors, sealed by dvla from the inputs the document states."""
     clock = lambda: TS  # noqa: E731
-    op, rollout, actor = identities()
+    _, rollout, actor = identities()
     out = {}
-    out["signed-command"] = Signer(SECRET, "orch", clock=clock).seal(
-        KEYS.cmd("all"), encode(Command(target="all", verb="stop", args={}, issued_ns=TS)))
+    out["signed-command"] = _seal(Signer(SECRET, "orch", clock=clock), KEYS.cmd("all"),
+                                  encode(Command(target="all", verb="stop", args={}, issued_ns=TS)), 0x00)
     query_key = KEYS.snapshot(ACTOR)
-    out["snapshot-query"] = Signer(SECRET, "r0", identity=rollout, clock=clock).seal(
-        query_key, encode(SnapshotRequest(requester="r0", have_version=-1)))
+    out["snapshot-query"] = _seal(Signer(SECRET, "r0", identity=rollout, clock=clock), query_key,
+                                  encode(SnapshotRequest(requester="r0", have_version=-1)), 0x10)
     actor_signer = Signer(SECRET, ACTOR, identity=actor, clock=clock)
-    out["weight-manifest"] = actor_signer.seal(KEYS.weights_signed(), encode(manifest()))
-    out["weight-chunk"] = actor_signer.seal(KEYS.weights_signed(), encode(
-        WeightChunk(sender=ACTOR, version=1, index=0, n_chunks=1, data=PARAMS.tobytes())))
-    bind = out["snapshot-query"][signing._HEAD.size + 2 + 8: signing._HEAD.size + 2 + 8 + 16]
-    out["snapshot-reply"] = actor_signer.seal(query_key, encode(
-        WeightSnapshot(sender=ACTOR, version=1, manifest=out["weight-manifest"], n_chunks=1, created_ns=TS)), bind=bind)
+    out["weight-manifest"] = _seal(actor_signer, KEYS.weights_signed(), encode(manifest()), 0x30)
+    out["weight-chunk"] = _seal(actor_signer, KEYS.weights_signed(), encode(
+        WeightChunk(sender=ACTOR, version=1, index=0, n_chunks=1, data=PARAMS.tobytes())), 0x40)
+    reply = WeightSnapshot(sender=ACTOR, version=1, manifest=out["weight-manifest"], n_chunks=1, created_ns=TS)
+    out["snapshot-reply"] = _seal(actor_signer, query_key, encode(reply), 0x50, bind=nonce_of(out["snapshot-query"]))
     return out
 
 
@@ -76,8 +84,8 @@ def test_the_document_holds_every_vector():
     assert set(doc_vectors()) == {"signed-command", "snapshot-query", "snapshot-reply", "weight-manifest", "weight-chunk"}
 
 
-def test_dvla_reproduces_the_documented_vectors(monkeypatch):
-    built, documented = build(monkeypatch), doc_vectors()
+def test_dvla_reproduces_the_documented_vectors():
+    built, documented = build(), doc_vectors()
     for name, data in built.items():
         assert documented.get(name, b"").hex() == data.hex(), name
 
@@ -109,11 +117,8 @@ def test_the_documented_vectors_open_and_decode():
     chunk = decode(c.payload, expect=WeightChunk)
     assert decode(m.payload) == manifest() and (m.sender, c.sender) == (ACTOR, ACTOR)
     assert np.array_equal(np.frombuffer(chunk.data, "<f4"), PARAMS)
+    opened = {"signed-command": payload, "snapshot-query": query.payload, "snapshot-reply": reply.payload,
+              "weight-manifest": m.payload, "weight-chunk": c.payload}
     for name, env in vec.items():  # every payload starts 8-byte aligned inside its envelope
-        start = len(env) - len(_payload(plain, name, env)) - 32 - (64 if env[8] & 1 else 0)
-        assert start % 8 == 0, name
-
-
-def _payload(verifier: Verifier, name: str, env: bytes) -> bytes:
-    parsed = signing._parse(memoryview(env))
-    return bytes(env[parsed.payload_start: parsed.body_end])
+        start = len(env) - len(opened[name]) - 32 - (64 if env[8] & 1 else 0)
+        assert start % 8 == 0 and env[start:start + 3] == b"\x83\xa1\x76", name  # {"v": ...
