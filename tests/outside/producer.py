@@ -6,7 +6,9 @@ is checked: tag bound to the query's nonce, the actor's certificate against the 
 the credential, its signature), then publishes chunks of a Pendulum-shaped task (obs 3,
 action 1) on its own trajectory key. Prints one JSON line: the version seen and chunks sent.
 
-usage: producer.py RUN CTRL_ENDPOINT DATA_ENDPOINT SECRET_FILE CREDENTIAL_FILE ACTOR N_CHUNKS T WAIT_S
+usage: producer.py RUN CTRL_ENDPOINT DATA_ENDPOINT SECRET_FILE CREDENTIAL_FILE ACTOR N_CHUNKS T WAIT_S [DATA_MODE]
+
+DATA_MODE: `peer` (default: a peer of the actor's data listener) or `client` (through a router).
 """
 
 from __future__ import annotations
@@ -152,10 +154,11 @@ def _n(shape: tuple[int, ...]) -> int:
 
 def main() -> None:
     run, ctrl, data, secret_file, cred_file, actor, n_chunks, t, wait_s = sys.argv[1:10]
+    data_mode = sys.argv[10] if len(sys.argv) > 10 else "peer"
     secret = secret_from_text(open(secret_file, "rb").read())
     cred = Credential(open(cred_file).read())
     out = {"version": -1, "sent": 0, "replies": 0}
-    with zenoh.open(config("client", ctrl)) as ctrl_s, zenoh.open(config("peer", data)) as data_s:
+    with zenoh.open(config("client", ctrl)) as ctrl_s, zenoh.open(config(data_mode, data)) as data_s:
         key = f"dvla/{run}/ctrl/snapshot/{actor}"
         deadline = time.monotonic() + float(wait_s)
         while out["version"] < 1 and time.monotonic() < deadline:
