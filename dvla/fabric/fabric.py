@@ -26,6 +26,7 @@ from .codec import CodecError, decode, encode, encode_into
 from .identity import Identity, authorize
 from .keys import KeySpace
 from .signing import SignatureError, Signer, Verifier, nonce_of
+from .zconfig import MAX_MESSAGE_SIZE_KEY
 
 log = logging.getLogger("dvla.fabric")
 
@@ -140,6 +141,8 @@ class Fabric:
         self.identity = identity
         #: the one actor whose weights this process follows (None: any certified actor)
         self.weights_source: str | None = None
+        #: names whose credentials the operator revoked: whatever they sign is `unauthorized`
+        self.revoked: set[str] = set()
         self._signer = Signer(secret, name, identity=identity)
         self._verifier = Verifier(secret, max_age_s=max_age_s, run=run,
                                   operator=identity.operator_public if identity is not None else None)
@@ -149,6 +152,9 @@ class Fabric:
         self._pub_lock = threading.Lock()
         self._traj_lock = threading.Lock()
         self._traj_buf = bytearray()
+        #: the largest envelope each plane sends: the plane's own reassembly cap, which every
+        #: session of a run shares; Zenoh would drop a larger one at the receiver, uncounted
+        self.send_cap = {CTRL: _message_cap(ctrl_conf), DATA: _message_cap(data_conf) if data_conf is not None else 0}
         self.ctrl = _open_retrying(ctrl_conf, open_timeout_s, "ctrl")
         try:
             self.data = _open_retrying(data_conf, open_timeout_s, "data") if data_conf is not None else None
@@ -168,6 +174,8 @@ class Fabric:
         with self._traj_lock:  # one reused buffer for the encoding; the envelope is a new one
             n = encode_into(chunk, self._traj_buf)
             envelope = self._signer.seal(key, memoryview(self._traj_buf)[:n])
+        if self._oversize(DATA, key, envelope):
+            return 0
         self._publisher(DATA, key).put(envelope)
         self.accounting.sent(DATA, len(envelope), self.name)
         return len(envelope)
@@ -215,6 +223,15 @@ class Fabric:
         self._declared.append(self.data.declare_subscriber(key, _on_receive_thread(_receive)))
         return inbox
 
+    def _oversize(self, plane: str, key: str, envelope: bytes) -> bool:
+        """True (counted as ``dropped.oversize``, not sent) when `envelope` exceeds the plane's cap."""
+        if len(envelope) <= self.send_cap[plane]:
+            return False
+        self.accounting.dropped(plane, "oversize", KeySpace.last(key))
+        _warn_limited(f"not sent on {_short(key)}: envelope of {len(envelope)} bytes > the {plane} plane's "
+                      f"max_message_size {self.send_cap[plane]} (receivers would drop it)")
+        return True
+
     # ------------------------------------------------------------------ ctrl plane
     def seal(self, key: str, msg: Any) -> bytes:
         return self._signer.seal(key, encode(msg))
@@ -223,6 +240,8 @@ class Fabric:
         """Why `sender` may not send this (None: it may, or this fabric checks no identities)."""
         if self.identity is None:
             return None
+        if sender in self.revoked:
+            return f"the credential of {kind} {sender!r} was revoked by the operator"
         return authorize(self.keys, key, sender, kind, query=query, weights_source=self.weights_source)
 
     def open_signed(self, key: str, raw: bytes, expect: type | tuple[type, ...] | None, *, query: bool = False,
@@ -256,6 +275,8 @@ class Fabric:
 
     def publish_sealed(self, key: str, envelope: bytes, *, weights: bool = False) -> int:
         """Send an already signed envelope on `key` unchanged (a relay forwarding weights)."""
+        if self._oversize(CTRL, key, envelope):
+            return 0
         kind = "weights" if weights else "ctrl"
         pub = self._publisher(CTRL, key, kind)
         pub.put(envelope)
@@ -509,6 +530,10 @@ _warn_lock = threading.Lock()
 
 def _short(key: str, limit: int = 120) -> str:
     return key if len(key) <= limit else key[:limit] + "..."
+
+
+def _message_cap(conf: zenoh.Config) -> int:
+    return int(json.loads(conf.get_json(MAX_MESSAGE_SIZE_KEY)))
 
 
 def _warn_limited(text: str, every_s: float = 5.0) -> None:

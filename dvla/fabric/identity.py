@@ -19,12 +19,17 @@ from cryptography.hazmat.primitives.serialization import Encoding, NoEncryption,
 
 from .keys import KeySpace, check_name
 
-__all__ = ["IDENTITY_ENV", "OPERATOR", "Identity", "IdentityError", "authorize", "certificate_message"]
+__all__ = ["IDENTITY_ENV", "KINDS", "OPERATOR", "REVOKED_FILE", "Identity", "IdentityError", "authorize",
+           "certificate_message", "read_revoked"]
 
 #: environment variable carrying a process's credential
 IDENTITY_ENV = "DVLA_IDENTITY"
 #: kind (and name) of the operator's own identity: dvla up, dvla status / stop, the monitor
 OPERATOR = "operator"
+#: every kind of identity dvla issues
+KINDS = (OPERATOR, "actor", "replicator", "rollout", "evaluator")
+#: names whose credentials the operator revoked, one a line, in the run directory
+REVOKED_FILE = "revoked"
 _PREFIX = "dvla-id1"
 PUBLIC_BYTES = 32
 SIGNATURE_BYTES = 64
@@ -79,12 +84,13 @@ class Identity:
         cert = key.sign(certificate_message(run, OPERATOR, OPERATOR, public))
         return Identity(run, OPERATOR, OPERATOR, key, cert, public)
 
-    def issue(self, kind: str, name: str) -> "Identity":
-        """A fresh identity for process `name` of `kind`, certified by this (operator) identity."""
+    def issue(self, kind: str, name: str, seed: bytes | None = None) -> "Identity":
+        """A fresh identity (or the one of the 32-byte `seed`) for process `name` of `kind`,
+        certified by this (operator) identity."""
         if self.kind != OPERATOR:
             raise IdentityError(f"{self.name} is a {self.kind}: only the operator issues identities")
         check_name("role", name)
-        key = Ed25519PrivateKey.generate()
+        key = Ed25519PrivateKey.from_private_bytes(seed) if seed is not None else Ed25519PrivateKey.generate()
         cert = self.key.sign(certificate_message(self.run, kind, name, _public_bytes(key)))
         return Identity(self.run, kind, name, key, cert, self.operator_public)
 
@@ -145,3 +151,12 @@ def authorize(keys: KeySpace, key: str, sender: str, kind: str, *, query: bool =
     if plane_kind == "data/traj":
         return None if sender == target and kind == "rollout" else f"trajectory on {target!r}'s key from {kind} {sender!r}"
     return None  # snapshot queries and keys dvla does not define: any certified member
+
+
+def read_revoked(run_dir: str | os.PathLike[str]) -> set[str]:
+    """The names revoked in `run_dir`'s :data:`REVOKED_FILE` (empty when there is none)."""
+    try:
+        with open(os.path.join(run_dir, REVOKED_FILE), encoding="utf-8") as f:
+            return {line.strip() for line in f if line.strip()}
+    except FileNotFoundError:
+        return set()

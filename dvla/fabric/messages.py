@@ -21,7 +21,7 @@ import numpy as np
 
 from dvla.fabric.errors import CodecError
 
-COMMAND_VERBS = ("stop", "checkpoint", "pause", "resume")
+COMMAND_VERBS = ("stop", "checkpoint", "pause", "resume", "revoke")
 """Verbs a :class:`Command` may carry."""
 
 ROLE_STATES = ("starting", "running", "stopping", "error")
@@ -347,6 +347,9 @@ class Command(Message):
 
     def validate(self) -> None:
         _require(self.verb in COMMAND_VERBS, "schema", f"verb {self.verb!r} not in {COMMAND_VERBS}")
+        if self.verb == "revoke":
+            name = self.args.get("name")
+            _require(isinstance(name, str) and bool(name), "schema", f"revoke needs args.name (a role name), got {name!r}")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -40,8 +40,12 @@ __all__ = [
     "new_secret",
 ]
 
-MAGIC = b"DVS2"
-"""First bytes of every signed envelope."""
+MAGIC = b"DVS3"
+"""First bytes of every signed envelope (DVS3: the payload starts 8-byte aligned; DVS2 did not pad)."""
+
+PAYLOAD_ALIGN = 8
+"""Zero bytes after the identity block put the payload at a multiple of this from the envelope's
+start, so the arrays of a received message stay aligned views of the received buffer."""
 
 MIN_SECRET_BYTES = 16
 """Shortest accepted shared secret."""
@@ -81,6 +85,10 @@ def _mac_prefix(key_expr: str, bind: bytes) -> bytes:
     return _KEY_LEN.pack(len(key)) + key + bytes((len(bind),)) + bind
 
 
+def _pad_after(header_len: int) -> int:
+    return -header_len % PAYLOAD_ALIGN
+
+
 def nonce_of(envelope: bytes | bytearray | memoryview) -> bytes:
     """The nonce of an envelope this process sealed (what a query's reply must be bound to)."""
     env = memoryview(envelope)
@@ -108,6 +116,7 @@ class Signer:
             kind = identity.kind.encode("utf-8")
             self._ident_block = bytes((len(kind),)) + kind + identity.public + identity.certificate
         self._flags = _FLAG_IDENTITY if identity is not None else 0
+        self._pad = bytes(_pad_after(_HEAD.size + len(name) + _TS_NONCE_LEN.size + len(self._ident_block)))
         self._clock = clock
 
     def seal(self, key_expr: str, payload: bytes | bytearray | memoryview, *, bind: bytes = b"") -> bytes:
@@ -117,7 +126,8 @@ class Signer:
         if size > 0xFFFFFFFF:
             raise ValueError(f"payload of {size} bytes exceeds the uint32 length field")
         header = b"".join((_HEAD.pack(MAGIC, self._kid, self._flags, self._sender_field[0]), self._sender_field[1:],
-                           _TS_NONCE_LEN.pack(self._clock(), os.urandom(NONCE_BYTES), size), self._ident_block))
+                           _TS_NONCE_LEN.pack(self._clock(), os.urandom(NONCE_BYTES), size), self._ident_block,
+                           self._pad))
         mac = hmac.new(self._secret, _mac_prefix(key_expr, bind), hashlib.sha256)
         mac.update(header)
         mac.update(payload)
@@ -174,6 +184,10 @@ def _parse(env: memoryview) -> _Parsed:
             sig_len = SIGNATURE_BYTES
     except UnicodeDecodeError as exc:
         raise SignatureError("malformed", "sender or kind is not UTF-8") from exc
+    pad = _pad_after(pos)
+    if any(env[pos: pos + pad]):
+        raise SignatureError("malformed", "non-zero padding before the payload")
+    pos += pad
     if pos + payload_len + TAG_BYTES + sig_len != len(env):
         raise SignatureError("malformed", f"payload length {payload_len} disagrees with envelope size {len(env)}")
     body_end = pos + payload_len
@@ -222,10 +236,12 @@ class Verifier:
             raise SignatureError("key_id", f"signed with key id {parsed.key_id.hex()}, ours is {self._kid.hex()} "
                                  f"(claimed sender {parsed.sender!r}; another run, or a rotated secret)")
         tag = self._check_tag(key_expr, bind, env, parsed)
+        if fresh:  # cheap checks first: a captured envelope with a flipped signature bit is a replay
+            self._check_fresh(parsed)
         if self._operator is not None:
             self._check_identity(parsed, tag)
         if fresh:
-            self._check_fresh(parsed)
+            self._remember(parsed)
         return Opened(parsed.sender, parsed.kind, env[parsed.payload_start: parsed.body_end], parsed.nonce)
 
     @staticmethod
@@ -267,16 +283,26 @@ class Verifier:
             raise SignatureError("bad_identity", f"signature of {parsed.sender!r} does not verify") from exc
 
     def _check_fresh(self, parsed: _Parsed) -> None:
+        """Raise stale/replay without remembering anything (the identity is not checked yet)."""
         now = self._clock()
         age = now - parsed.ts_ns
         if abs(age) > self.max_age_ns:
             raise SignatureError("stale", f"timestamp off by {age / 1e9:.3f}s (limit {self.max_age_ns / 1e9:.3f}s)")
         with self._lock:
             self._forget_older_than(now - self.max_age_ns)
-            if parsed.nonce in self._seen:
-                raise SignatureError("replay", f"nonce already seen from {parsed.sender!r}")
-            if parsed.ts_ns <= max(self._horizon.get(parsed.sender, -1), self._floor):
-                raise SignatureError("stale", f"timestamp at or before {parsed.sender!r}'s replay horizon")
+            self._check_unseen(parsed)
+
+    def _check_unseen(self, parsed: _Parsed) -> None:
+        if parsed.nonce in self._seen:
+            raise SignatureError("replay", f"nonce already seen from {parsed.sender!r}")
+        if parsed.ts_ns <= max(self._horizon.get(parsed.sender, -1), self._floor):
+            raise SignatureError("stale", f"timestamp at or before {parsed.sender!r}'s replay horizon")
+
+    def _remember(self, parsed: _Parsed) -> None:
+        """Accept the nonce of a fully verified envelope (checked again: another thread may have
+        accepted the same envelope meanwhile)."""
+        with self._lock:
+            self._check_unseen(parsed)
             self._seen[parsed.nonce] = (parsed.sender, parsed.ts_ns)
             while len(self._seen) > self.replay_window:
                 self._drop_oldest()

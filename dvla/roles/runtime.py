@@ -22,7 +22,7 @@ from typing import Any, Protocol
 
 from ..config import RoleConfig
 from ..fabric import Fabric, load_secret, plane_config
-from ..fabric.identity import IDENTITY_ENV, Identity, IdentityError
+from ..fabric.identity import IDENTITY_ENV, Identity, IdentityError, read_revoked
 from ..fabric.messages import ArraySpec, ChunkSpec, Command, RoleStatus
 from ..fabric.zconfig import plane_max_message_size
 from ..learn.spec import EnvSetupError, PolicySetupError
@@ -126,6 +126,8 @@ class RoleHost:
         if cmd.verb == "stop":
             self.state = "stopping"
             self.swimlane.stop()
+        elif cmd.verb == "revoke":
+            self.fabric.revoked.add(str(cmd.args["name"]))
         else:
             handler = getattr(self.role, "on_command", None)
             if handler is not None:
@@ -159,6 +161,7 @@ class RoleHost:
 
     def run(self) -> ExitStatus:
         keys = self.fabric.keys
+        self.fabric.revoked |= read_revoked(self.cfg.run_dir)  # revoked before this start (`dvla identity revoke`)
         # Wiring of the shared parts; each role wires its own data flow in build().
         self.fabric.on_ctrl(keys.cmd(self.cfg.name), Command, self._on_command)  # commands for this role
         self.fabric.on_ctrl(keys.cmd("all"), Command, self._on_command)  # commands for every role

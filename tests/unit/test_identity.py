@@ -66,7 +66,7 @@ def test_receiver_requiring_identities_refuses_the_rest(op):
     env[-1] ^= 1  # the identity signature
     assert reason(verifier, key, bytes(env)) == "bad_identity"
     env = bytearray(Signer(SECRET, "x", identity=op).seal(key, b"c"))
-    env[-64 - 32 - 2] ^= 1  # a certificate byte: also covered by the HMAC tag
+    env[bytes(env).index(op.certificate) + 5] ^= 1  # a certificate byte: also covered by the HMAC tag
     assert reason(verifier, key, bytes(env)) in ("bad_signature", "bad_identity")
     assert reason(verifier, key, Signer(SECRET, "x", identity=op).seal(key, b"c")) is None
 
@@ -140,3 +140,22 @@ def test_fuzz_identity_envelopes_raise_only_signature_errors(index, xor):
 @given(st.integers(0, len(_IDENT_ENV)), st.binary(max_size=80))
 def test_fuzz_truncated_or_extended_identity_envelopes(cut, tail):
     _only_signature_errors(_IDENT_ENV[:cut] + tail)
+
+
+def test_a_captured_envelope_with_a_flipped_signature_bit_counts_as_a_replay(op):
+    # Without credentials, flipping one bit of the Ed25519 signature of an envelope already
+    # accepted must not make receivers count bad_identity: the cheaper replay check comes first.
+    key = KEYS.traj("r0")
+    verifier = Verifier(SECRET, operator=op.operator_public, run=RUN)
+    env = Signer(SECRET, "r0", identity=op.issue("rollout", "r0")).seal(key, b"chunk")
+    assert reason(verifier, key, env) is None
+    flipped = bytearray(env)
+    flipped[-1] ^= 1
+    assert reason(verifier, key, bytes(flipped)) == "replay"
+    assert reason(verifier, key, env) == "replay"
+    # Seen first, a bad signature is bad_identity and leaves the nonce free for the real one.
+    fresh = Signer(SECRET, "r0", identity=op.issue("rollout", "r0")).seal(key, b"chunk")
+    bad = bytearray(fresh)
+    bad[-1] ^= 1
+    assert reason(verifier, key, bytes(bad)) == "bad_identity"
+    assert reason(verifier, key, fresh) is None
