@@ -173,7 +173,7 @@ def _open_fabric(name: str, secret: bytes, *, ctrl: Any, data: Any = None, share
                  auth: str = "identity", identity: str | None = None) -> Any:
     """A bench fabric; `auth` "identity" (as under `dvla up`: HMAC and the sender's certified
     Ed25519 signature, `identity` its credential text), "hmac" (the run secret only) or "none"."""
-    from dvla.fabric import Fabric
+    from dvla.fabric import CTRL, DATA, Fabric
     from dvla.fabric.identity import Identity
 
     ident = Identity.from_text(identity) if auth == "identity" and identity else None
@@ -184,6 +184,7 @@ def _open_fabric(name: str, secret: bytes, *, ctrl: Any, data: Any = None, share
     if shared:
         # Baseline only: both planes on one session, hence one link per peer.
         fabric.data = fabric.ctrl
+        fabric.send_cap = {**fabric.send_cap, DATA: fabric.send_cap[CTRL]}  # the one session's cap
     return fabric
 
 
