@@ -19,7 +19,7 @@ import numpy as np
 from dvla.config import LIBERO_ENV, TaskConfig, env_group_sizes
 
 from ..stats import wilson_interval
-from .spec import ArraySpec, ChunkSpec, EnvSetupError, ObsSpec, StepResult, structured_spec
+from .spec import ArraySpec, ChunkSpec, EnvSetupError, ObsSpec, StepLater, StepResult, structured_spec
 
 __all__ = [
     "make_env", "EnvSetupError", "ArraySpec", "ObsSpec", "EnvGroup", "StepResult", "run_eval_episodes",
@@ -222,7 +222,7 @@ def _single_space(env: Any, name: str) -> Any:
     return space if space is not None else getattr(env, name)
 
 
-class EnvGroup:
+class EnvGroup(StepLater):
     """``n`` envs of one task stepped one after another in this process.
 
     Seeding: env ``i`` plays its ``k``-th episode (counted from the last seeded reset) with seed
@@ -305,7 +305,6 @@ class EnvGroup:
         self._episode_seeds = np.zeros(n, dtype=np.int64)
         self._succeeded = np.zeros(n, dtype=bool)
         self._obs: dict[str, np.ndarray] | None = None
-        self._pending: Any = None
 
     def _instruction_tokens(self, env: Any, i: int) -> np.ndarray:
         """Tokens of env i's instruction: ``task.instruction``, else the env's own (LIBERO: its
@@ -434,18 +433,6 @@ class EnvGroup:
         return StepResult(
             self._out(next_obs, copy=True), reward, terminated, truncated, self._out(final_obs), success, done
         )
-
-    def step_async(self, actions: Any) -> None:
-        """Hand over the next step's actions; :meth:`step_wait` plays them (here, in the caller's
-        thread: a group of worker processes starts stepping at once, dvla/learn/simworkers.py)."""
-        self._pending = actions
-
-    def step_wait(self) -> StepResult:
-        """The result of the actions given to :meth:`step_async`."""
-        actions, self._pending = self._pending, None
-        if actions is None:
-            raise RuntimeError("step_wait() without step_async()")
-        return self.step(actions)
 
     def close(self) -> None:
         for env in self._envs:

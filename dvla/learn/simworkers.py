@@ -37,7 +37,7 @@ import numpy as np
 
 from dvla.config import TaskConfig
 
-from .spec import ArraySpec, EnvSetupError, ObsSpec, StepResult
+from .spec import EnvSetupError, ObsSpec, StepResult
 
 __all__ = ["SimWorkers", "WorkerEnvGroup", "SimWorkerError", "split_envs", "auto_workers", "STAT_FIELDS"]
 
@@ -96,6 +96,14 @@ def _views(buf: Any, layout: dict[str, tuple[int, tuple, str]]) -> dict[str, np.
     return {name: np.ndarray(shape, dtype=dtype, buffer=buf, offset=off) for name, (off, shape, dtype) in layout.items()}
 
 
+def describe_worker(index: int, pid: int, parts: list[tuple[int, int]], gid: int | None = None) -> str:
+    """``sim worker 1 (pid 4242, envs 2-3 of group 0)``: a worker and the envs it holds (of group
+    ``gid`` only, when given), as every error about it names it."""
+    held = [(g, f, c) for g, (f, c) in enumerate(parts) if c and (gid is None or g == gid)]
+    envs = ", ".join(f"envs {f}-{f + c - 1} of group {g}" for g, f, c in held) or "no envs"
+    return f"sim worker {index} (pid {pid}, {envs})"
+
+
 @dataclass
 class _Worker:
     index: int
@@ -105,9 +113,7 @@ class _Worker:
     parts: list[tuple[int, int]]
 
     def describe(self, gid: int | None = None) -> str:
-        held = [(g, f, c) for g, (f, c) in enumerate(self.parts) if c and (gid is None or g == gid)]
-        envs = ", ".join(f"envs {f}-{f + c - 1} of group {g}" for g, f, c in held) or "no envs"
-        return f"sim worker {self.index} (pid {self.proc.pid}, {envs})"
+        return describe_worker(self.index, self.proc.pid, self.parts, gid)
 
     def died(self) -> str:
         code = self.proc.poll()
@@ -127,9 +133,8 @@ class SimWorkers:
                  label: str = "") -> None:
         if workers < 1:
             raise ValueError(f"sim workers must be >= 1, got {workers}")
-        slices = [split_envs(n, workers, group_size, g) for g, n in enumerate(sizes)]
-        # a worker without envs in any group would only cost memory
-        workers = min(workers, max(sum(1 for _, c in s if c) for s in slices))
+        # no more workers than the largest group has whole units: the others would hold no env
+        workers = min(workers, max(n // group_size for n in sizes))
         slices = [split_envs(n, workers, group_size, g) for g, n in enumerate(sizes)]
         self.task, self.sizes = task, list(sizes)
         #: shown in the workers' command lines (``ps``, ``pgrep -f RUN_DIR``): whose workers they are
@@ -347,7 +352,8 @@ def _serve(conn: Connection, memfd: int) -> None:
 
     setup = conn.recv()
     task, index = setup["task"], setup["index"]
-    label = lambda g=None: _Worker(index, _Proc(os.getpid()), conn, [(f, c) for f, c, _, _ in setup["parts"]]).describe(g)  # noqa: E731
+    parts = [(f, c) for f, c, _, _ in setup["parts"]]
+    label = lambda g=None: describe_worker(index, os.getpid(), parts, g)  # noqa: E731
     groups: dict[int, EnvGroup] = {}
     try:
         for g, (first, count, total, seed) in enumerate(setup["parts"]):
@@ -415,16 +421,6 @@ def _serve(conn: Connection, memfd: int) -> None:
         stats[0] += time.perf_counter() - t1
         stats[2] += time.process_time() - c1  # the renderer's threads included
         conn.send_bytes(b"D" + str(g).encode())
-
-
-@dataclass
-class _Proc:
-    """Stands in for a Popen where a worker names itself."""
-
-    pid: int
-
-    def poll(self) -> None:
-        return None
 
 
 def _line(err: BaseException) -> str:

@@ -11,7 +11,8 @@ import numpy as np
 
 from ..fabric.messages import ArraySpec, ChunkSpec
 
-__all__ = ["ArraySpec", "ChunkSpec", "ObsSpec", "EnvSetupError", "PolicySetupError", "StepResult", "structured_spec"]
+__all__ = ["ArraySpec", "ChunkSpec", "ObsSpec", "EnvSetupError", "PolicySetupError", "StepResult", "StepLater",
+           "structured_spec"]
 
 
 class EnvSetupError(RuntimeError):
@@ -49,6 +50,25 @@ class StepResult:
     success: np.ndarray
     #: the episode ended at this step and the env was reset, bool [n]
     episode_done: np.ndarray
+
+
+class StepLater:
+    """``step_async(actions)`` then ``step_wait()`` for an env group that steps in the caller's
+    thread: the actions are kept and played by ``step_wait``. (Simulator worker processes start
+    stepping at ``step_async`` instead: dvla/learn/simworkers.py.)"""
+
+    _pending: Any = None
+
+    def step_async(self, actions: Any) -> None:
+        """Hand over the next step's actions; :meth:`step_wait` plays them."""
+        self._pending = actions
+
+    def step_wait(self) -> StepResult:
+        """The result of the actions given to :meth:`step_async`."""
+        actions, self._pending = self._pending, None
+        if actions is None:
+            raise RuntimeError("step_wait() without step_async()")
+        return self.step(actions)  # type: ignore[attr-defined]  (the group's own step)
 
 
 def structured_spec(space: Any, n_tokens: int, vocab: int) -> ObsSpec:

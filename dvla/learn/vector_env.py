@@ -21,7 +21,7 @@ import torch
 from dvla.config import TaskConfig
 
 from ..fabric.messages import TrajectoryChunk, chunk_arrays, nest
-from .spec import ArraySpec, ChunkSpec, ObsSpec, StepResult, structured_spec
+from .spec import ArraySpec, ChunkSpec, ObsSpec, StepLater, StepResult, structured_spec
 
 __all__ = ["VectorEnvGroup", "make_vector_env", "DeviceChunk"]
 
@@ -65,7 +65,7 @@ def _batched(x: Any, n: int, device: torch.device, dtype: torch.dtype) -> torch.
     return torch.as_tensor(x, device=device).reshape(n).to(dtype)
 
 
-class VectorEnvGroup:
+class VectorEnvGroup(StepLater):
     """``n`` envs in one simulator scene; see the module docstring.
 
     ``venv`` is a ``ManiSkillVectorEnv``-like object (``reset(seed=..., options={"env_idx":
@@ -122,7 +122,6 @@ class VectorEnvGroup:
         self._episode_seeds = np.full(n, -1, dtype=np.int64)
         self._succeeded = torch.zeros(n, dtype=torch.bool, device=self.device)
         self._obs: Any = None
-        self._pending: Any = None
 
     @property
     def obs_dim(self) -> int | None:
@@ -220,16 +219,6 @@ class VectorEnvGroup:
             obs = self._reset_ended(done)
         self._obs = obs
         return StepResult(obs, reward, terminated, truncated, final_obs, success, done)
-
-    def step_async(self, actions: Any) -> None:
-        """As :meth:`EnvGroup.step_async <dvla.learn.envs.EnvGroup.step_async>`: :meth:`step_wait` steps the scene."""
-        self._pending = actions
-
-    def step_wait(self) -> Any:
-        actions, self._pending = self._pending, None
-        if actions is None:
-            raise RuntimeError("step_wait() without step_async()")
-        return self.step(actions)
 
     def close(self) -> None:
         venv, self._venv = getattr(self, "_venv", None), None

@@ -74,7 +74,70 @@ def _free_port_pair() -> int:
     raise RuntimeError("no free port pair")
 
 
-class MultiNodeSlurm:
+class SlurmDaemons:
+    """What every test cluster has: a temporary directory (not pytest's tmp_path: munged wants every
+    directory above its socket searchable by all), a munged on its own socket, the daemons started
+    with :meth:`_spawn` and waited for with :meth:`_wait`, clients run with :meth:`run`."""
+
+    def __init__(self, prefix: str) -> None:
+        self.root = Path(tempfile.mkdtemp(prefix=prefix))
+        self.root.chmod(0o755)
+        self.socket = self.root / "munge" / "munge.socket"
+        self.conf = self.root / "slurm.conf"
+        self.daemons: dict[str, subprocess.Popen] = {}
+
+    def env(self, **extra: str) -> dict[str, str]:
+        """The environment of a Slurm client of this cluster."""
+        return client_env(SLURM_CONF=str(self.conf), PATH=SEARCH_PATH, **extra)
+
+    def run(self, *cmd: str, timeout: float = 30, **kw) -> subprocess.CompletedProcess:
+        return subprocess.run([tool(cmd[0]), *cmd[1:]], capture_output=True, text=True, env=self.env(),
+                              timeout=timeout, **kw)
+
+    def _start_munge(self) -> None:
+        keydir, sockdir = self.root / "munge-key", self.socket.parent
+        keydir.mkdir(mode=0o700)
+        sockdir.mkdir(mode=0o755)
+        key = keydir / "munge.key"
+        key.write_bytes(os.urandom(1024))
+        key.chmod(0o400)
+        self._spawn("munged", [tool("munged"), "--foreground", f"--key-file={key}", f"--socket={self.socket}",
+                               f"--pid-file={sockdir}/munged.pid", f"--log-file={keydir}/munged.log",
+                               f"--seed-file={keydir}/munged.seed"])
+        self._wait(self.socket.exists, 15, "munged never created its socket")
+
+    def _spawn(self, name: str, cmd: list[str]) -> None:
+        with open(self.root / f"{name}.out", "wb") as out:
+            self.daemons[name] = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=self.env())
+
+    def _wait(self, ready, timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            dead = [n for n, p in self.daemons.items() if p.poll() is not None]
+            if dead:
+                raise RuntimeError(f"{dead[0]} exited: {tail(self.root / f'{dead[0]}.out')}\n{self.logs()}")
+            if ready():
+                return
+            time.sleep(0.5)
+        raise RuntimeError(f"{what} within {timeout:.0f} s\n{self.logs()}")
+
+    def logs(self, n: int = 20) -> str:
+        files = sorted(self.root.glob("*.out")) + sorted(self.root.glob("*.log"))
+        return "\n".join(f"--- {p.name}\n{tail(p, n)}" for p in files)
+
+    def jobs(self, *job_id: str) -> list[dict[str, str]]:
+        """`scontrol show job -o`'s fields of every job, or of one (no accounting database:
+        slurmctld's own records, kept for MinJobAge after a job ends)."""
+        out = self.run("scontrol", "show", "job", "-o", *job_id).stdout
+        return [dict(f.split("=", 1) for f in line.split() if "=" in f)
+                for line in out.splitlines() if "JobId=" in line]
+
+    def job(self, job_id: str) -> dict[str, str]:
+        found = self.jobs(job_id)
+        return found[0] if found else {}
+
+
+class MultiNodeSlurm(SlurmDaemons):
     """munged, slurmctld and `n` slurmd's, each in a network namespace, under one temporary directory.
 
     `switches` groups the nodes (by index) under leaf switches of a `topology/tree`."""
@@ -89,22 +152,9 @@ class MultiNodeSlurm:
         self.gateway = f"10.79.{self.subnet}.1"
         self.addresses = {node: f"10.79.{self.subnet}.{10 + i}" for i, node in enumerate(self.nodes)}
         self.netns = {node: f"dvs{self.tag}n{i}" for i, node in enumerate(self.nodes)}
-        # Not pytest's tmp_path: munged wants every directory above its socket searchable by all.
-        self.root = Path(tempfile.mkdtemp(prefix="dvla-slurm-mn-"))
-        self.root.chmod(0o755)
-        self.socket = self.root / "munge" / "munge.socket"
-        self.conf = self.root / "slurm.conf"
-        self.daemons: dict[str, subprocess.Popen] = {}
+        super().__init__("dvla-slurm-mn-")
         self.made_netns: list[str] = []
         self.made_bridge = False
-
-    def env(self, **extra: str) -> dict[str, str]:
-        """The environment of a Slurm client of this cluster."""
-        return client_env(SLURM_CONF=str(self.conf), PATH=SEARCH_PATH, **extra)
-
-    def run(self, *cmd: str, timeout: float = 30, **kw) -> subprocess.CompletedProcess:
-        return subprocess.run([tool(cmd[0]), *cmd[1:]], capture_output=True, text=True, env=self.env(),
-                              timeout=timeout, **kw)
 
     # -- start ---------------------------------------------------------------------------------
 
@@ -185,48 +235,7 @@ class MultiNodeSlurm:
                          ["route", "add", "default", "via", self.gateway]):
                 subprocess.run([ip, "-n", ns, *args], check=True)
 
-    def _start_munge(self) -> None:
-        keydir, sockdir = self.root / "munge-key", self.socket.parent
-        keydir.mkdir(mode=0o700)
-        sockdir.mkdir(mode=0o755)
-        key = keydir / "munge.key"
-        key.write_bytes(os.urandom(1024))
-        key.chmod(0o400)
-        self._spawn("munged", [tool("munged"), "--foreground", f"--key-file={key}", f"--socket={self.socket}",
-                               f"--pid-file={sockdir}/munged.pid", f"--log-file={keydir}/munged.log",
-                               f"--seed-file={keydir}/munged.seed"])
-        self._wait(self.socket.exists, 15, "munged never created its socket")
-
-    def _spawn(self, name: str, cmd: list[str]) -> None:
-        with open(self.root / f"{name}.out", "wb") as out:
-            self.daemons[name] = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=self.env())
-
-    def _wait(self, ready, timeout: float, what: str) -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            dead = [n for n, p in self.daemons.items() if p.poll() is not None]
-            if dead:
-                raise RuntimeError(f"{dead[0]} exited: {tail(self.root / f'{dead[0]}.out')}\n{self.logs()}")
-            if ready():
-                return
-            time.sleep(0.5)
-        raise RuntimeError(f"{what} within {timeout:.0f} s\n{self.logs()}")
-
-    def logs(self, n: int = 20) -> str:
-        files = sorted(self.root.glob("*.out")) + sorted(self.root.glob("*.log"))
-        return "\n".join(f"--- {p.name}\n{tail(p, n)}" for p in files)
-
     # -- jobs ----------------------------------------------------------------------------------
-
-    def jobs(self, *job_id: str) -> list[dict[str, str]]:
-        """`scontrol show job -o`'s fields of every job, or of one."""
-        out = self.run("scontrol", "show", "job", "-o", *job_id).stdout
-        return [dict(f.split("=", 1) for f in line.split() if "=" in f)
-                for line in out.splitlines() if "JobId=" in line]
-
-    def job(self, job_id: str) -> dict[str, str]:
-        found = self.jobs(job_id)
-        return found[0] if found else {}
 
     def steps(self, job_id: str) -> list[dict[str, str]]:
         """The job's running steps, `squeue -s`: step id, name and node list each."""

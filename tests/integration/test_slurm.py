@@ -23,23 +23,18 @@ import os
 import shutil
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import pytest
 
+from .multinode_slurm import FINAL_STATES, SEARCH_PATH, SlurmDaemons, client_env, tail, tool
 from .test_up_e2e import ROLES, check_status_schema, free_port_block
 
 ROOT = Path(__file__).resolve().parents[2]
 SBATCH_SCRIPT = "scripts/slurm/dvla.sbatch"
 #: the daemons and clients the test runs (Debian: slurm-wlm and munge)
 TOOLS = ("munged", "slurmctld", "slurmd", "sbatch", "srun", "scontrol", "sinfo", "scancel")
-#: daemons live in sbin, which a non-login root shell may leave out of PATH
-SEARCH_PATH = os.pathsep.join([os.environ.get("PATH", ""), "/usr/sbin", "/sbin"])
-#: `scontrol show job` states after which a job does nothing more
-FINAL_STATES = {"COMPLETED", "FAILED", "CANCELLED", "TIMEOUT", "NODE_FAIL", "OUT_OF_MEMORY", "PREEMPTED",
-                "BOOT_FAIL", "DEADLINE"}
 #: process names of Slurm and munge (slurmctld's helper slurmscriptd goes by its name too)
 SLURM_PROCESSES = ("munged", "slurmctld", "slurmd", "slurmstepd")
 #: small enough to end quickly, large enough for several weight versions (tiny.yaml: 400 steps each)
@@ -66,39 +61,16 @@ needs_scontrol = pytest.mark.skipif(
 DRY_RUN_NODES = "dvla-nohost-[1-3]"
 
 
-def _tool(name: str) -> str:
-    path = shutil.which(name, path=SEARCH_PATH)
-    assert path is not None, name
-    return path
-
-
-def _tail(path: Path, n: int = 20) -> str:
-    return "\n".join(path.read_text(errors="replace").splitlines()[-n:]) if path.exists() else f"({path} missing)"
-
-
-class SingleHostSlurm:
+class SingleHostSlurm(SlurmDaemons):
     """munged, slurmctld and slurmd for this host alone, all under one temporary directory."""
 
     def __init__(self) -> None:
         # `slurmd -C`: this host as slurmd will describe itself ("NodeName=vm CPUs=2 ...").
-        node_line = subprocess.run([_tool("slurmd"), "-C"], capture_output=True, text=True, check=True,
+        node_line = subprocess.run([tool("slurmd"), "-C"], capture_output=True, text=True, check=True,
                                    timeout=30).stdout.splitlines()[0]
         fields = dict(f.split("=", 1) for f in node_line.split())
         self.node, self.cpus, self.node_line = fields["NodeName"], int(fields["CPUs"]), node_line
-        # Not pytest's tmp_path: munged wants every directory above its socket searchable by all.
-        self.root = Path(tempfile.mkdtemp(prefix="dvla-slurm-"))
-        self.root.chmod(0o755)
-        self.socket = self.root / "munge" / "munge.socket"
-        self.conf = self.root / "slurm.conf"
-        self.daemons: dict[str, subprocess.Popen] = {}
-
-    def env(self) -> dict[str, str]:
-        """The environment of a Slurm client of this cluster (none of an enclosing job's settings)."""
-        return _client_env(SLURM_CONF=str(self.conf), PATH=SEARCH_PATH)
-
-    def run(self, *cmd: str, timeout: float = 30, **kw) -> subprocess.CompletedProcess:
-        return subprocess.run([_tool(cmd[0]), *cmd[1:]], capture_output=True, text=True, env=self.env(),
-                              timeout=timeout, **kw)
+        super().__init__("dvla-slurm-")
 
     def start(self) -> None:
         self._start_munge()
@@ -139,49 +111,9 @@ class SingleHostSlurm:
             "",
         ]))
         for name in ("slurmctld", "slurmd"):
-            self._spawn(name, [_tool(name), "-D", "-f", str(self.conf)])
+            self._spawn(name, [tool(name), "-D", "-f", str(self.conf)])
         self._wait(lambda: self.run("sinfo", "-h", "-n", self.node, "-o", "%T").stdout.strip() == "idle",
                    30, "node never became idle in sinfo")
-
-    def _start_munge(self) -> None:
-        keydir, sockdir = self.root / "munge-key", self.socket.parent
-        keydir.mkdir(mode=0o700)
-        sockdir.mkdir(mode=0o755)
-        key = keydir / "munge.key"
-        key.write_bytes(os.urandom(1024))
-        key.chmod(0o400)
-        self._spawn("munged", [_tool("munged"), "--foreground", f"--key-file={key}", f"--socket={self.socket}",
-                               f"--pid-file={sockdir}/munged.pid", f"--log-file={keydir}/munged.log",
-                               f"--seed-file={keydir}/munged.seed"])
-        self._wait(self.socket.exists, 15, "munged never created its socket")
-
-    def _spawn(self, name: str, cmd: list[str]) -> None:
-        with open(self.root / f"{name}.out", "wb") as out:
-            self.daemons[name] = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=self.env())
-
-    def _wait(self, ready, timeout: float, what: str) -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            dead = [n for n, p in self.daemons.items() if p.poll() is not None]
-            if dead:
-                raise RuntimeError(f"{dead[0]} exited: {_tail(self.root / f'{dead[0]}.out')}")
-            if ready():
-                return
-            time.sleep(0.5)
-        files = sorted(self.root.glob("*.out")) + sorted(self.root.glob("*.log"))
-        logs = "\n".join(f"--- {p.name}\n{_tail(p)}" for p in files)
-        raise RuntimeError(f"{what} within {timeout:.0f} s\n{logs}")
-
-    def jobs(self, *job_id: str) -> list[dict[str, str]]:
-        """`scontrol show job -o`'s fields of every job, or of one (no accounting database:
-        slurmctld's own records, kept for MinJobAge after a job ends)."""
-        out = self.run("scontrol", "show", "job", "-o", *job_id).stdout
-        return [dict(f.split("=", 1) for f in line.split() if "=" in f)
-                for line in out.splitlines() if "JobId=" in line]
-
-    def job(self, job_id: str) -> dict[str, str]:
-        found = self.jobs(job_id)
-        return found[0] if found else {}
 
     def stop(self) -> None:
         """Cancel what still runs, stop the daemons (newest first) and remove the directory."""
@@ -227,15 +159,10 @@ def dvla(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
                           timeout=timeout)
 
 
-def _client_env(**extra: str) -> dict[str, str]:
-    """This environment without an enclosing job's SLURM_* settings, plus `extra`."""
-    return {**{k: v for k, v in os.environ.items() if not k.startswith("SLURM_")}, **extra}
-
-
 @needs_scontrol
 def test_dry_run_expands_hosts_outside_a_cluster(tmp_path: Path) -> None:
     # no SLURM_CONF: scontrol without a cluster's configuration, as on a workstation
-    env = _client_env(DVLA_DRY_RUN="1", SLURM_JOB_NODELIST=DRY_RUN_NODES, DVLA_PYTHON=sys.executable,
+    env = client_env(DVLA_DRY_RUN="1", SLURM_JOB_NODELIST=DRY_RUN_NODES, DVLA_PYTHON=sys.executable,
                       DVLA_RUNS=str(tmp_path))
     dry = subprocess.run(["bash", SBATCH_SCRIPT], capture_output=True, text=True, cwd=ROOT, env=env, timeout=120)
     assert dry.returncode == 0, dry.stdout + dry.stderr
@@ -250,7 +177,7 @@ def test_job_stops_on_a_host_that_does_not_resolve(tmp_path: Path) -> None:
     conf = tmp_path / "slurm.conf"  # enough for scontrol to expand host lists
     conf.write_text("ClusterName=dvlatest\nSlurmctldHost=localhost\n")
     runs = tmp_path / "runs"
-    env = _client_env(SLURM_CONF=str(conf), SLURM_JOB_NODELIST=DRY_RUN_NODES, DVLA_PYTHON=sys.executable,
+    env = client_env(SLURM_CONF=str(conf), SLURM_JOB_NODELIST=DRY_RUN_NODES, DVLA_PYTHON=sys.executable,
                       DVLA_RUNS=str(runs))
     job = subprocess.run(["bash", SBATCH_SCRIPT], capture_output=True, text=True, cwd=ROOT, env=env, timeout=60)
     assert job.returncode == 2 and "cannot resolve dvla-nohost-1" in job.stderr, job.stdout + job.stderr
@@ -276,7 +203,7 @@ def test_sbatch_tiny_on_single_host_slurm(tmp_path: Path) -> None:
         env = {**cluster.env(), "DVLA_PYTHON": sys.executable, "DVLA_RUNS": str(runs),
                "DVLA_MAX_ENV_STEPS": str(MAX_ENV_STEPS)}
         # As docs/slurm.md has it, from the checkout; -N and -c fit the allocation to this one host.
-        sub = subprocess.run([_tool("sbatch"), "--parsable", "-N", "1", "-c", str(cluster.cpus),
+        sub = subprocess.run([tool("sbatch"), "--parsable", "-N", "1", "-c", str(cluster.cpus),
                               f"--output={tmp_path}/dvla-%j.out", SBATCH_SCRIPT, str(topo)],
                              capture_output=True, text=True, cwd=ROOT, env=env, timeout=30)
         assert sub.returncode == 0, sub.stderr
@@ -292,7 +219,7 @@ def test_sbatch_tiny_on_single_host_slurm(tmp_path: Path) -> None:
         last_status = "(never asked: no state.json while the job ran)"
         deadline = time.monotonic() + 240
         while (job := cluster.job(job_id)).get("JobState") not in FINAL_STATES:
-            assert time.monotonic() < deadline, f"job {job_id} still {job.get('JobState')}\n{_tail(output, 40)}"
+            assert time.monotonic() < deadline, f"job {job_id} still {job.get('JobState')}\n{tail(output, 40)}"
             if status_doc is None and (run_dir / "state.json").exists():
                 try:
                     st = dvla("status", "tiny", "--runs", str(runs), "--format", "json", "--timeout", "5", timeout=40)
