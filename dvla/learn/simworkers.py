@@ -116,8 +116,9 @@ class _Worker:
         return describe_worker(self.index, self.proc.pid, self.parts, gid)
 
     def died(self) -> str:
-        code = self.proc.poll()
-        if code is None:
+        try:  # its socket closes a moment before the process can be reaped
+            code = self.proc.wait(timeout=2.0)
+        except subprocess.TimeoutExpired:
             return "closed its socket"
         return f"was killed by signal {-code}" if code < 0 else f"exited with code {code}"
 
@@ -196,7 +197,6 @@ class SimWorkers:
                 raise EnvSetupError(f"{wk.describe()}: no answer within {timeout:.0f} s while starting")
             msg = wk.conn.recv()
         except (EOFError, OSError):
-            wk.proc.wait(5)
             raise EnvSetupError(f"{wk.describe()} {wk.died()} while starting (its log lines are above)") from None
         if msg[0] == "error":
             raise EnvSetupError(msg[1])
