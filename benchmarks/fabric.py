@@ -153,7 +153,7 @@ def _probe_until_routed(session: Any, routed: Any, timeout_s: float) -> None:
 
 
 #: how the throughput pair authenticates trajectory chunks (the auth phase compares them)
-AUTH_MODES = ("none", "hmac", "identity")
+AUTH_MODES = ("none", "tag", "identity")
 
 
 class _PassThrough:
@@ -162,25 +162,46 @@ class _PassThrough:
     def seal(self, key: str, payload: Any, *, bind: bytes = b"") -> bytes:
         return bytes(payload)
 
+    def __init__(self, kind: str = "") -> None:
+        self.kind = kind  # what every opened envelope claims to be sent by
+
     def open(self, key: str, envelope: Any, **_kw: Any) -> Any:
         from dvla.fabric.keys import KeySpace
         from dvla.fabric.signing import Opened
 
-        return Opened(KeySpace.last(key), "", memoryview(envelope), b"")
+        return Opened(KeySpace.last(key), self.kind, memoryview(envelope), b"")
+
+
+class _DataPassThrough:
+    """Trajectory keys without envelopes, every other key through `real` (a signer or verifier)."""
+
+    def __init__(self, real: Any, traj_prefix: str) -> None:
+        self._real, self._prefix, self._none = real, traj_prefix, _PassThrough("rollout")
+
+    def seal(self, key: str, payload: Any, **kw: Any) -> bytes:
+        return (self._none if key.startswith(self._prefix) else self._real).seal(key, payload, **kw)
+
+    def open(self, key: str, envelope: Any, **kw: Any) -> Any:
+        return (self._none if key.startswith(self._prefix) else self._real).open(key, envelope, **kw)
 
 
 def _open_fabric(name: str, secret: bytes, *, ctrl: Any, data: Any = None, shared: bool = False,
                  auth: str = "identity", identity: str | None = None) -> Any:
-    """A bench fabric; `auth` "identity" (as under `dvla up`: HMAC and the sender's certified
-    Ed25519 signature, `identity` its credential text), "hmac" (the run secret only) or "none"."""
+    """A bench fabric; `auth` "identity" (as under `dvla up`: the run secret's tag and the sender's
+    certified Ed25519 signature, `identity` its credential text), "tag" (the run secret only),
+    "none", or "none-data" (trajectories without envelopes, control as under `dvla up`)."""
     from dvla.fabric import CTRL, DATA, Fabric
     from dvla.fabric.identity import Identity
 
-    ident = Identity.from_text(identity) if auth == "identity" and identity else None
+    ident = Identity.from_text(identity) if auth in ("identity", "none-data") and identity else None
     fabric = Fabric(run=RUN, name=name, ctrl_conf=ctrl, data_conf=None if shared else data, secret=secret,
                     identity=ident)
     if auth == "none":
         fabric._signer = fabric._verifier = _PassThrough()
+    elif auth == "none-data":
+        prefix = fabric.keys.traj_all().rstrip("*")
+        fabric._signer = _DataPassThrough(fabric._signer, prefix)
+        fabric._verifier = _DataPassThrough(fabric._verifier, prefix)
     if shared:
         # Baseline only: both planes on one session, hence one link per peer.
         fabric.data = fabric.ctrl
@@ -361,10 +382,10 @@ class _Pair:
 
 
 def _measure_auth(ctx: Any, cfg: BenchConfig, secret: bytes, pids: list[int]) -> dict[str, Any]:
-    """The cost of authentication. Data plane: three throughput pairs (no envelope, HMAC only,
-    HMAC + identity signature) on 256 KiB chunks, their rounds interleaved; medians, CPU per chunk
+    """The cost of authentication. Data plane: three throughput pairs (no envelope, the secret's
+    tag only, tag + identity signature) on 256 KiB chunks, their rounds interleaved; medians, CPU per chunk
     and the ratios to the unauthenticated pair. Weights: sealing and opening one 64 MiB version
-    in 1 MiB chunks, in this process, HMAC only and with identities."""
+    in 1 MiB chunks, in this process, tag only and with identities."""
     target, n, rounds = 256 * KIB, max(cfg.n_64k // 4, 50), cfg.rounds
     pairs = {mode: _Pair(ctx, n, target, cfg, secret, auth=mode, rounds=rounds) for mode in AUTH_MODES}
     got: dict[str, list[tuple[float, float, float]]] = {m: [] for m in AUTH_MODES}
@@ -384,7 +405,7 @@ def _measure_auth(ctx: Any, cfg: BenchConfig, secret: bytes, pids: list[int]) ->
                       "sub_cpu_us_per_chunk": statistics.median(x[2] for x in rs),
                       "rounds_chunks_per_s": [x[0] / pairs[mode].size for x in rs], "lost": pairs[mode].lost}
     base = data["none"]
-    for mode in ("hmac", "identity"):
+    for mode in ("tag", "identity"):
         d = data[mode]
         d["throughput_ratio"] = d["chunks_per_s"] / base["chunks_per_s"]
         d["extra_cpu_us_per_chunk"] = (d["pub_cpu_us_per_chunk"] + d["sub_cpu_us_per_chunk"]
@@ -404,7 +425,7 @@ def _weights_auth_cost(secret: bytes, version_bytes: int = 64 * MIB, chunk: int 
     payload = os.urandom(chunk)
     op = Identity.operator(RUN)
     out: dict[str, Any] = {"version_bytes": version_bytes, "chunk_bytes": chunk}
-    for mode, ident in (("hmac", None), ("identity", op.issue("actor", SINK))):
+    for mode, ident in (("tag", None), ("identity", op.issue("actor", SINK))):
         signer = Signer(secret, SINK, identity=ident)
         seal_s, open_s = [], []
         for _ in range(repeats):
@@ -542,19 +563,60 @@ def _ctrl_addr(layout: Layout, shared: bool) -> str:
     return layout.data_addr if shared else layout.ctrl_addr
 
 
+#: what floods the data link in a loaded ctrl RTT phase: the source's trajectory chunks through
+#: its data session ("fabric"), or, as the control, plain TCP from the same process over the same
+#: link ("tcp": no Zenoh, no envelopes, no Python per byte): the delay the flooded link and this
+#: machine's kernel add by themselves
+FLOODS = ("fabric", "tcp")
+
+
+def _tcp_drain(sock: socket.socket, received: Any, received_bytes: Any, stop: Any) -> None:
+    """The "tcp" flood's receiving end: counts every MiB read."""
+    sock.settimeout(0.5)
+    conn = None
+    while conn is None and not stop.is_set():
+        try:
+            conn, _ = sock.accept()
+        except TimeoutError:
+            continue
+    if conn is None:
+        return
+    buf, pending = bytearray(MIB), 0
+    with conn:
+        conn.settimeout(0.5)
+        while not stop.is_set():
+            try:
+                n = conn.recv_into(buf)
+            except TimeoutError:
+                continue
+            if not n:
+                return
+            pending += n
+            while pending >= MIB:
+                pending -= MIB
+                received.value += 1
+                received_bytes.value += MIB
+
+
 def _rtt_sink(layout: Layout, shared: bool, ctrl_port: int, data_port: int, secret: bytes, ready: Any, stop: Any,
-              received: Any, received_bytes: Any, max_s: float) -> None:
+              received: Any, received_bytes: Any, max_s: float, identity: str, flood: str, tcp_port: int,
+              auth: str) -> None:
     """The actor's side: ctrl router (the tool and the source attach to it) and the traj inbox."""
     _enter_ns(layout.sink_ns)
     from dvla.fabric import DATA, TrajectoryChunk, plane_config
 
     fabric = _open_fabric(
-        SINK, secret, shared=shared,
+        SINK, secret, shared=shared, identity=identity, auth=auth,
         ctrl=plane_config(mode="router", listen=[f"tcp/{_ctrl_addr(layout, shared)}:{ctrl_port}"]),
         data=plane_config(mode="peer", listen=[f"tcp/{layout.data_addr}:{data_port}"]),
     )
+    drain = None
     try:
         inbox = fabric.subscribe_traj(maxsize=64, expect=TrajectoryChunk)
+        if flood == "tcp":
+            listener = socket.create_server((layout.data_addr, tcp_port))
+            drain = threading.Thread(target=_tcp_drain, args=(listener, received, received_bytes, stop), name="tcp-drain")
+            drain.start()
         ready.set()
         deadline = time.monotonic() + max_s
         while not stop.is_set() and time.monotonic() < deadline:
@@ -562,43 +624,55 @@ def _rtt_sink(layout: Layout, shared: bool, ctrl_port: int, data_port: int, secr
                 received.value += 1  # this process is the only writer
                 received_bytes.value = fabric.accounting.get(DATA, "received_bytes")
     finally:
+        stop.set()
+        if drain is not None:
+            drain.join()
         fabric.close()
 
 
 def _rtt_source(layout: Layout, shared: bool, ctrl_port: int, data_port: int, secret: bytes, ready: Any, flood: Any,
-                stop: Any, max_s: float, max_msgs: int) -> None:
-    """The rollout's side: answers status queries; floods 1 MiB chunks while `flood` is set."""
+                stop: Any, max_s: float, max_msgs: int, identity: str, kind: str, tcp_port: int, auth: str) -> None:
+    """The rollout's side: answers status queries; floods 1 MiB chunks (of `kind`, :data:`FLOODS`)
+    while `flood` is set."""
     _enter_ns(layout.source_ns)
     from dvla.fabric import plane_config
 
     fabric = _open_fabric(
-        SOURCE, secret, shared=shared,
+        SOURCE, secret, shared=shared, identity=identity, auth=auth,
         ctrl=plane_config(mode="client", connect=[f"tcp/{_ctrl_addr(layout, shared)}:{ctrl_port}"]),
         data=plane_config(mode="peer", connect=[f"tcp/{layout.data_addr}:{data_port}"]),
     )
     try:
         fabric.serve(fabric.keys.status(SOURCE), lambda _req: _status_reply())
         chunk = make_chunk(SOURCE, MIB)
+        raw = socket.create_connection((layout.data_addr, tcp_port), timeout=START_TIMEOUT_S) if kind == "tcp" else None
+        block = bytes(MIB)
         ready.set()
         deadline = time.monotonic() + max_s
         sent = 0
         while not stop.is_set() and time.monotonic() < deadline and sent < max_msgs:
             if not flood.wait(0.1):
                 continue
-            fabric.publish_traj(chunk)
+            if raw is not None:
+                raw.sendall(block)
+            else:
+                fabric.publish_traj(chunk)
             sent += 1
+        if raw is not None:
+            raw.close()
     finally:
         fabric.close()
 
 
 def _rtt_tool(layout: Layout, shared: bool, ctrl_port: int, secret: bytes, cmds: Any, out: Any,
-              timeout_s: float) -> None:
-    """`dvla status`'s side, next to the sink: samples RTTs of signed status queries on demand."""
+              timeout_s: float, identity: str, auth: str) -> None:
+    """`dvla status`'s side, next to the sink: samples RTTs of signed status queries on demand
+    (as the operator, who alone may ask)."""
     _enter_ns(layout.sink_ns)
-    from dvla.fabric import Fabric, plane_config
+    from dvla.fabric import plane_config
 
-    tool = Fabric(run=RUN, name=TOOL, secret=secret, data_conf=None, open_timeout_s=START_TIMEOUT_S,
-                  ctrl_conf=plane_config(mode="client", connect=[f"tcp/{_ctrl_addr(layout, shared)}:{ctrl_port}"]))
+    tool = _open_fabric(TOOL, secret, identity=identity, auth=auth,
+                        ctrl=plane_config(mode="client", connect=[f"tcp/{_ctrl_addr(layout, shared)}:{ctrl_port}"]))
     try:
         key = tool.keys.status(SOURCE)
         try:
@@ -642,9 +716,16 @@ def _summary(rtts: list[float], misses: int, what: str) -> dict[str, Any]:
 
 
 def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secret: bytes, pids: list[int], *,
-                  idle: bool) -> dict[str, Any]:
-    """Idle (optional) and loaded RTT phases against one sink/source pair."""
-    ctrl_port, data_port = free_port(), free_port()
+                  idle: bool, flood_kind: str = "fabric", auth: str = "identity") -> dict[str, Any]:
+    """Idle (optional) and loaded RTT phases against one sink/source pair, every process with the
+    identity `dvla up` would give it (sink: actor, source: rollout, tool: operator); `auth`
+    "none-data": the flood without envelopes (the baseline of what authenticating it costs the ctrl plane)."""
+    from dvla.fabric.identity import Identity
+
+    if flood_kind not in FLOODS:
+        raise ValueError(f"flood_kind {flood_kind!r}: expected one of {FLOODS}")
+    op = Identity.operator(RUN)
+    ctrl_port, data_port, tcp_port = free_port(), free_port(), free_port()
     if shared:
         data_port = ctrl_port  # one session: it listens once
     ready_sink, ready_src, flood, stop = ctx.Event(), ctx.Event(), ctx.Event(), ctx.Event()
@@ -652,13 +733,17 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
     cmds, out = ctx.Queue(), ctx.Queue()
     max_s = 4 * cfg.phase_timeout_s + 30
     sink = ctx.Process(target=_rtt_sink, args=(layout, shared, ctrl_port, data_port, secret, ready_sink, stop, received,
-                                               received_bytes, max_s))
+                                               received_bytes, max_s, op.issue("actor", SINK).to_text(), flood_kind,
+                                               tcp_port, auth))
     src = ctx.Process(target=_rtt_source, args=(layout, shared, ctrl_port, data_port, secret, ready_src, flood, stop,
-                                                max_s, 1_000_000))
-    tool = ctx.Process(target=_rtt_tool, args=(layout, shared, ctrl_port, secret, cmds, out, cfg.phase_timeout_s))
+                                                max_s, 1_000_000, op.issue("rollout", SOURCE).to_text(), flood_kind,
+                                                tcp_port, auth))
+    tool = ctx.Process(target=_rtt_tool, args=(layout, shared, ctrl_port, secret, cmds, out, cfg.phase_timeout_s,
+                                               op.to_text(), auth))
     procs = [sink, src, tool]
     phases = (["idle"] if idle else []) + ["loaded"]
     rtts: dict[str, list[float]] = {p: [] for p in phases}
+    blocks: list[dict[str, float]] = []  # p99 of each phase, block by block
     misses = dict.fromkeys(phases, 0)
     flood_msgs = flood_bytes = flood_s = 0.0
     try:
@@ -673,6 +758,7 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
         _collect(out, {"reachable"}, START_TIMEOUT_S + 5)
         per_block = max(1, cfg.rtt_samples // cfg.rtt_blocks)
         for _ in range(cfg.rtt_blocks):
+            blocks.append({})
             for phase in phases:
                 if phase == "idle":
                     flood.clear()
@@ -685,6 +771,8 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
                 cmds.put((phase, per_block))
                 got = _collect(out, {phase}, cfg.phase_timeout_s + 5)[phase][1]
                 rtts[phase] += got[0]
+                if got[0]:
+                    blocks[-1][phase] = percentile(sorted(got[0]), 99)
                 misses[phase] += got[1]
                 if phase == "loaded":
                     flood_msgs += received.value - c0
@@ -693,6 +781,10 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
         result = {p: _summary(rtts[p], misses[p], f"{layout.name}, {p}") for p in phases}
         result["loaded"]["flood_msgs_per_s"] = flood_msgs / flood_s
         result["loaded"]["flood_bytes_per_s"] = flood_bytes / flood_s
+        result["loaded"]["flood"] = flood_kind
+        result["loaded"]["auth"] = auth
+        if idle:  # the isolation ratio of each block (its loaded p99 over its own idle p99)
+            result["block_ratios"] = [b["loaded"] / b["idle"] for b in blocks if "loaded" in b and "idle" in b]
         return result
     finally:
         flood.clear()
@@ -788,7 +880,7 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
         throughput[label] = entry
         doc[f"chunks_per_s_{label}"] = entry["chunks_per_s"]
         doc[f"mb_per_s_{label}"] = entry["bytes_per_s"] / 1e6
-    progress("authentication: data plane without envelopes / HMAC / HMAC + identity, interleaved; one weight version")
+    progress("authentication: data plane without envelopes / tag / tag + identity, interleaved; one weight version")
     doc["auth"] = _measure_auth(ctx, cfg, secret, pids)
     doc["auth_throughput_ratio"] = doc["auth"]["data"]["identity"]["throughput_ratio"]
     doc["auth_extra_cpu_us_per_chunk"] = doc["auth"]["data"]["identity"]["extra_cpu_us_per_chunk"]
@@ -806,8 +898,18 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
             separate = _measure_ctrl(ctx, lay, False, cfg, secret, pids, idle=True)
             progress(f"ctrl RTT ({lay.name}): one shared session, data plane flooded")
             shared = _measure_ctrl(ctx, lay, True, cfg, secret, pids, idle=False)
+            tcp = plain = None
+            if lay.name == "links":  # the controls: the same layout without envelopes, the same link without dvla
+                progress(f"ctrl RTT ({lay.name}): separate sessions, trajectories without envelopes, idle and flooded, alternating")
+                plain = _measure_ctrl(ctx, lay, False, cfg, secret, pids, idle=True, auth="none-data")
+                progress(f"ctrl RTT ({lay.name}): separate sessions, idle and data link flooded by plain TCP, alternating")
+                tcp = _measure_ctrl(ctx, lay, False, cfg, secret, pids, idle=True, flood_kind="tcp")
         ctrl[lay.name] = {"layout": lay.describe(), "idle": separate["idle"], "loaded": separate["loaded"],
-                          "loaded_shared": shared["loaded"]}
+                          "loaded_shared": shared["loaded"], "block_ratios": separate["block_ratios"]}
+        if tcp is not None and plain is not None:
+            ctrl[lay.name].update(idle_noauth=plain["idle"], loaded_noauth=plain["loaded"],
+                                  block_ratios_noauth=plain["block_ratios"], idle_tcp=tcp["idle"], loaded_tcp=tcp["loaded"],
+                                  block_ratios_tcp=tcp["block_ratios"])
     # Headline: the layout where the data link has a capacity of its own, when it could be built.
     head = "links" if "links" in ctrl else "loopback"
     doc["ctrl_rtt_layout"] = head
@@ -815,7 +917,14 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
     doc["ctrl_rtt_p99_loaded_ms"] = ctrl[head]["loaded"]["p99_ms"]
     doc["ctrl_rtt_p99_loaded_shared_ms"] = ctrl[head]["loaded_shared"]["p99_ms"]
     doc["loaded_over_idle"] = doc["ctrl_rtt_p99_loaded_ms"] / doc["ctrl_rtt_p99_idle_ms"]
+    doc["loaded_over_idle_blocks"] = _spread(ctrl[head]["block_ratios"])
     doc["shared_over_separate"] = doc["ctrl_rtt_p99_loaded_shared_ms"] / doc["ctrl_rtt_p99_loaded_ms"]
+    if "loaded_tcp" in ctrl[head]:
+        doc["noauth_loaded_over_idle"] = ctrl[head]["loaded_noauth"]["p99_ms"] / ctrl[head]["idle_noauth"]["p99_ms"]
+        doc["noauth_loaded_over_idle_blocks"] = _spread(ctrl[head]["block_ratios_noauth"])
+        doc["tcp_flood_over_idle"] = ctrl[head]["loaded_tcp"]["p99_ms"] / ctrl[head]["idle_tcp"]["p99_ms"]
+        doc["tcp_flood_over_idle_blocks"] = _spread(ctrl[head]["block_ratios_tcp"])
+    doc["actor_cpu_us_per_auth_chunk"] = doc["auth"]["data"]["identity"]["sub_cpu_us_per_chunk"]
     doc["throughput"] = throughput
     doc["ctrl_rtt"] = ctrl[head]
     doc["ctrl_rtt_layouts"] = ctrl
@@ -824,11 +933,18 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
     return doc
 
 
+def _spread(values: list[float]) -> dict[str, Any]:
+    """Median, min and max of per-block ratios (None when there are none)."""
+    if not values:
+        return {"median": None, "min": None, "max": None, "values": []}
+    return {"median": statistics.median(values), "min": min(values), "max": max(values), "values": values}
+
+
 HEADLINE_KEYS = (
     "chunks_per_s_64k", "chunks_per_s_1m", "mb_per_s_64k", "mb_per_s_1m",
     "ctrl_rtt_p99_idle_ms", "ctrl_rtt_p99_loaded_ms",
     "ctrl_rtt_p99_loaded_shared_ms", "loaded_over_idle", "shared_over_separate",
-    "auth_throughput_ratio", "auth_extra_cpu_us_per_chunk",
+    "auth_throughput_ratio", "auth_extra_cpu_us_per_chunk", "actor_cpu_us_per_auth_chunk",
 )
 
 
@@ -850,15 +966,25 @@ def format_table(doc: dict[str, Any]) -> str:
     w = auth["weights"]
     lines.append(f"one {w['version_bytes'] >> 20} MiB weight version in {w['chunk_bytes'] >> 20} MiB chunks: "
                  + ", ".join(f"{m} seal {w[m]['seal_cpu_s']:.3f} s / open {w[m]['open_cpu_s']:.3f} s CPU"
-                             for m in ("hmac", "identity")))
-    names = {"idle": "idle", "loaded": "flooded, own ctrl session", "loaded_shared": "flooded, shared session"}
+                             for m in ("tag", "identity")))
+    names = {"idle": "idle", "loaded": "flooded, own ctrl session", "loaded_shared": "flooded, shared session",
+             "idle_noauth": "idle (flood unauthenticated)", "loaded_noauth": "flooded, unauthenticated",
+             "idle_tcp": "idle (TCP control)", "loaded_tcp": "flooded by plain TCP"}
     for layout, entry in doc["ctrl_rtt_layouts"].items():
         lines.append("")
-        lines.append(f"{'ctrl RTT, ' + layout:<26}{'p50 ms':>8}{'p99 ms':>8}{'flood MB/s':>12}")
+        lines.append(f"{'ctrl RTT, ' + layout:<28}{'p50 ms':>8}{'p99 ms':>8}{'flood MB/s':>12}")
         for key, title in names.items():
+            if key not in entry:
+                continue
             r = entry[key]
             flood = f"{r['flood_bytes_per_s'] / 1e6:.0f}" if "flood_bytes_per_s" in r else "-"
-            lines.append(f"{title:<26}{r['p50_ms']:>8.2f}{r['p99_ms']:>8.2f}{flood:>12}")
-    lines.append(f"headline ({doc['ctrl_rtt_layout']}): loaded/idle p99 = {doc['loaded_over_idle']:.2f}   "
-                 f"shared/separate p99 = {doc['shared_over_separate']:.2f}   links layout: {doc['links_layout']}")
+            lines.append(f"{title:<28}{r['p50_ms']:>8.2f}{r['p99_ms']:>8.2f}{flood:>12}")
+    blocks = doc["loaded_over_idle_blocks"]
+    spread = f" (blocks {blocks['min']:.2f}-{blocks['max']:.2f})" if blocks["values"] else ""
+    tcp = (f"\n  controls: flood without envelopes loaded/idle p99 = {doc['noauth_loaded_over_idle']:.2f}   "
+           f"plain-TCP flood/idle p99 = {doc['tcp_flood_over_idle']:.2f}") if "tcp_flood_over_idle" in doc else ""
+    lines.append(f"headline ({doc['ctrl_rtt_layout']}): loaded/idle p99 = {doc['loaded_over_idle']:.2f}{spread}   "
+                 f"shared/separate p99 = {doc['shared_over_separate']:.2f}{tcp}   links layout: {doc['links_layout']}")
+    lines.append(f"actor CPU per authenticated 256 KiB chunk: {doc['actor_cpu_us_per_auth_chunk']:.0f} us "
+                 f"(+{doc['auth']['data']['identity']['sub_cpu_us_per_chunk'] - doc['auth']['data']['none']['sub_cpu_us_per_chunk']:.0f} over none)")
     return "\n".join(lines)

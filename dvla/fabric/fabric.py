@@ -48,9 +48,9 @@ class Inbox:
 
     The callback waits at most `block_s` for space (backpressure through Zenoh's BLOCK
     congestion control), then drops and counts the message: a slow consumer must never stall
-    Zenoh's receive thread long enough to close the transport. With a `decoder` (control plane)
-    raw payloads are queued and :meth:`get` verifies them on the reader's thread; without one
-    (data plane) the subscription queues decoded messages through :meth:`offer`.
+    Zenoh's receive thread long enough to close the transport. With a `decoder` (both planes'
+    subscriptions) raw envelopes are queued and :meth:`get` verifies and decodes them on the
+    reader's thread, never on Zenoh's; without one, :meth:`offer` queues items as they are.
     """
 
     def __init__(
@@ -60,9 +60,11 @@ class Inbox:
         accounting: Accounting,
         plane: str,
         block_s: float = 1.0,
+        on_full: Callable[[Any, str], None] | None = None,
     ) -> None:
         self._queue: queue.Queue[Any] = queue.Queue(maxsize)
         self._decoder = decoder
+        self._on_full = on_full
         self._acct = accounting
         self._plane = plane
         self._block_s = block_s
@@ -75,11 +77,15 @@ class Inbox:
         self.offer((key, raw), peer)
 
     def offer(self, item: Any, peer: str) -> None:
-        """Queue `item` (from `peer`), waiting at most `block_s` for space; else drop and count it."""
+        """Queue `item` (from `peer`), waiting at most `block_s` for space; else drop it and count
+        the drop (through `on_full` when given: it decides whose drop it is)."""
         try:
             self._queue.put(item, timeout=self._block_s)
         except queue.Full:
-            self._acct.dropped(self._plane, "backpressure", peer)
+            if self._on_full is not None:
+                self._on_full(item, peer)
+            else:
+                self._acct.dropped(self._plane, "backpressure", peer)
 
     def get(self, timeout: float | None = None) -> Any | None:
         """Next valid message, or None after `timeout`. Invalid ones are counted and skipped.
@@ -181,20 +187,23 @@ class Fabric:
         return len(envelope)
 
     def subscribe_traj(self, maxsize: int, expect: type, block_s: float = 1.0, rollout: str = "*") -> Inbox:
-        """Bounded inbox of decoded TrajectoryChunks from every (or one) rollout.
+        """Bounded inbox of TrajectoryChunks from every (or one) rollout.
 
-        Envelopes are verified and decoded (zero-copy) on Zenoh's receive thread. One that fails
-        authentication, or comes from another rollout than its key names, is counted under
-        :data:`UNAUTHENTICATED`, never under the rollout's name; one that does not decode or
-        names another sender is counted as that sender's reject.
+        Zenoh's receive thread only copies each envelope out and queues it (waiting up to
+        `block_s` for room: backpressure); :meth:`Inbox.get` verifies and decodes (zero-copy) on
+        the reader's thread, so authentication never holds a receive thread that the control
+        plane's links share. An envelope that fails authentication, or comes from another
+        rollout than its key names, is counted under :data:`UNAUTHENTICATED`, never under the
+        rollout's name; one that does not decode or names another sender is counted as that
+        sender's reject; only verified, decoded chunks are returned. An envelope that finds no
+        room within `block_s` is verified there (rare: a consumer stalled that long) and counted
+        as its sender's ``dropped.backpressure``, or as an unauthenticated reject.
         """
         if self.data is None:
             raise RuntimeError(f"{self.name}: this fabric was opened without a data plane")
-        inbox = Inbox(maxsize, None, self.accounting, DATA, block_s)
 
-        def _receive(sample: zenoh.Sample) -> None:
-            key = str(sample.key_expr)
-            raw = sample.payload.to_bytes()
+        def _verified(key: str, raw: bytes) -> tuple[str, memoryview] | None:
+            """(sending rollout, payload), counted as received from it; None: counted as refused."""
             peer = KeySpace.last(key)
             try:
                 opened = self._verifier.open(key, raw)
@@ -205,22 +214,40 @@ class Fabric:
                 self.accounting.received(DATA, len(raw), UNAUTHENTICATED)
                 self.accounting.rejected(DATA, err.reason, UNAUTHENTICATED)
                 _warn_limited(f"rejected data message on {_short(key)}: {err}")
-                return
+                return None
             self.accounting.received(DATA, len(raw), peer)
+            return peer, opened.payload
+
+        def _open(key: str, raw: bytes) -> Any | None:
+            got = _verified(key, raw)
+            if got is None:
+                return None
+            peer, payload = got
             try:
-                msg = decode(opened.payload, expect=expect)
+                msg = decode(payload, expect=expect)
             except CodecError as err:
                 self.accounting.rejected(DATA, err.reason, peer)
                 _warn_limited(f"rejected data message on {_short(key)} from {peer}: {err}")
-                return
+                return None
             if getattr(msg, "rollout", peer) != peer:
                 self.accounting.rejected(DATA, "sender_mismatch", peer)
                 _warn_limited(f"rejected data message on {_short(key)} from {peer}: claims sender {msg.rollout!r}")
-                return
-            inbox.offer(msg, peer)
+                return None
+            return msg
+
+        def _full(item: tuple[str, bytes], _claimed: str) -> None:
+            got = _verified(*item)
+            if got is not None:
+                self.accounting.dropped(DATA, "backpressure", got[0])
+
+        inbox = Inbox(maxsize, _open, self.accounting, DATA, block_s, on_full=_full)
+
+        def _hand_off(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            inbox.offer((key, sample.payload.to_bytes()), KeySpace.last(key))
 
         key = self.keys.traj(rollout) if rollout != "*" else self.keys.traj_all()
-        self._declared.append(self.data.declare_subscriber(key, _on_receive_thread(_receive)))
+        self._declared.append(self.data.declare_subscriber(key, _on_receive_thread(_hand_off)))
         return inbox
 
     def _oversize(self, plane: str, key: str, envelope: bytes) -> bool:

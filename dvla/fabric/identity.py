@@ -13,14 +13,13 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
-from cryptography.exceptions import InvalidSignature
-from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
-from cryptography.hazmat.primitives.serialization import Encoding, NoEncryption, PrivateFormat, PublicFormat
+from nacl.exceptions import BadSignatureError
+from nacl.signing import SigningKey, VerifyKey
 
 from .keys import KeySpace, check_name
 
 __all__ = ["IDENTITY_ENV", "KINDS", "OPERATOR", "REVOKED_FILE", "Identity", "IdentityError", "authorize",
-           "certificate_message", "read_revoked"]
+           "certificate_message", "read_revoked", "verify_certificate", "verify_signature"]
 
 #: environment variable carrying a process's credential
 IDENTITY_ENV = "DVLA_IDENTITY"
@@ -39,8 +38,22 @@ class IdentityError(ValueError):
     """A credential that cannot be parsed or does not hold together."""
 
 
-def _public_bytes(key: Ed25519PrivateKey) -> bytes:
-    return key.public_key().public_bytes(Encoding.Raw, PublicFormat.Raw)
+def _public_bytes(key: SigningKey) -> bytes:
+    return bytes(key.verify_key)
+
+
+def _signing_key(seed: bytes | None) -> SigningKey:
+    return SigningKey(seed) if seed is not None else SigningKey.generate()
+
+
+def verify_signature(public: bytes, message: bytes, signature: bytes) -> bool:
+    """Whether `signature` is `public`'s pure Ed25519 (RFC 8032) signature of `message` (libsodium,
+    which also refuses small-order and non-canonical keys)."""
+    try:
+        VerifyKey(public).verify(message, signature)
+        return True
+    except (BadSignatureError, ValueError, TypeError):
+        return False
 
 
 def certificate_message(run: str, kind: str, name: str, public: bytes) -> bytes:
@@ -48,12 +61,9 @@ def certificate_message(run: str, kind: str, name: str, public: bytes) -> bytes:
     return b"\0".join((b"dvla-cert1", run.encode(), kind.encode(), name.encode(), public))
 
 
-def verify_certificate(operator: Ed25519PublicKey, run: str, kind: str, name: str, public: bytes, cert: bytes) -> bool:
-    try:
-        operator.verify(cert, certificate_message(run, kind, name, public))
-        return True
-    except InvalidSignature:
-        return False
+def verify_certificate(operator: bytes, run: str, kind: str, name: str, public: bytes, cert: bytes) -> bool:
+    """Whether `cert` is the `operator` (public key) certificate of `public` as `name` of `kind` in `run`."""
+    return verify_signature(operator, certificate_message(run, kind, name, public), cert)
 
 
 @dataclass(frozen=True)
@@ -64,7 +74,7 @@ class Identity:
     run: str
     kind: str
     name: str
-    key: Ed25519PrivateKey
+    key: SigningKey
     certificate: bytes
     operator_public: bytes
 
@@ -73,15 +83,15 @@ class Identity:
         return _public_bytes(self.key)
 
     def sign(self, data: bytes) -> bytes:
-        return self.key.sign(data)
+        return self.key.sign(data).signature
 
     # -- issuing (the operator) ----------------------------------------------------------------
     @staticmethod
     def operator(run: str, seed: bytes | None = None) -> "Identity":
         """The operator's identity (self-certified): a fresh key, or the one from `seed`."""
-        key = Ed25519PrivateKey.from_private_bytes(seed) if seed is not None else Ed25519PrivateKey.generate()
+        key = _signing_key(seed)
         public = _public_bytes(key)
-        cert = key.sign(certificate_message(run, OPERATOR, OPERATOR, public))
+        cert = key.sign(certificate_message(run, OPERATOR, OPERATOR, public)).signature
         return Identity(run, OPERATOR, OPERATOR, key, cert, public)
 
     def issue(self, kind: str, name: str, seed: bytes | None = None) -> "Identity":
@@ -90,13 +100,13 @@ class Identity:
         if self.kind != OPERATOR:
             raise IdentityError(f"{self.name} is a {self.kind}: only the operator issues identities")
         check_name("role", name)
-        key = Ed25519PrivateKey.from_private_bytes(seed) if seed is not None else Ed25519PrivateKey.generate()
-        cert = self.key.sign(certificate_message(self.run, kind, name, _public_bytes(key)))
+        key = _signing_key(seed)
+        cert = self.sign(certificate_message(self.run, kind, name, _public_bytes(key)))
         return Identity(self.run, kind, name, key, cert, self.operator_public)
 
     # -- the credential text -------------------------------------------------------------------
     def seed(self) -> bytes:
-        return self.key.private_bytes(Encoding.Raw, PrivateFormat.Raw, NoEncryption())
+        return bytes(self.key)
 
     def to_text(self) -> str:
         return ":".join((_PREFIX, self.run, self.kind, self.name, self.seed().hex(), self.certificate.hex(),
@@ -110,12 +120,14 @@ class Identity:
             raise IdentityError(f"{origin}: not a dvla identity credential ({_PREFIX}:run:kind:name:seed:cert:operator)")
         _, run, kind, name, seed_hex, cert_hex, op_hex = parts
         try:
-            key = Ed25519PrivateKey.from_private_bytes(bytes.fromhex(seed_hex))
-            cert, op = bytes.fromhex(cert_hex), bytes.fromhex(op_hex)
-            operator = Ed25519PublicKey.from_public_bytes(op)
+            seed, cert, op = bytes.fromhex(seed_hex), bytes.fromhex(cert_hex), bytes.fromhex(op_hex)
         except ValueError as exc:
             raise IdentityError(f"{origin}: bad key material: {exc}") from exc
-        if not verify_certificate(operator, run, kind, name, _public_bytes(key), cert):
+        for what, value, size in (("seed", seed, 32), ("certificate", cert, SIGNATURE_BYTES), ("operator key", op, PUBLIC_BYTES)):
+            if len(value) != size:
+                raise IdentityError(f"{origin}: bad key material: the {what} is {len(value)} bytes, expected {size}")
+        key = SigningKey(seed)
+        if not verify_certificate(op, run, kind, name, _public_bytes(key), cert):
             raise IdentityError(f"{origin}: the certificate of {name!r} ({kind}) does not verify against its operator key")
         return Identity(run, kind, name, key, cert, op)
 

@@ -33,6 +33,7 @@ import zenoh
 from dvla.fabric import plane_config
 from dvla.fabric.codec import encode
 from dvla.fabric.keys import KeySpace
+from dvla.fabric.signing import MAGIC
 from dvla.fabric.messages import (
     Command,
     EvalResult,
@@ -218,7 +219,7 @@ class Attacker:
 
     def huge_envelopes(self, mb: int = 200) -> None:
         """One `mb` MB envelope on a trajectory key and on the commands key."""
-        big = b"DVS3" + bytes(mb << 20)
+        big = MAGIC + bytes(mb << 20)
         self.data.put(self.keys.traj(self.names("rollout")[0]), big, congestion_control=zenoh.CongestionControl.BLOCK)
         self.ctrl.put(self.keys.cmd("all"), big, congestion_control=zenoh.CongestionControl.BLOCK)
         self.sent.add("huge_envelopes", 2)
@@ -289,7 +290,7 @@ class Attacker:
             keys += [self.keys.eval(name)] if evals else []
         for key in keys:
             self._put_ctrl(key, garbage(200), "ctrl_unsigned")
-            self._put_ctrl(key, b"DVS3" + bytes(4) + garbage(20), "ctrl_malformed")
+            self._put_ctrl(key, MAGIC + bytes(4) + garbage(20), "ctrl_malformed")
 
     def data_garbage(self) -> None:
         """Garbage and an oversized message on every rollout's trajectory key and on a made-up one."""

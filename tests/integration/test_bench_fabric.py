@@ -57,21 +57,32 @@ def test_bench_fabric_quick_writes_every_figure(tmp_path: Path) -> None:
             assert positive(r["samples"])
         for phase in ("loaded", "loaded_shared"):
             assert positive(entry[phase]["flood_bytes_per_s"]), "the data plane was not flooded"
+        assert entry["block_ratios"] and all(positive(r) for r in entry["block_ratios"])
+    blocks = doc["loaded_over_idle_blocks"]
+    assert blocks["min"] <= blocks["median"] <= blocks["max"] and len(blocks["values"]) == doc["config"]["rtt_blocks"]
+    if "links" in layouts:  # the plain-TCP control flooded the same data link
+        links = layouts["links"]
+        assert positive(links["loaded_tcp"]["flood_bytes_per_s"]) and links["loaded_tcp"]["flood"] == "tcp"
+        assert links["loaded"]["flood"] == "fabric" and positive(doc["tcp_flood_over_idle"])
+        assert links["loaded"]["auth"] == "identity" and links["loaded_noauth"]["auth"] == "none-data"
+        assert positive(links["loaded_noauth"]["flood_bytes_per_s"]) and positive(doc["noauth_loaded_over_idle"])
     for e in doc["throughput"].values():
         assert e["does"]  # each side's work, in words
         assert positive(e["pub_cpu_us_per_msg"]) and positive(e["sub_cpu_us_per_msg"])
     assert "ctrl RTT" in proc.stdout and "chunks/s" in proc.stdout
     alive = [pid for pid in doc["worker_pids"] if Path(f"/proc/{pid}").exists() and not _zombie(pid)]
-    # 2 sizes x (publisher, subscriber) + 3 auth modes x (publisher, subscriber) + per layout 2 x (sink, source, tool)
-    assert len(doc["worker_pids"]) == 4 + 6 + 6 * len(layouts) and alive == [], alive
+    # 2 sizes x (publisher, subscriber) + 3 auth modes x (publisher, subscriber) + per layout 2 x (sink, source,
+    # tool), the links layout two more (without authentication; the plain-TCP control)
+    assert len(doc["worker_pids"]) == 4 + 6 + 6 * len(layouts) + 6 * ("links" in layouts) and alive == [], alive
     auth = doc["auth"]
-    assert set(auth["data"]) == {"none", "hmac", "identity"}
-    for mode in ("hmac", "identity"):
+    assert set(auth["data"]) == {"none", "tag", "identity"}
+    for mode in ("tag", "identity"):
         assert positive(auth["data"][mode]["throughput_ratio"]) and positive(auth["data"][mode]["chunks_per_s"])
         assert isinstance(auth["data"][mode]["lost"], int) and auth["data"][mode]["lost"] >= 0
         w = auth["weights"][mode]
         assert positive(w["seal_cpu_s"]) and positive(w["open_cpu_s"])
     assert doc["auth_throughput_ratio"] == auth["data"]["identity"]["throughput_ratio"]
+    assert doc["actor_cpu_us_per_auth_chunk"] == auth["data"]["identity"]["sub_cpu_us_per_chunk"]
     assert "authentication" in proc.stdout
     if doc["netns"]:  # the namespaces of the links layout are gone again
         assert all(not Path(f"/var/run/netns/{ns}").exists() for ns in doc["netns"]), doc["netns"]

@@ -462,8 +462,8 @@ def test_forged_unsigned_replayed_and_garbage_ctrl_messages_are_rejected(pair: P
         (bytes(tampered), "bad_signature"),
         (other_key, "bad_signature"),
         (body, "unsigned"),  # raw encoded bytes, no envelope
-        (os.urandom(200).replace(b"DVS3", b"XXXX"), "unsigned"),  # garbage
-        (b"DVS3" + os.urandom(60), "malformed"),  # garbage behind the magic
+        (os.urandom(200).replace(b"DVS4", b"XXXX"), "unsigned"),  # garbage
+        (b"DVS4" + os.urandom(60), "malformed"),  # garbage behind the magic
         (stale, "stale"),
         (signed_garbage, "malformed"),  # the envelope verifies, the payload does not decode
         (valid, None),

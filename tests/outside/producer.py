@@ -21,6 +21,7 @@ import struct
 import sys
 import time
 
+import blake3
 import msgpack
 import zenoh
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
@@ -85,22 +86,26 @@ def mac_prefix(key: str, bind: bytes) -> bytes:
     return struct.pack("<H", len(k)) + k + bytes([len(bind)]) + bind
 
 
+def mac_key(secret: bytes) -> bytes:
+    return blake3.blake3(secret, derive_key_context="dvla 2026-11 envelope tag v4").digest()
+
+
 def seal(secret: bytes, cred: Credential, key: str, payload: bytes, bind: bytes = b"") -> tuple[bytes, bytes]:
     """(envelope, nonce)."""
     kid = hashlib.sha256(b"dvla-key-id" + secret).digest()[:4]
     sender = cred.name.encode()
     nonce = os.urandom(16)
     kind = cred.kind.encode()
-    header = (b"DVS3" + kid + bytes([1, len(sender)]) + sender + struct.pack("<Q", time.time_ns()) + nonce
+    header = (b"DVS4" + kid + bytes([1, len(sender)]) + sender + struct.pack("<Q", time.time_ns()) + nonce
               + struct.pack("<I", len(payload)) + bytes([len(kind)]) + kind + cred.public + cred.cert)
     header += bytes(-len(header) % 8)
-    tag = hmac.new(secret, mac_prefix(key, bind) + header + payload, hashlib.sha256).digest()
+    tag = blake3.blake3(mac_prefix(key, bind) + header + payload, key=mac_key(secret)).digest()
     return header + payload + tag + cred.key.sign(b"dvla-sig1" + tag), nonce
 
 
 def open_envelope(secret: bytes, cred: Credential, key: str, env: bytes, bind: bytes = b"") -> tuple[str, str, bytes]:
     """(sender, kind, payload) of an envelope that must carry an identity certified by our operator."""
-    assert env[:4] == b"DVS3", "not an envelope"
+    assert env[:4] == b"DVS4", "not an envelope"
     flags, s = env[8], env[9]
     sender = env[10:10 + s].decode()
     pos = 10 + s + 8 + 16
@@ -115,7 +120,7 @@ def open_envelope(secret: bytes, cred: Credential, key: str, env: bytes, bind: b
     pos += -pos % 8
     assert len(env) == pos + plen + 32 + 64, "length"
     body_end = pos + plen
-    tag = hmac.new(secret, mac_prefix(key, bind) + env[:body_end], hashlib.sha256).digest()
+    tag = blake3.blake3(mac_prefix(key, bind) + env[:body_end], key=mac_key(secret)).digest()
     assert hmac.compare_digest(tag, env[body_end:body_end + 32]), "bad tag"
     cred.operator.verify(cert, cert_message(cred.run, kind, sender, public))
     Ed25519PublicKey.from_public_bytes(public).verify(env[body_end + 32:], b"dvla-sig1" + tag)

@@ -94,9 +94,9 @@ def test_received_chunk_arrays_are_aligned_views_of_the_received_bytes():
         rx.revoked.add("rollout-a")
         before = rx.accounting.get("data", "rejected.unauthorized", UNAUTHENTICATED)
         tx.publish_traj(_chunk("rollout-a", 3))
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + 10  # the reader verifies: its get() refuses and counts it
         while rx.accounting.get("data", "rejected.unauthorized", UNAUTHENTICATED) == before and time.monotonic() < deadline:
-            time.sleep(0.05)
+            assert inbox.get(timeout=0.2) is None
         assert rx.accounting.get("data", "rejected.unauthorized", UNAUTHENTICATED) == before + 1
         assert inbox.get(timeout=0.2) is None
     finally:

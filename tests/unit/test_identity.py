@@ -66,7 +66,7 @@ def test_receiver_requiring_identities_refuses_the_rest(op):
     env[-1] ^= 1  # the identity signature
     assert reason(verifier, key, bytes(env)) == "bad_identity"
     env = bytearray(Signer(SECRET, "x", identity=op).seal(key, b"c"))
-    env[bytes(env).index(op.certificate) + 5] ^= 1  # a certificate byte: also covered by the HMAC tag
+    env[bytes(env).index(op.certificate) + 5] ^= 1  # a certificate byte: also covered by the tag
     assert reason(verifier, key, bytes(env)) in ("bad_signature", "bad_identity")
     assert reason(verifier, key, Signer(SECRET, "x", identity=op).seal(key, b"c")) is None
 

@@ -69,18 +69,30 @@ def test_envelope_layout_matches_documentation():
     clock = Clock()
     env = Signer(SECRET, "actor", clock=clock).seal(KEY, b"xyz")
     import hashlib
-    import hmac
-    assert env[:4] == MAGIC and env[4:8] == hashlib.sha256(b"dvla-key-id" + SECRET).digest()[:4]
+
+    import blake3
+    assert env[:4] == MAGIC == b"DVS4" and env[4:8] == hashlib.sha256(b"dvla-key-id" + SECRET).digest()[:4]
     assert env[8] == 0 and env[9] == 5 and env[10:15] == b"actor"
     ts, _nonce, plen = struct.unpack_from("<Q16sI", env, 15)
     assert ts == T0 and plen == 3 and env[43:48] == bytes(5)  # zero padding: payload 8-byte aligned
     assert env[48:51] == b"xyz" and len(env) == 51 + 32
     key = KEY.encode()
-    tag = hmac.new(SECRET, struct.pack("<H", len(key)) + key + b"\x00" + env[:51], hashlib.sha256).digest()
+    mac_key = blake3.blake3(SECRET, derive_key_context="dvla 2026-11 envelope tag v4").digest()
+    tag = blake3.blake3(struct.pack("<H", len(key)) + key + b"\x00" + env[:51], key=mac_key).digest()
     assert env[51:] == tag
     padded = bytearray(env)
     padded[44] = 1
     assert reason_of(Verifier(SECRET, clock=clock), KEY, bytes(padded)) == "malformed"
+
+
+def test_an_older_envelope_version_is_refused_by_name():
+    """A DVS3 (HMAC-SHA256) sender talking to a DVS4 receiver: refused as unsigned, the error
+    naming both versions (an upgrade problem, not an attack)."""
+    env = bytearray(Signer(SECRET, "actor").seal(KEY, b"xyz"))
+    env[:4] = b"DVS3"
+    with pytest.raises(SignatureError, match="DVS3 is no longer accepted.*DVS4") as err:
+        Verifier(SECRET).open(KEY, bytes(env))
+    assert err.value.reason == "unsigned"
 
 
 def flip(env: bytes, index: int) -> bytes:
