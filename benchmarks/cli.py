@@ -23,6 +23,8 @@ def e2e(
     json_path: Annotated[Optional[Path], typer.Option("--json", help="write results here")] = None,
     base_port: Annotated[int, typer.Option(help="first TCP port")] = 19400,
     modes: Annotated[str, typer.Option(help="comma-separated modes, run interleaved per seed (async, sync)")] = "async,sync",
+    final_eval: Annotated[int, typer.Option(help="also play each run's final checkpoint on this many episodes of "
+                                                 "fresh seeds (0: not)", min=0)] = 0,
 ) -> None:
     """Train once per seed and mode to the topology's success target; time and steps to get there,
     learning curves, median and spread across seeds per mode."""
@@ -35,11 +37,14 @@ def e2e(
     mode_list = tuple(m.strip() for m in modes.split(",") if m.strip())
     if not mode_list or any(m not in ("async", "sync") for m in mode_list):
         raise fail(f"--modes: expected a comma-separated list of async and sync, got {modes!r}")
-    doc = run_seeds(topology, seed_list, base_port, [], mode_list)
+    doc = run_seeds(topology, seed_list, base_port, [], mode_list, final_eval)
     for r in doc["runs"]:
+        fe = r["final_eval"]
+        independent = (f"  final v{fe['version']}: {fe['success_once']:.3f} [{fe['success_once_low']:.3f}, "
+                       f"{fe['success_once_high']:.3f}] on {fe['episodes']}" if fe else "")
         typer.echo(f"seed {r['seed']} {r['mode']}: {r['reason']}  env_steps={r['env_steps']}  "
                    f"policy_env_steps={r['policy_env_steps']}  train_s={_f(r['train_s'])}  "
-                   f"startup_s={_f(r['startup_s'])}  steps/s={_f(r['train_steps_per_s'])}")
+                   f"startup_s={_f(r['startup_s'])}  steps/s={_f(r['train_steps_per_s'])}{independent}")
     for mode, m in doc["modes"].items():
         spread = {k: m[k] for k in ("env_steps", "policy_env_steps", "train_s", "train_steps_per_s")}
         typer.echo(f"{mode}: {m['successes']}/{m['runs']} reached the target; " + "  ".join(

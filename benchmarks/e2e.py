@@ -19,17 +19,21 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from benchmarks.final_eval import evaluate_run, fresh_seed
+
 #: env steps between the points of the summarised learning curve
 CURVE_STEP = 8000
 
 
 def run_seeds(topology: Path, seeds: list[int], base_port: int, extra: list[str],
-              modes: tuple[str, ...] = ("async",)) -> dict[str, Any]:
+              modes: tuple[str, ...] = ("async",), final_eval: int = 0) -> dict[str, Any]:
+    """``final_eval`` > 0: each run's final policy is also played on that many episodes none of
+    its evaluations played (benchmarks/final_eval.py), as ``final_eval`` of the run."""
     runs = []
     with tempfile.TemporaryDirectory(prefix="dvla-bench-e2e-") as tmp:
         for seed in seeds:
             for mode in modes:
-                runs.append(_one_run(topology, seed, mode, Path(tmp), base_port, extra))
+                runs.append(_one_run(topology, seed, mode, Path(tmp), base_port, extra, final_eval))
     by_mode = {m: _summary([r for r in runs if r["mode"] == m]) for m in modes}
     first = by_mode[modes[0]]
     return {
@@ -41,7 +45,8 @@ def run_seeds(topology: Path, seeds: list[int], base_port: int, extra: list[str]
     }
 
 
-def _one_run(topology: Path, seed: int, mode: str, tmp: Path, base_port: int, extra: list[str]) -> dict[str, Any]:
+def _one_run(topology: Path, seed: int, mode: str, tmp: Path, base_port: int, extra: list[str],
+             final_eval: int = 0) -> dict[str, Any]:
     cmd = [sys.executable, "-m", "dvla", "up", str(topology), "--seed", str(seed), "--mode", mode, "--quiet",
            "--fresh", "--runs", str(tmp), "--base-port", str(base_port), *extra]
     proc = subprocess.run(cmd, capture_output=True, text=True)
@@ -50,6 +55,8 @@ def _one_run(topology: Path, seed: int, mode: str, tmp: Path, base_port: int, ex
     curve = _curve(result_files[0].parent / "evals.csv", res.get("startup_s")) if result_files else []
     trained = _version_steps(result_files[0].parent / "versions.csv") if result_files else {}
     qualifying = curve[-1]["version"] if curve and res.get("success_reached") else None
+    independent = (evaluate_run(result_files[0].parent, final_eval, fresh_seed(seed))
+                   if final_eval > 0 and result_files else None)
     for f in result_files:
         f.unlink()
     return {
@@ -66,6 +73,7 @@ def _one_run(topology: Path, seed: int, mode: str, tmp: Path, base_port: int, ex
         "evals": len(res.get("evals", [])),
         "curve": curve,
         "accounting": res.get("accounting"),
+        "final_eval": independent,
     }
 
 

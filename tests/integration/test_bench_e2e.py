@@ -55,7 +55,7 @@ def test_bench_e2e_runs_both_modes_per_seed(tmp_path: Path) -> None:
     topo.write_text(text.replace("  algorithm: ppo\n", "  algorithm: ppo\n" + evals, 1))
     proc = subprocess.run(
         [sys.executable, "-m", "dvla", "bench", "e2e", str(topo), "--seeds", "3", "--modes", "async,sync",
-         "--json", str(out), "--base-port", str(free_port_block())],
+         "--json", str(out), "--base-port", str(free_port_block()), "--final-eval", "3"],
         cwd=ROOT, capture_output=True, text=True, timeout=220,
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -66,7 +66,12 @@ def test_bench_e2e_runs_both_modes_per_seed(tmp_path: Path) -> None:
         assert r["accounting"]["unaccounted"] == 0
         assert r["curve"] and all(0.0 <= p["success_once"] <= 1.0 for p in r["curve"]), r
         assert [p["env_steps"] for p in r["curve"]] == sorted(p["env_steps"] for p in r["curve"])
+        # the final checkpoint on 3 episodes of its own seeds, each to the time limit
+        final = r["final_eval"]
+        assert (final["episodes"], final["seed"]) == (3, 9_003_000) and final["version"] >= 1, final
+        assert final["env_steps"] == 3 * 50 and 0.0 <= final["success_once"] <= 1.0, final
     assert set(doc["modes"]) == {"async", "sync"}
     for m in doc["modes"].values():
         assert m["runs"] == 1 and m["successes"] == 0 and m["curve"]
     assert "async: 0/1 reached the target" in proc.stdout
+    assert "final v" in proc.stdout and "on 3" in proc.stdout

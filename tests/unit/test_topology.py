@@ -326,8 +326,10 @@ def test_local_topology() -> None:
     assert (rack.name, node.name, node.host) == ("rack0", "node0", "localhost")
     assert {p.role: p.count for p in node.roles} == {"actor": 1, "replicator": 1, "rollout": 2, "evaluator": 1}
     assert topo.task.env == "PushCube-v1" and topo.task.obs_mode == "state" and topo.task.algorithm == "ppo"
-    assert (topo.task.budget.max_env_steps, topo.task.budget.until_success) == (300_000, 0.8)
-    assert topo.task.budget.consecutive == 3
+    # the stop rule of docs/evaluation.md: one 128-episode evaluation whose lower bound clears 0.75
+    b = topo.task.budget
+    assert (b.max_env_steps, b.until_success, b.success_on, b.consecutive) == (300_000, 0.75, "lower_bound", 1)
+    assert topo.task.eval.episodes == 128
     assert topo.replication.encoding == "full"
 
 
