@@ -5,7 +5,7 @@ tests/outside/producer.py imports nothing from dvla: it was written from docs/wi
 (one actor, one rollout): with an issued credential its signed snapshot query is answered (it sees a version)
 and the actor accounts every chunk it sends as received from its name; with a credential from
 another operator, and with its own credential after `dvla identity revoke`, its chunks are
-refused and counted (`bad_identity`, `unauthorized`) under `<unauthenticated>`. Then, as a robot
+refused and counted (`bad_identity`, `revoked`) under `<unauthenticated>`. Then, as a robot
 that only dials out: the same producer as a Zenoh client of one bare router per plane
 (tests/outside/router.py, connected to the actor), with the same result as a direct peer.
 """
@@ -141,7 +141,7 @@ def test_outside_producer_with_issued_foreign_and_revoked_credentials(live_run: 
     assert res.returncode == 0 and "every live role" in res.stdout, res.stderr
     got = produce(f"tcp/127.0.0.1:{port}", f"tcp/127.0.0.1:{port + 1}", runs, issued, wait_s=3)
     assert got["version"] == -1
-    assert wait_for(lambda: unauth("rejected.unauthorized") >= N_CHUNKS), actor_data(runs)
+    assert wait_for(lambda: unauth("rejected.revoked") >= N_CHUNKS), actor_data(runs)
     assert received(runs, "robot-1") == N_CHUNKS  # nothing more accepted
 
 
