@@ -164,3 +164,57 @@ def test_outside_producer_as_a_zenoh_client_through_routers(live_run: tuple[Path
         for r in routers:
             r.kill()
             r.wait()
+
+
+def start_routers(edge: int, port: int) -> list[subprocess.Popen]:
+    """One bare router per plane on edge, edge + 1, each connected to the actor's plane."""
+    routers = [subprocess.Popen([sys.executable, str(ROOT / "tests/outside/router.py"), f"tcp/127.0.0.1:{edge + i}",
+                                 f"tcp/127.0.0.1:{port + i}"], stdout=subprocess.PIPE, text=True) for i in (0, 1)]
+    for r in routers:
+        assert r.stdout.readline().strip() == "ready"
+    return routers
+
+
+def stop(procs: list[subprocess.Popen]) -> None:
+    for p in procs:
+        p.kill()
+        p.wait()
+
+
+def role_status(runs: Path, name: str) -> dict | None:
+    st = dvla("status", RUN, "--runs", str(runs), "--format", "json")
+    return next((r for r in json.loads(st.stdout)["roles"] if r["name"] == name), None) if st.returncode == 0 else None
+
+
+@pytest.mark.timeout(240)
+def test_dvla_join_runs_a_rollout_through_routers_and_survives_their_restart(live_run: tuple[Path, int]) -> None:
+    # `dvla join`: dvla's own rollout, from an issued credential, dialing out to the routers only.
+    runs, port = live_run
+    edge = free_port_block(2)
+    routers = start_routers(edge, port)
+    cred = issue(runs, "robot-4")
+    topo = runs.parent / "outside.yaml"
+    robot = subprocess.Popen([sys.executable, "-m", "dvla", "join", str(topo), "--credential", str(cred), "--runs", str(runs),
+                              "--connect-ctrl", f"tcp/127.0.0.1:{edge}", "--connect-data", f"tcp/127.0.0.1:{edge + 1}"],
+                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert wait_for(lambda: received(runs, "robot-4") >= 5 or robot.poll() is not None, 90), actor_data(runs)
+        assert robot.poll() is None, robot.communicate()[0]
+        st = wait_for(lambda: (s := role_status(runs, "robot-4")) and s["policy_version"] >= 1 and s, 30)
+        assert st and st["kind"] == "rollout", st  # versions reach it through the ctrl router
+        consumed = lambda: actor_data(runs)["peers"]["robot-4"].get("consumed", 0)  # noqa: E731
+        assert wait_for(lambda: consumed() >= 1), actor_data(runs)  # learned from, not only received
+        stop(routers)  # the link is lost: the rollout blocks, its client session retries
+        time.sleep(5)
+        before = consumed()
+        routers = start_routers(edge, port)
+        assert wait_for(lambda: consumed() >= before + 5 or robot.poll() is not None, 90), actor_data(runs)
+        assert robot.poll() is None, robot.communicate()[0]
+        peer = actor_data(runs)["peers"]["robot-4"]
+        # too old for the learner (`dropped.stale`) is a count of its own; nothing is refused
+        assert not any(k.startswith("rejected") for k in peer), peer
+    finally:
+        robot.terminate()
+        out = robot.communicate(timeout=60)[0]
+        stop(routers)
+    assert robot.returncode == 0, out[-3000:]

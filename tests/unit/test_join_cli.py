@@ -119,3 +119,11 @@ def test_join_builds_the_planned_rollout_config_as_a_client_of_the_routers(setup
     assert cfg.task == topo.task and cfg.replication == topo.replication
     with pytest.raises(typer.Exit):  # not an actor of the topology
         rollout_config(topo, op.issue("rollout", "robot-1"), "actor-x", ("tcp/e:1",), ("tcp/e:2",), runs / RUN)
+
+
+def test_join_dials_the_routers_the_topology_names(setup, tmp_path):
+    topo, runs, op = setup
+    port = _closed_port()
+    topo.write_text(TOPOLOGY + f"        router: {{ctrl: {port}, data: {port + 1}}}\n")
+    res = _join(topo, runs, _cred(tmp_path, op.issue("rollout", "robot-1")))
+    assert res.exit_code == 1 and f"--connect-ctrl tcp/127.0.0.1:{port}: router unreachable" in res.output, res.output

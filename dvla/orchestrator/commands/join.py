@@ -1,6 +1,7 @@
 """`dvla join`: one rollout outside the topology's hosts (a robot, a workstation behind NAT),
 started from a credential of `dvla identity issue`, as a Zenoh client that only dials out to the
-run's routers (docs/embedding.md, "A robot as a rollout").
+run's routers: those given, or those the topology's nodes name with ``router:``
+(docs/embedding.md, "A robot as a rollout").
 
 It runs dvla's own rollout role (`python -m dvla.roles.rollout`, the process `dvla up` starts)
 with a config built from the topology's plan: the task and replication settings of the run, the
@@ -22,7 +23,7 @@ from ...config import PlaneEndpoints, RoleConfig, Topology
 from ...fabric import load_secret
 from ...fabric.errors import SecretError
 from ...fabric.identity import IDENTITY_ENV, Identity, IdentityError, read_revoked
-from ..plan import make_plan
+from ..plan import make_plan, router_endpoints
 from .common import RUNS_ROOT, fail, topology_or_exit
 
 #: seconds a router endpoint gets to accept a TCP connection before `dvla join` gives up
@@ -47,11 +48,15 @@ def read_credential(path: Path, topo: Topology) -> Identity:
     return ident
 
 
-def router_endpoints(plane: str, given: list[str]) -> tuple[str, ...]:
-    """The endpoints to dial for `plane`."""
-    if not given:
-        raise fail(f"--connect-{plane}: give the {plane} plane's router endpoint (tcp/HOST:PORT)")
-    return tuple(given)
+def dial(topo: Topology, plane: str, given: list[str]) -> tuple[str, ...]:
+    """The endpoints to dial for `plane`: those given, else the routers the topology names."""
+    if given:
+        return tuple(given)
+    named = router_endpoints(make_plan(topo, "."), plane)
+    if not named:
+        raise fail(f"--connect-{plane}: give the {plane} plane's router endpoint (tcp/HOST:PORT); "
+                   "the topology names no node `router:`")
+    return named
 
 
 def probe(plane: str, endpoint: str) -> None:
@@ -97,8 +102,10 @@ def join(
     topology: Annotated[Path, typer.Argument(help="the run's topology YAML")],
     credential: Annotated[Path, typer.Option(help="rollout credential from `dvla identity issue` (mode 0600)")],
     secret: Annotated[Path | None, typer.Option(help="the run's secret file (default: RUNS/RUN/secret)")] = None,
-    connect_ctrl: Annotated[list[str], typer.Option(help="ctrl-plane router endpoint, e.g. tcp/H:P (repeatable)")] = [],  # noqa: B006
-    connect_data: Annotated[list[str], typer.Option(help="data-plane router endpoint, e.g. tcp/H:P (repeatable)")] = [],  # noqa: B006
+    connect_ctrl: Annotated[list[str], typer.Option(
+        help="ctrl-plane router endpoint, e.g. tcp/H:P (repeatable; default: the topology's routers)")] = [],  # noqa: B006
+    connect_data: Annotated[list[str], typer.Option(
+        help="data-plane router endpoint, e.g. tcp/H:P (repeatable; default: the topology's routers)")] = [],  # noqa: B006
     actor: Annotated[str | None, typer.Option(help="the learner rank to ship to (default: the first)")] = None,
     runs: Annotated[Path, typer.Option(help="directory of run directories (counter files and logs go in RUNS/RUN)")] = RUNS_ROOT,
 ) -> None:
@@ -112,8 +119,8 @@ def join(
         raise fail(f"{credential}: {ident.name!r} is revoked in {run_dir / 'revoked'}")
     if topo.mode != "async":
         raise fail(f"{topology}: mode {topo.mode!r}: only an async run takes rollouts from outside its plan")
-    ctrl = router_endpoints("ctrl", connect_ctrl)
-    data = router_endpoints("data", connect_data)
+    ctrl = dial(topo, "ctrl", connect_ctrl)
+    data = dial(topo, "data", connect_data)
     try:
         key = load_secret(str(secret if secret is not None else run_dir / "secret"))
     except SecretError as err:
