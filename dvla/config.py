@@ -165,6 +165,8 @@ def cpu_list_problems(cpus: tuple[int, ...] | None, key: str) -> Problems:
 
 RoleKind = Literal["actor", "rollout", "replicator", "evaluator"]
 ROLE_KINDS: tuple[str, ...] = typing.get_args(RoleKind)
+#: what a process of a run is: a role placed by the topology, or a node's router (`router:`)
+ProcessKind = Literal["actor", "rollout", "replicator", "evaluator", "router"]
 """Every role a topology may place. ``evaluator`` is a rollout that runs deterministic eval episodes."""
 
 Encoding = Literal["full", "delta-bf16", "delta-topk"]
@@ -752,6 +754,26 @@ SSH_USER_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}\$?")
 
 
 @dataclass(frozen=True, kw_only=True)
+class RouterConfig:
+    """A Zenoh router per plane on a node, for producers outside the topology (a robot behind
+    NAT that only dials out, `dvla join`): each connects to the run's plane like a role, and the
+    outside rollouts connect to it as Zenoh clients (docs/embedding.md)."""
+
+    #: TCP port of the ctrl-plane router (commands, status, weights)
+    ctrl: int = rule(ge=1024, le=65535)
+    #: TCP port of the data-plane router (trajectory chunks)
+    data: int = rule(ge=1024, le=65535)
+    #: address both routers listen on (None: the node's address; "0.0.0.0" for every interface,
+    #: the usual choice for a host that robots reach from another network)
+    address: str | None = rule(None, nonempty="an IP address, or null for the node's address",
+                               check=lambda address: host_problem(address, "address"))
+
+    def problems(self) -> Problems:
+        if self.ctrl == self.data:
+            yield "data", f"port {self.data} is the ctrl router's port too (each plane needs its own)"
+
+
+@dataclass(frozen=True, kw_only=True)
 class NodeConfig:
     """A host of the cluster."""
 
@@ -770,6 +792,8 @@ class NodeConfig:
     cpus: tuple[int, ...] | None = None
     #: SSH settings for this node when its host is remote (None: the topology's `ssh`)
     ssh: SshConfig | None = None
+    #: Zenoh routers on this node that outside rollouts join through (None: none)
+    router: RouterConfig | None = None
 
     def role_counts(self) -> dict[str, int]:
         """role kind -> processes of it placed on this node."""
@@ -925,8 +949,8 @@ class RoleConfig:
 
     #: process name, unique in the run (e.g. "rollout-node0-1"); also its key suffix
     name: str
-    #: role kind
-    kind: RoleKind
+    #: role kind (or "router": a node's routers for outside rollouts)
+    kind: ProcessKind
     #: run id
     run: str
     #: node and rack hosting the process

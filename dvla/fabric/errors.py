@@ -37,10 +37,11 @@ class SignatureError(_ReasonError):
     framing), ``bad_signature`` (tag mismatch), ``stale`` (timestamp outside the window),
     ``replay`` (nonce seen), ``key_id`` (another secret: another run or a rotated key),
     ``no_identity`` / ``bad_identity`` (certified signature missing or not verifying),
-    ``unauthorized`` (a verified sender that may not send this on this key)."""
+    ``unauthorized`` (a verified sender that may not send this on this key), ``revoked`` (a
+    verified sender whose credential the operator revoked, `dvla identity revoke`)."""
 
     REASONS = frozenset({"unsigned", "bad_signature", "stale", "replay", "malformed", "key_id", "no_identity",
-                         "bad_identity", "unauthorized"})
+                         "bad_identity", "unauthorized", "revoked"})
 
 
 class SecretError(FabricError, ValueError):

@@ -207,9 +207,11 @@ class Fabric:
             peer = KeySpace.last(key)
             try:
                 opened = self._verifier.open(key, raw)
-                why = self._refusal(key, opened.sender, opened.kind)
-                if why is not None or opened.sender != peer:
-                    raise SignatureError("unauthorized", why or f"sender {opened.sender!r} on {peer!r}'s key")
+                refused = self._refusal(key, opened.sender, opened.kind)
+                if refused is not None:
+                    raise refused
+                if opened.sender != peer:
+                    raise SignatureError("unauthorized", f"sender {opened.sender!r} on {peer!r}'s key")
             except SignatureError as err:
                 self.accounting.received(DATA, len(raw), UNAUTHENTICATED)
                 self.accounting.rejected(DATA, err.reason, UNAUTHENTICATED)
@@ -263,13 +265,15 @@ class Fabric:
     def seal(self, key: str, msg: Any) -> bytes:
         return self._signer.seal(key, encode(msg))
 
-    def _refusal(self, key: str, sender: str, kind: str, query: bool = False) -> str | None:
-        """Why `sender` may not send this (None: it may, or this fabric checks no identities)."""
+    def _refusal(self, key: str, sender: str, kind: str, query: bool = False) -> SignatureError | None:
+        """Why `sender` may not send this: ``revoked`` or ``unauthorized`` (None: it may, or this
+        fabric checks no identities)."""
         if self.identity is None:
             return None
         if sender in self.revoked:
-            return f"the credential of {kind} {sender!r} was revoked by the operator"
-        return authorize(self.keys, key, sender, kind, query=query, weights_source=self.weights_source)
+            return SignatureError("revoked", f"the credential of {kind} {sender!r} was revoked by the operator")
+        why = authorize(self.keys, key, sender, kind, query=query, weights_source=self.weights_source)
+        return None if why is None else SignatureError("unauthorized", why)
 
     def open_signed(self, key: str, raw: bytes, expect: type | tuple[type, ...] | None, *, query: bool = False,
                     bind: bytes = b"", fresh: bool = True) -> tuple[str, Any] | None:
@@ -278,9 +282,9 @@ class Fabric:
         `fresh=False`: an old envelope kept as proof (no freshness or replay check)."""
         try:
             sender, kind, payload, _nonce = self._verifier.open(key, raw, bind=bind, fresh=fresh)
-            why = self._refusal(key, sender, kind, query)
-            if why is not None:
-                raise SignatureError("unauthorized", why)
+            refused = self._refusal(key, sender, kind, query)
+            if refused is not None:
+                raise refused
         except SignatureError as err:
             self.accounting.rejected(CTRL, err.reason, UNAUTHENTICATED)
             _warn_limited(f"rejected control message on {_short(key)}: {err}")

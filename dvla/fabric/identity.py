@@ -26,7 +26,7 @@ IDENTITY_ENV = "DVLA_IDENTITY"
 #: kind (and name) of the operator's own identity: dvla up, dvla status / stop, the monitor
 OPERATOR = "operator"
 #: every kind of identity dvla issues
-KINDS = (OPERATOR, "actor", "replicator", "rollout", "evaluator")
+KINDS = (OPERATOR, "actor", "replicator", "rollout", "evaluator", "router")
 #: names whose credentials the operator revoked, one a line, in the run directory
 REVOKED_FILE = "revoked"
 _PREFIX = "dvla-id1"

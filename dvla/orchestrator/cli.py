@@ -7,7 +7,7 @@ import typer
 
 from benchmarks.cli import app as bench_app
 
-from .commands import convert, doctor, down, export, identity, logs, plan, status, up
+from .commands import convert, doctor, down, export, identity, join, logs, plan, status, up
 
 app = typer.Typer(
     name="dvla",
@@ -24,6 +24,7 @@ app.command("plan")(plan.plan)
 app.command("doctor")(doctor.doctor)
 app.command("export")(export.export)
 app.command("convert")(convert.convert)
+app.command("join")(join.join)
 app.add_typer(identity.app, name="identity")
 app.add_typer(bench_app, name="bench")
 

@@ -155,8 +155,57 @@ def make_plan(topo: Topology, run_dir: str, base_port: int | None = None) -> Pla
         netns = netns_name(topo.run, s.node.name) if topo.emulate == "netns" else None
         processes.append(Process(config=cfg, host=s.node.host, netns=netns))
 
+    first_port = base_port if base_port is not None else topo.base_port
+    processes += _routers(topo, run_dir, addresses, root, actors, ep, range(first_port, port), warnings)
     entry = [ep(root, "ctrl")] + [ep(s, "ctrl") for s in slots if s.kind == "replicator"]
     return Plan(processes=tuple(processes), ctrl_entry=tuple(entry), addresses=addresses, warnings=tuple(warnings))
+
+
+def _routers(topo: Topology, run_dir: str, addresses: dict[str, str], root: _Slot, actors: list[_Slot], ep, planned: range,
+             warnings: list[str]) -> list[Process]:
+    """One process per node with ``router:``: a Zenoh router per plane, the ctrl one connected to
+    the root actor's ctrl router, the data one to every actor's data listener, both listening
+    where outside rollouts (``dvla join``) dial in."""
+    out = []
+    tls_planes = topo.tls.planes if topo.tls is not None else ()
+    for ri, rack in enumerate(topo.racks):
+        for node in rack.nodes:
+            r = node.router
+            if r is None:
+                continue
+            for plane, p in (("ctrl", r.ctrl), ("data", r.data)):
+                if p in planned:
+                    warnings.append(f"{node.name}: router.{plane} port {p} is also planned for a role "
+                                    f"(ports {planned.start}-{planned.stop - 1}): pick one outside them")
+            listen = r.address or addresses[node.name]
+
+            def plane(which: str, port: int, connect: tuple[str, ...]) -> PlaneEndpoints:
+                scheme = "tls" if which in tls_planes else "tcp"
+                return PlaneEndpoints(mode="router", listen=(f"{scheme}/{listen}:{port}",), connect=connect,
+                                      tls=topo.tls if which in tls_planes else None)
+
+            cfg = RoleConfig(
+                name=f"router-{node.name}-0", kind="router", run=topo.run, node=node.name, rack=rack.name,
+                seed=topo.seed, mode=topo.mode, run_dir=run_dir,
+                ctrl=plane("ctrl", r.ctrl, (ep(root, "ctrl"),)),
+                data=plane("data", r.data, tuple(ep(a, "data") for a in actors)),
+                shared_memory=False, parent=root.name, ancestors=(root.name,), children=(), actors=(), rollouts=(),
+                task=topo.task, replication=topo.replication,
+            )
+            netns = netns_name(topo.run, node.name) if topo.emulate == "netns" else None
+            out.append(Process(config=cfg, host=node.host, netns=netns))
+    return out
+
+
+def router_endpoints(plan: Plan, plane: str) -> tuple[str, ...]:
+    """Where outside rollouts dial `plane`: every router's listener, a "0.0.0.0" one as its node's
+    address."""
+    out = []
+    for p in plan.processes:
+        if p.config.kind == "router":
+            for locator in (p.config.ctrl if plane == "ctrl" else p.config.data).listen:
+                out.append(locator.replace("/0.0.0.0:", f"/{plan.addresses[p.config.node]}:"))
+    return tuple(out)
 
 
 def _relay_tree(topo: Topology, slots: list[_Slot], root: _Slot) -> None:

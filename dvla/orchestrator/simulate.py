@@ -231,7 +231,8 @@ def simulate_broadcast(topo: Topology, plan: Plan, size_bytes: int, costs: HostC
     if size_bytes <= 0:
         raise ValueError(f"version size must be positive, got {size_bytes} bytes")
     procs = plan.processes
-    tree = [(p.config.parent, p.config.name) for p in procs if p.config.parent]
+    # routers carry versions only to rollouts outside the plan: not part of the modelled tree
+    tree = [(p.config.parent, p.config.name) for p in procs if p.config.parent and p.config.kind != "router"]
     leaves = [p.config.name for p in procs if p.config.kind in LEAF_KINDS]
     tree_held, nb, tree_copies = _simulate(topo, plan, tree, size_bytes, costs, max_blocks)
     star_held: dict[str, float] = {}

@@ -92,12 +92,12 @@ def test_received_chunk_arrays_are_aligned_views_of_the_received_bytes():
             assert arr.flags.aligned and (arr.ctypes.data - whole.ctypes.data) % 8 == 0
         # Once the operator revokes the name, its chunks are refused and counted as foreign.
         rx.revoked.add("rollout-a")
-        before = rx.accounting.get("data", "rejected.unauthorized", UNAUTHENTICATED)
+        before = rx.accounting.get("data", "rejected.revoked", UNAUTHENTICATED)
         tx.publish_traj(_chunk("rollout-a", 3))
         deadline = time.monotonic() + 10  # the reader verifies: its get() refuses and counts it
-        while rx.accounting.get("data", "rejected.unauthorized", UNAUTHENTICATED) == before and time.monotonic() < deadline:
+        while rx.accounting.get("data", "rejected.revoked", UNAUTHENTICATED) == before and time.monotonic() < deadline:
             assert inbox.get(timeout=0.2) is None
-        assert rx.accounting.get("data", "rejected.unauthorized", UNAUTHENTICATED) == before + 1
+        assert rx.accounting.get("data", "rejected.revoked", UNAUTHENTICATED) == before + 1
         assert inbox.get(timeout=0.2) is None
     finally:
         tx.close()

@@ -230,3 +230,36 @@ racks:
     assert by["actor-a-0"].sim_workers == 0 and by["evaluator-a-0"].sim_workers == 0
     for cfg in by.values():
         assert RoleConfig.from_json(cfg.to_json()) == cfg
+
+
+ROUTED = """
+run: tr
+learners: {routing: round_robin}
+racks:
+  - name: ra
+    nodes:
+      - {name: a0, roles: [{role: actor}, {role: rollout}], router: {ctrl: 7447, data: 7448, address: 0.0.0.0}}
+      - {name: a1, roles: [{role: actor}, {role: rollout}]}
+"""
+
+
+def test_a_node_router_is_one_process_linking_outside_clients_to_both_planes() -> None:
+    from dvla.orchestrator.plan import router_endpoints
+
+    plan = make_plan(parse_topology(ROUTED, "r.yaml"), "/tmp/run", base_port=20000)
+    router = plan.by_name("router-a0-0").config
+    assert plan.processes[-1].config is router  # started last, once the actors listen
+    assert (router.kind, router.ctrl.mode, router.data.mode) == ("router", "router", "router")
+    assert router.ctrl.listen == ("tcp/0.0.0.0:7447",) and router.data.listen == ("tcp/0.0.0.0:7448",)
+    assert router.ctrl.connect == (plan.ctrl_entry[0],)  # the root actor's ctrl router
+    actors = [p.config for p in plan.processes if p.config.kind == "actor"]
+    assert router.data.connect == tuple(a.data.listen[0] for a in actors)  # chunks can reach every rank
+    assert router.name not in {c for a in actors for c in a.children}  # not a weight-tree member
+    assert router_endpoints(plan, "ctrl") == ("tcp/127.0.0.1:7447",)  # 0.0.0.0: dialled at the node's address
+    assert router_endpoints(plan, "data") == ("tcp/127.0.0.1:7448",)
+    assert not plan.warnings
+
+
+def test_a_router_port_among_the_planned_ports_is_warned() -> None:
+    plan = make_plan(parse_topology(ROUTED, "r.yaml"), "/tmp/run", base_port=7446)
+    assert any("router.ctrl port 7447 is also planned" in w for w in plan.warnings), plan.warnings

@@ -77,6 +77,12 @@ def plan(
         typer.echo(f"  rank {r['rank']} {r['actor']} <- {', '.join(r['rollouts']) or '(no rollouts)'}")
     typer.echo("weight tree:")
     _tree(typer.echo, procs, p.root_actor, "  ")
+    routers = [x for x in procs if x["kind"] == "router"]
+    if routers:
+        typer.echo("routers (outside rollouts join through them: `dvla join`):")
+    for x in routers:
+        typer.echo(f"  {x['name']}: ctrl {', '.join(x['ctrl']['listen'])} -> {', '.join(x['ctrl']['connect'])}; "
+                   f"data {', '.join(x['data']['listen'])} -> {', '.join(x['data']['connect'])}")
     typer.echo(
         f"one version of {estimate['param_mb']:.1f} MB{' (assumed: --param-mb sets it)' if estimate['param_mb_assumed'] else ''}"
         f" as a full copy: ~{estimate['tree_s']:.3f} s through the tree (busiest link: {estimate['tree_bottleneck'] or 'none'}),"
@@ -138,6 +144,6 @@ def _pinning(proc: dict[str, Any]) -> str:
 def _tree(echo, procs: list[dict], name: str, indent: str) -> None:
     echo(f"{indent}{name}")
     for x in procs:
-        if x["parent"] == name:
+        if x["parent"] == name and x["kind"] != "router":
             _tree(echo, procs, x["name"], indent + "  ")
 
