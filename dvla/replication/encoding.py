@@ -71,7 +71,7 @@ def checksum(flat: np.ndarray) -> str:
     """Hex digest (XXH3-128) of the exact bytes of a C-contiguous array, without copying.
 
     Non-cryptographic on purpose: it catches a replica that differs from what the actor
-    published; forgery is stopped earlier by the HMAC signature of every manifest and chunk.
+    published; forgery is stopped earlier by the signed envelope of every manifest and chunk.
     """
     if not flat.flags.c_contiguous:
         raise ValueError("checksum needs a C-contiguous array")
