@@ -50,7 +50,7 @@ def _usable() -> tuple[bool, str]:
 
 
 _OK, _WHY = _usable()
-pytestmark = [pytest.mark.slurm, pytest.mark.netns, pytest.mark.skipif(not _OK, reason=_WHY)]
+pytestmark = [pytest.mark.slurm, pytest.mark.netns, pytest.mark.slow, pytest.mark.skipif(not _OK, reason=_WHY)]
 
 
 def _pgrep(pattern: str, *, exact: bool = False) -> set[str]:
