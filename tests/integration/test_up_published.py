@@ -49,7 +49,8 @@ racks:
 
 @pytest.mark.timeout(900)
 @pytest.mark.parametrize("family,mode,extra", [
-    ("pi0", "sync", ", vision_heads: 4"),
+    # pi0 shares pi05's model code and smolvla's lock-step check: ~105 s, run with `make test-slow`
+    pytest.param("pi0", "sync", ", vision_heads: 4", marks=pytest.mark.slow),
     ("pi05", "async", ", vision_heads: 4"),
     ("smolvla", "sync", ""),
 ])
