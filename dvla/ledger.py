@@ -33,6 +33,8 @@ INCARNATION_SHIFT = 32
 #: bytes a killed sender's Zenoh may hold unsent: the data priority's tx queue (2 batches, Zenoh's
 #: default) plus the batch being filled, of at most 64 KiB each
 ZENOH_TX_BYTES = 3 * 65535
+#: link breaks and gaps a counter file keeps positions of (more are counted, not placed)
+MAX_EVENTS = 256
 
 
 def split_seq(seq: int) -> tuple[int, int]:
@@ -102,7 +104,10 @@ def read_counters(run_dir: str | Path) -> list[dict[str, Any]]:
 class RolloutLedger:
     """A rollout incarnation's chunks: *produced* (handed to its ship lane), *shipped* (published)
     and the bytes shipped, in its counter file. ``queue_cap`` (chunks its ship queue holds) bounds
-    what a kill can take with it."""
+    what a kill can take with it. A *link break* (its trajectory publisher lost every subscriber
+    after shipping something: the link to the actor, or the actor, went away) is recorded with
+    the number of chunks shipped by then: what was still in the link's buffers at that moment
+    went with it (:func:`reconcile` places the gap just before it)."""
 
     def __init__(self, run_dir: str | Path, rollout: str, queue_cap: int) -> None:
         self.file = CounterFile(run_dir, rollout)
@@ -110,6 +115,22 @@ class RolloutLedger:
         self.first_seq = self.file.incarnation << INCARNATION_SHIFT
         self.queue_cap = queue_cap
         self.produced = self.shipped = self.bytes_shipped = 0
+        #: [shipped by then, time_ns] of each link break (the first MAX_EVENTS), and how many in all
+        self.breaks: list[list[int]] = []
+        self.breaks_total = 0
+        self._last_break_at = 0
+        self._lock = threading.Lock()
+        self._write()
+
+    def add_break(self) -> None:
+        """The trajectory publisher lost its last subscriber (called from a Zenoh callback)."""
+        with self._lock:
+            if self.shipped == self._last_break_at:  # nothing shipped since the last one
+                return
+            self._last_break_at = self.shipped
+            self.breaks_total += 1
+            if len(self.breaks) < MAX_EVENTS:
+                self.breaks.append([self.shipped, time.time_ns()])
         self._write()
 
     def add_produced(self) -> None:
@@ -122,8 +143,11 @@ class RolloutLedger:
         self._write()
 
     def _write(self, clean: bool = False) -> None:
+        with self._lock:
+            breaks = [list(b) for b in self.breaks]
         self.file.write({"kind": "rollout", "produced": self.produced, "shipped": self.shipped,
-                         "bytes": self.bytes_shipped, "queue_cap": self.queue_cap, "clean": clean})
+                         "bytes": self.bytes_shipped, "queue_cap": self.queue_cap, "breaks": breaks,
+                         "breaks_total": self.breaks_total, "clean": clean})
 
     def close(self) -> None:
         self._write(clean=True)
@@ -155,6 +179,10 @@ class ActorLedger:
         index = split_seq(seq)[1]
         with self._lock:
             c = self._src.setdefault(src, {"got": 0, "first": index, "last": index})
+            if index > c["last"] + 1:  # chunks of one rollout arrive in order: a jump is a gap
+                gaps = c.setdefault("gaps", [])
+                if len(gaps) < MAX_EVENTS:
+                    gaps.append([c["last"] + 1, index - 1])
             c["got"] += 1
             c["first"] = min(c["first"], index)
             c["last"] = max(c["last"], index)
@@ -191,7 +219,8 @@ class ActorLedger:
             peers = self.accounting.snapshot().get(DATA, {}).get("peers", {})
             fabric = {p: {"received": c.get("received", 0), "rejected": c.get("rejected", 0),
                           "backpressure": c.get("dropped.backpressure", 0)} for p, c in peers.items()}
-            sources = {k: dict(v) for k, v in self._src.items()}
+            sources = {k: {n: (list(map(list, v)) if n == "gaps" else v) for n, v in c.items()}
+                       for k, c in self._src.items()}
             self.file.write({"kind": "actor", "sources": sources, "fabric": fabric, **self.bounds, "clean": clean})
 
     def close(self, clean: bool = True) -> None:
@@ -267,9 +296,9 @@ class _Books:
     lost: list[dict[str, Any]] = field(default_factory=list)
     #: (actor, incarnation) -> its entry in `lost`
     killed_actors: dict[tuple[str, int], dict[str, Any]] = field(default_factory=dict)
-    #: "<rollout>#<incarnation>" -> (first, last, got, (actor, incarnation)) per actor incarnation
-    #: that received of it (a rollout feeds one rank, but every rank has an incarnation 0)
-    received: dict[str, list[tuple[int, int, int, tuple[str, int]]]] = field(default_factory=dict)
+    #: "<rollout>#<incarnation>" -> (first, last, got, (actor, incarnation), gaps) per actor
+    #: incarnation that received of it (a rollout feeds one rank, but every rank has an incarnation 0)
+    received: dict[str, list[tuple[int, int, int, tuple[str, int], list[list[int]]]]] = field(default_factory=dict)
     #: rollout name -> chunks the actors' fabric dropped under backpressure / could not decode
     fabric_drops: Counter[str] = field(default_factory=Counter)
     fabric_rejects: Counter[str] = field(default_factory=Counter)
@@ -289,7 +318,8 @@ class _Books:
         held = 0  # received but never settled (consumed, dropped or rejected)
         own_rejects: Counter[str] = Counter()
         for src, c in a.get("sources", {}).items():
-            self.received.setdefault(src, []).append((c["first"], c["last"], c["got"], (a["role"], a["incarnation"])))
+            self.received.setdefault(src, []).append(
+                (c["first"], c["last"], c["got"], (a["role"], a["incarnation"]), c.get("gaps", [])))
             held += c["got"]
             for key, n in c.items():
                 kind, _, reason = key.partition(".")
@@ -323,7 +353,7 @@ class _Books:
         (died with the first), or after the last one received (died with the rollout, or with the
         actor at the end)."""
         ranges = {r["incarnation"]: sorted(self.received.get(f"{name}#{r['incarnation']}", [])) for r in incarnations}
-        inner = {i: sum(last - first + 1 - got for first, last, got, _ in rs) for i, rs in ranges.items()}
+        inner = {i: sum(last - first + 1 - got for first, last, got, *_ in rs) for i, rs in ranges.items()}
         # The fabric's drops and rejects of this rollout explain chunks missing inside ranges;
         # rejects beyond those were never produced by it: forged.
         gaps = sum(max(0, n) for n in inner.values())
@@ -337,9 +367,10 @@ class _Books:
             rs, left = ranges[r["incarnation"]], inner[r["incarnation"]]
             take = max(0, min(explained, left))
             explained -= take
-            if left - take:
-                self.note(left - take, f"{r['file']}: {left - take} chunks missing mid-stream")
             chunk_bytes = r.get("bytes", 0) / r["shipped"] if r.get("shipped") else mean_bytes
+            left -= take + self._place_breaks(name, r, rs, left - take, chunk_bytes)
+            if left:
+                self.note(left, f"{r['file']}: {left} chunks missing mid-stream")
             # chunks before the first receipt went missing in the absence of an actor: count them
             # with the first actor incarnation's predecessor (the one that died)
             between = [((rs[0][3][0], rs[0][3][1] - 1), rs[0][0])] if rs and rs[0][0] else []
@@ -354,6 +385,33 @@ class _Books:
                     self.note(n, f"{r['file']}: {n} chunks missing across a clean actor restart")
             tail = r.get("produced", 0) - 1 - rs[-1][1] if rs else r.get("produced", 0)
             self._place_tail(name, r, tail, rs[-1][3] if rs else None, chunk_bytes)
+
+    def _place_breaks(self, name: str, r: dict[str, Any], rs: list[tuple[Any, ...]], missing: int,
+                      chunk_bytes: float) -> int:
+        """Of `missing` chunks inside the actors' received ranges that the fabric's counts do not
+        explain, those in a gap that ends where one of the incarnation's link breaks happened
+        (within the chunks a link's buffers hold: the sender's Zenoh queue and both TCP buffers)
+        went down with that link: one ``where: link`` entry in ``lost``. Returns how many."""
+        breaks = r.get("breaks", [])
+        if not missing or not breaks:
+            return 0
+        bound = _chunks_in(self.window, chunk_bytes)
+        near, placed = 0, set()
+        for *_, gaps in rs:
+            for a, b in gaps:
+                for i, (shipped, _t) in enumerate(breaks):
+                    # the break was seen after chunk `shipped - 1` was published (the one whose put
+                    # it interrupted may be counted either side): the gap ends there, within `bound`
+                    if b <= shipped and a >= shipped - bound:
+                        near += b - a + 1
+                        placed.add(i)
+                        break
+        lost = min(missing, near)
+        if lost:
+            self.lost.append({"role": name, "incarnation": r["incarnation"], "pid": r["pid"], "where": "link",
+                              "died_ns": breaks[min(placed)][1], "lost": lost, "in_transit": lost,
+                              "breaks": r.get("breaks_total", len(breaks)), "lost_bound": bound * len(placed)})
+        return lost
 
     def _place_tail(self, name: str, r: dict[str, Any], tail: int, last_actor: tuple[str, int] | None,
                     chunk_bytes: float) -> None:

@@ -471,6 +471,18 @@ class Fabric:
         except Exception:  # matching status unavailable: ship as before
             return True
 
+    def on_traj_unmatched(self, callback: Callable[[], None]) -> None:
+        """Call `callback` (on a Zenoh thread: it must not block) each time this process's
+        trajectory publisher goes from matching a subscriber to matching none: the link to the
+        learner broke (a cut, a router restart) or the learner went away. Whatever was still in
+        the link's buffers at that moment went down with it (the rollout's ledger records it)."""
+        pub = self._publisher(DATA, self.keys.traj(self.name))
+
+        def _changed(status: Any) -> None:
+            if not status.matching:
+                callback()
+        self._declared.append(pub.declare_matching_listener(_changed))
+
     # ------------------------------------------------------------------ plumbing
     def _publisher(self, plane: str, key: str, kind: str = "data") -> Any:
         with self._pub_lock:

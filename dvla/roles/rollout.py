@@ -229,6 +229,7 @@ class Rollout:
         sl.lane("infer", self._infer)
         sl.lane("ship", self._ship)
         sl.lane("sync", self.weights.run)
+        self.fabric.on_traj_unmatched(self.ledger.add_break)  # a broken link: its buffers' chunks are lost
 
     # -- lanes --------------------------------------------------------------------------------
     def _wait_for_weights(self, ctx: LaneContext) -> None:
@@ -423,6 +424,8 @@ class Rollout:
             "one_scene": bool(self.groups[0].envs.on_device),
             "chunks_shipped": self.ledger.shipped,
             "bytes_shipped": self.ledger.bytes_shipped,
+            # times the trajectory link lost the learner after shipping (what was in it is lost)
+            "link_breaks": self.ledger.breaks_total,
             "episodes": self.episodes,
             "train_success_rate": self.successes / self.episodes if self.episodes else 0.0,
             # copies first: the sim lane appends while status runs (list() of a deque is atomic)

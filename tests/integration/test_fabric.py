@@ -16,6 +16,7 @@ works and a wrong secret gets no accepted reply.
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import signal
 import socket
@@ -209,6 +210,39 @@ def data_identity(sender: Fabric, receiver: Fabric, consumed: int, queued: int) 
 
 # --------------------------------------------------------------------------------------------
 # data plane
+
+
+def test_a_rollout_learns_when_its_trajectory_link_loses_the_learner(tmp_path: Path) -> None:
+    """The ledger's link breaks come from here: a real publisher's matching status going to
+    none when the learner's data session goes away, once per loss (and again after it is back)."""
+    from dvla.ledger import RolloutLedger
+
+    pair = Pair()
+    try:
+        ledger = RolloutLedger(tmp_path, pair.rollout.name, queue_cap=8)
+        pair.rollout.on_traj_unmatched(ledger.add_break)
+        inbox = pair.actor.subscribe_traj(maxsize=16, expect=TrajectoryChunk)
+        wait_route(pair.actor.data, pair.rollout.data)
+        for i in range(3):
+            ledger.add_shipped(pair.rollout.publish_traj(make_chunk(pair.rollout.name, i)))
+        assert wait_for(lambda: inbox.depth() == 3, 5)
+        assert ledger.breaks_total == 0
+        pair.actor.close()  # the learner goes away: the link has nothing left to reach
+        assert wait_for(lambda: ledger.breaks_total == 1, 10), "no link break seen"
+        assert ledger.breaks[0][0] == 3  # three chunks had been shipped by then
+        actor = open_actor_side(pair.ctrl_port, pair.data_port, name="actor-again")
+        pair._extra.append(actor)
+        actor.subscribe_traj(maxsize=16, expect=TrajectoryChunk)
+        assert wait_for(pair.rollout.traj_matched, 10)
+        actor.close()  # lost again, but nothing was shipped in between: not a second break
+        assert wait_for(lambda: not pair.rollout.traj_matched(), 10)
+        time.sleep(0.2)
+        assert ledger.breaks_total == 1
+        ledger.close()
+        record = json.loads(next((tmp_path / "counters").iterdir()).read_bytes())
+        assert record["breaks_total"] == 1 and record["breaks"][0][0] == 3
+    finally:
+        pair.close()
 
 
 @pytest.mark.timeout(30)

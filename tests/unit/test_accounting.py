@@ -11,7 +11,7 @@ import threading
 from pathlib import Path
 
 from dvla.fabric.accounting import UNAUTHENTICATED, Accounting
-from dvla.ledger import INCARNATION_SHIFT, ActorLedger, RolloutLedger, reconcile
+from dvla.ledger import INCARNATION_SHIFT, ActorLedger, RolloutLedger, _Books, reconcile
 
 DATA = "data"
 
@@ -180,3 +180,42 @@ def test_a_chunk_held_at_a_clean_exit_is_unaccounted_and_named(tmp_path: Path) -
 def test_an_empty_run_has_empty_books(tmp_path: Path) -> None:
     books = reconcile(tmp_path)
     assert (books["produced"], books["unaccounted"], books["incarnations"]) == (0, 0, {"rollout": 0, "actor": 0})
+
+
+def _robot_run(tmp_path: Path, gap: tuple[int, int], break_at: int | None, chunks: int = 400) -> dict:
+    """A rollout that shipped `chunks` (1000 bytes each) and saw a link break after `break_at`
+    of them; the actor got all but the chunk indices in `gap` (inclusive)."""
+    r = RolloutLedger(tmp_path, "robot-1", queue_cap=8)
+    a = ActorLedger(tmp_path, "actor-0", Accounting(), slots=4, inbox_cap=64)
+    for i in range(chunks):
+        r.add_produced()
+        r.add_shipped(1000)
+        if r.shipped == break_at:
+            r.add_break()
+            r.add_break()  # a second notice with nothing shipped in between is the same break
+        if not gap[0] <= i <= gap[1]:
+            a.settle(a.got("robot-1", r.first_seq + i), "consumed")
+    r.close()
+    a.close()
+    return reconcile(tmp_path)
+
+
+def test_chunks_missing_just_before_a_link_break_are_lost_with_the_link(tmp_path: Path) -> None:
+    books = _robot_run(tmp_path, (250, 299), break_at=300)
+    (lost,) = books["lost_by_incarnation"]
+    assert (lost["role"], lost["where"], lost["lost"], lost["in_transit"], lost["breaks"]) == ("robot-1", "link", 50, 50, 1)
+    assert books["unaccounted"] == 0 and books["notes"] == [] and books["lost_within_bounds"]
+    assert books["produced"] == 400 == books["consumed"] + books["lost"]
+
+
+def test_a_gap_no_link_break_explains_stays_unaccounted(tmp_path: Path) -> None:
+    # no break at all; then a break, but the gap ends long before it (more than one window's
+    # worth of chunks: no link's buffers held those)
+    books = _robot_run(tmp_path / "a", (100, 109), break_at=None)
+    assert books["unaccounted"] == 10 and books["lost"] == 0 and "missing mid-stream" in books["notes"][0]
+    window = _Books().window // 1000 + 1  # chunks of 1000 bytes this host's link buffers hold
+    books = _robot_run(tmp_path / "b", (100, 109), break_at=112 + window, chunks=120 + window)
+    assert books["unaccounted"] == 10 and books["lost"] == 0
+    # a gap after the break was not in the link when it broke
+    books = _robot_run(tmp_path / "c", (300, 309), break_at=200)
+    assert books["unaccounted"] == 10 and books["lost"] == 0
