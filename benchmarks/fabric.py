@@ -567,7 +567,36 @@ def _ctrl_addr(layout: Layout, shared: bool) -> str:
 #: its data session ("fabric"), or, as the control, plain TCP from the same process over the same
 #: link ("tcp": no Zenoh, no envelopes, no Python per byte): the delay the flooded link and this
 #: machine's kernel add by themselves
-FLOODS = ("fabric", "tcp")
+#: what loads the machine during a "loaded" phase: the trajectory flood through the fabric; plain
+#: TCP on the same link; or no traffic at all, only processes that burn the CPU the fabric's flood
+#: burned (`hog_cores`): whether what is left of the isolation loss is the CPU, not the planes
+FLOODS = ("fabric", "tcp", "cpu")
+#: processes that share the CPU control's load (each busy for `hog_cores / HOGS` of the time)
+HOGS = 2
+
+
+def _cpu_hog(flood: Any, stop: Any, duty: float, max_s: float) -> None:
+    """Burn `duty` of one core in 1 ms slices while `flood` is set (no network, no Zenoh)."""
+    deadline = time.monotonic() + max_s
+    while not stop.is_set() and time.monotonic() < deadline:
+        if not flood.wait(0.1):
+            continue
+        t0 = time.perf_counter()
+        while time.perf_counter() - t0 < 1e-3 * duty:
+            pass
+        time.sleep(1e-3 * (1.0 - duty))
+
+
+def _proc_cpu_s(pids: list[int]) -> float:
+    """User + system CPU seconds of live processes so far (/proc/PID/stat)."""
+    total = 0
+    for pid in pids:
+        try:
+            fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+            total += int(fields[11]) + int(fields[12])
+        except (OSError, IndexError, ValueError):
+            pass
+    return total / os.sysconf("SC_CLK_TCK")
 
 
 def _tcp_drain(sock: socket.socket, received: Any, received_bytes: Any, stop: Any) -> None:
@@ -651,7 +680,9 @@ def _rtt_source(layout: Layout, shared: bool, ctrl_port: int, data_port: int, se
         deadline = time.monotonic() + max_s
         sent = 0
         while not stop.is_set() and time.monotonic() < deadline and sent < max_msgs:
-            if not flood.wait(0.1):
+            if not flood.wait(0.1) or kind == "cpu":  # the CPU control sends nothing
+                if kind == "cpu":
+                    stop.wait(0.1)
                 continue
             if raw is not None:
                 raw.sendall(block)
@@ -716,10 +747,13 @@ def _summary(rtts: list[float], misses: int, what: str) -> dict[str, Any]:
 
 
 def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secret: bytes, pids: list[int], *,
-                  idle: bool, flood_kind: str = "fabric", auth: str = "identity") -> dict[str, Any]:
+                  idle: bool, flood_kind: str = "fabric", auth: str = "identity", hog_cores: float = 0.0) -> dict[str, Any]:
     """Idle (optional) and loaded RTT phases against one sink/source pair, every process with the
     identity `dvla up` would give it (sink: actor, source: rollout, tool: operator); `auth`
-    "none-data": the flood without envelopes (the baseline of what authenticating it costs the ctrl plane)."""
+    "none-data": the flood without envelopes (the baseline of what authenticating it costs the ctrl plane).
+    The loaded phase reports the CPU the sink and source burned (`flood_cpu_cores`: CPU seconds
+    per second); `flood_kind` "cpu" loads the machine with :data:`HOGS` processes burning
+    `hog_cores` in all instead of any traffic."""
     from dvla.fabric.identity import Identity
 
     if flood_kind not in FLOODS:
@@ -741,12 +775,18 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
     tool = ctx.Process(target=_rtt_tool, args=(layout, shared, ctrl_port, secret, cmds, out, cfg.phase_timeout_s,
                                                op.to_text(), auth))
     procs = [sink, src, tool]
+    hogs = [ctx.Process(target=_cpu_hog, args=(flood, stop, min(1.0, hog_cores / HOGS), max_s))
+            for _ in range(HOGS if flood_kind == "cpu" else 0)]
+    procs += hogs
     phases = (["idle"] if idle else []) + ["loaded"]
     rtts: dict[str, list[float]] = {p: [] for p in phases}
     blocks: list[dict[str, float]] = []  # p99 of each phase, block by block
     misses = dict.fromkeys(phases, 0)
-    flood_msgs = flood_bytes = flood_s = 0.0
+    flood_msgs = flood_bytes = flood_s = flood_cpu = hog_cpu = 0.0
     try:
+        for hog in hogs:
+            hog.start()
+            pids.append(hog.pid)
         sink.start()
         pids.append(sink.pid)
         _wait_event(ready_sink, sink, "sink")
@@ -765,9 +805,11 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
                     _wait_drained(received)
                 else:
                     flood.set()
-                    _wait_for(lambda: received.value > 0, START_TIMEOUT_S, "the flood never reached the sink")
+                    if flood_kind != "cpu":
+                        _wait_for(lambda: received.value > 0, START_TIMEOUT_S, "the flood never reached the sink")
                     time.sleep(cfg.warmup_s)
                     c0, b0, t0 = received.value, received_bytes.value, time.monotonic()
+                    cpu0, hog0 = _proc_cpu_s([sink.pid, src.pid]), _proc_cpu_s([h.pid for h in hogs])
                 cmds.put((phase, per_block))
                 got = _collect(out, {phase}, cfg.phase_timeout_s + 5)[phase][1]
                 rtts[phase] += got[0]
@@ -775,6 +817,8 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
                     blocks[-1][phase] = percentile(sorted(got[0]), 99)
                 misses[phase] += got[1]
                 if phase == "loaded":
+                    flood_cpu += _proc_cpu_s([sink.pid, src.pid]) - cpu0
+                    hog_cpu += _proc_cpu_s([h.pid for h in hogs]) - hog0
                     flood_msgs += received.value - c0
                     flood_bytes += received_bytes.value - b0
                     flood_s += time.monotonic() - t0
@@ -783,6 +827,10 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
         result["loaded"]["flood_bytes_per_s"] = flood_bytes / flood_s
         result["loaded"]["flood"] = flood_kind
         result["loaded"]["auth"] = auth
+        result["loaded"]["flood_cpu_cores"] = flood_cpu / flood_s
+        if hogs:
+            result["loaded"]["hog_cores_asked"] = hog_cores
+            result["loaded"]["hog_cores"] = hog_cpu / flood_s
         if idle:  # the isolation ratio of each block (its loaded p99 over its own idle p99)
             result["block_ratios"] = [b["loaded"] / b["idle"] for b in blocks if "loaded" in b and "idle" in b]
         return result
@@ -898,18 +946,23 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
             separate = _measure_ctrl(ctx, lay, False, cfg, secret, pids, idle=True)
             progress(f"ctrl RTT ({lay.name}): one shared session, data plane flooded")
             shared = _measure_ctrl(ctx, lay, True, cfg, secret, pids, idle=False)
-            tcp = plain = None
+            tcp = plain = cpu = None
             if lay.name == "links":  # the controls: the same layout without envelopes, the same link without dvla
                 progress(f"ctrl RTT ({lay.name}): separate sessions, trajectories without envelopes, idle and flooded, alternating")
                 plain = _measure_ctrl(ctx, lay, False, cfg, secret, pids, idle=True, auth="none-data")
                 progress(f"ctrl RTT ({lay.name}): separate sessions, idle and data link flooded by plain TCP, alternating")
                 tcp = _measure_ctrl(ctx, lay, False, cfg, secret, pids, idle=True, flood_kind="tcp")
+                cores = separate["loaded"]["flood_cpu_cores"]
+                progress(f"ctrl RTT ({lay.name}): separate sessions, idle and {cores:.2f} cores burned without traffic")
+                cpu = _measure_ctrl(ctx, lay, False, cfg, secret, pids, idle=True, flood_kind="cpu", hog_cores=cores)
         ctrl[lay.name] = {"layout": lay.describe(), "idle": separate["idle"], "loaded": separate["loaded"],
                           "loaded_shared": shared["loaded"], "block_ratios": separate["block_ratios"]}
         if tcp is not None and plain is not None:
             ctrl[lay.name].update(idle_noauth=plain["idle"], loaded_noauth=plain["loaded"],
                                   block_ratios_noauth=plain["block_ratios"], idle_tcp=tcp["idle"], loaded_tcp=tcp["loaded"],
                                   block_ratios_tcp=tcp["block_ratios"])
+        if cpu is not None:
+            ctrl[lay.name].update(idle_cpu=cpu["idle"], loaded_cpu=cpu["loaded"], block_ratios_cpu=cpu["block_ratios"])
     # Headline: the layout where the data link has a capacity of its own, when it could be built.
     head = "links" if "links" in ctrl else "loopback"
     doc["ctrl_rtt_layout"] = head
@@ -924,6 +977,10 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
         doc["noauth_loaded_over_idle_blocks"] = _spread(ctrl[head]["block_ratios_noauth"])
         doc["tcp_flood_over_idle"] = ctrl[head]["loaded_tcp"]["p99_ms"] / ctrl[head]["idle_tcp"]["p99_ms"]
         doc["tcp_flood_over_idle_blocks"] = _spread(ctrl[head]["block_ratios_tcp"])
+    if "loaded_cpu" in ctrl[head]:
+        doc["flood_cpu_cores"] = ctrl[head]["loaded"]["flood_cpu_cores"]
+        doc["cpu_load_over_idle"] = ctrl[head]["loaded_cpu"]["p99_ms"] / ctrl[head]["idle_cpu"]["p99_ms"]
+        doc["cpu_load_over_idle_blocks"] = _spread(ctrl[head]["block_ratios_cpu"])
     doc["actor_cpu_us_per_auth_chunk"] = doc["auth"]["data"]["identity"]["sub_cpu_us_per_chunk"]
     doc["throughput"] = throughput
     doc["ctrl_rtt"] = ctrl[head]
@@ -969,7 +1026,8 @@ def format_table(doc: dict[str, Any]) -> str:
                              for m in ("tag", "identity")))
     names = {"idle": "idle", "loaded": "flooded, own ctrl session", "loaded_shared": "flooded, shared session",
              "idle_noauth": "idle (flood unauthenticated)", "loaded_noauth": "flooded, unauthenticated",
-             "idle_tcp": "idle (TCP control)", "loaded_tcp": "flooded by plain TCP"}
+             "idle_tcp": "idle (TCP control)", "loaded_tcp": "flooded by plain TCP",
+             "idle_cpu": "idle (CPU control)", "loaded_cpu": "CPU burned, no traffic"}
     for layout, entry in doc["ctrl_rtt_layouts"].items():
         lines.append("")
         lines.append(f"{'ctrl RTT, ' + layout:<28}{'p50 ms':>8}{'p99 ms':>8}{'flood MB/s':>12}")
@@ -983,6 +1041,9 @@ def format_table(doc: dict[str, Any]) -> str:
     spread = f" (blocks {blocks['min']:.2f}-{blocks['max']:.2f})" if blocks["values"] else ""
     tcp = (f"\n  controls: flood without envelopes loaded/idle p99 = {doc['noauth_loaded_over_idle']:.2f}   "
            f"plain-TCP flood/idle p99 = {doc['tcp_flood_over_idle']:.2f}") if "tcp_flood_over_idle" in doc else ""
+    if "cpu_load_over_idle" in doc:
+        tcp += (f"   the flood's CPU ({doc['flood_cpu_cores']:.2f} cores) burned without traffic: "
+                f"loaded/idle p99 = {doc['cpu_load_over_idle']:.2f}")
     lines.append(f"headline ({doc['ctrl_rtt_layout']}): loaded/idle p99 = {doc['loaded_over_idle']:.2f}{spread}   "
                  f"shared/separate p99 = {doc['shared_over_separate']:.2f}{tcp}   links layout: {doc['links_layout']}")
     lines.append(f"actor CPU per authenticated 256 KiB chunk: {doc['actor_cpu_us_per_auth_chunk']:.0f} us "

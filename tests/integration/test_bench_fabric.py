@@ -66,14 +66,20 @@ def test_bench_fabric_quick_writes_every_figure(tmp_path: Path) -> None:
         assert links["loaded"]["flood"] == "fabric" and positive(doc["tcp_flood_over_idle"])
         assert links["loaded"]["auth"] == "identity" and links["loaded_noauth"]["auth"] == "none-data"
         assert positive(links["loaded_noauth"]["flood_bytes_per_s"]) and positive(doc["noauth_loaded_over_idle"])
+        # the CPU control burned about the CPU the fabric's flood burned, and sent nothing
+        assert positive(links["loaded"]["flood_cpu_cores"]) and doc["flood_cpu_cores"] == links["loaded"]["flood_cpu_cores"]
+        assert links["loaded_cpu"]["hog_cores_asked"] == links["loaded"]["flood_cpu_cores"]
+        assert links["loaded_cpu"]["hog_cores"] >= 0  # (quick phases are too short for /proc's 10 ms ticks)
+        assert links["loaded_cpu"]["flood"] == "cpu" and links["loaded_cpu"]["flood_bytes_per_s"] == 0
+        assert positive(doc["cpu_load_over_idle"])
     for e in doc["throughput"].values():
         assert e["does"]  # each side's work, in words
         assert positive(e["pub_cpu_us_per_msg"]) and positive(e["sub_cpu_us_per_msg"])
     assert "ctrl RTT" in proc.stdout and "chunks/s" in proc.stdout
     alive = [pid for pid in doc["worker_pids"] if Path(f"/proc/{pid}").exists() and not _zombie(pid)]
     # 2 sizes x (publisher, subscriber) + 3 auth modes x (publisher, subscriber) + per layout 2 x (sink, source,
-    # tool), the links layout two more (without authentication; the plain-TCP control)
-    assert len(doc["worker_pids"]) == 4 + 6 + 6 * len(layouts) + 6 * ("links" in layouts) and alive == [], alive
+    # tool), the links layout three more (without authentication; plain TCP; the CPU control, with its hogs)
+    assert len(doc["worker_pids"]) == 4 + 6 + 6 * len(layouts) + (9 + 2) * ("links" in layouts) and alive == [], alive
     auth = doc["auth"]
     assert set(auth["data"]) == {"none", "tag", "identity"}
     for mode in ("tag", "identity"):
