@@ -34,7 +34,7 @@ INCARNATION_SHIFT = 32
 #: default) plus the batch being filled, of at most 64 KiB each
 ZENOH_TX_BYTES = 3 * 65535
 #: link breaks and gaps a counter file keeps positions of (more are counted, not placed)
-MAX_EVENTS = 256
+MAX_EVENTS = 64
 
 
 def split_seq(seq: int) -> tuple[int, int]:
