@@ -996,6 +996,9 @@ class RoleConfig:
     eval_shard: tuple[int, int] = (0, 1)
     #: evaluators: episode j of an evaluation starts from seed ``eval_seed + j`` (one per run)
     eval_seed: int = 0
+    #: rollouts: send the counter record to the learner every few seconds and at exit (a rollout
+    #: started by ``dvla join`` keeps its counter file on its own machine; dvla/ledger.py)
+    report_ledger: bool = False
     #: the task
     task: TaskConfig
     #: replication settings

@@ -26,6 +26,7 @@ from typing import Any
 
 from .fabric.accounting import Accounting
 from .fabric.fabric import DATA
+from .fabric.messages import LedgerRecord
 
 COUNTERS_DIR = "counters"
 #: low bits of a chunk's seq count chunks within one incarnation; the high bits are the incarnation
@@ -63,6 +64,8 @@ class CounterFile:
                 self.incarnation += 1
         self.role = role
         self.start_ns = time.time_ns()
+        #: the record last written, as JSON text
+        self.text = ""
         self._len = 0
         self._lock = threading.Lock()
         self._closed = False
@@ -70,10 +73,12 @@ class CounterFile:
     def write(self, doc: dict[str, Any]) -> None:
         record = {"role": self.role, "incarnation": self.incarnation, "pid": os.getpid(),
                   "start_ns": self.start_ns, "updated_ns": time.time_ns(), **doc}
-        data = json.dumps(record, separators=(",", ":")).encode()
+        text = json.dumps(record, separators=(",", ":"))
+        data = text.encode()
         with self._lock:
             if self._closed:
                 return
+            self.text = text
             data = data.ljust(self._len)
             self._len = len(data)
             os.pwrite(self._fd, data, 0)
@@ -153,6 +158,11 @@ class RolloutLedger:
         self._write(clean=True)
         self.file.close()
 
+    def record(self) -> LedgerRecord:
+        """The record last written, as a message for the learner (``report_ledger``)."""
+        return LedgerRecord(role=self.file.role, incarnation=self.file.incarnation, pid=os.getpid(),
+                            record=self.file.text)
+
 
 class ActorLedger:
     """What an actor incarnation did with each rollout incarnation's chunks: *got* (out of the
@@ -171,6 +181,8 @@ class ActorLedger:
         self._src: dict[str, dict[str, int]] = {}
         self._slot: dict[int, str] = {}
         self._last_tick = 0.0
+        #: counter files this actor keeps for rollouts elsewhere (:meth:`adopt`)
+        self._adopted: set[Path] = set()
         self._write()
 
     def got(self, rollout: str, seq: int) -> str:
@@ -226,6 +238,23 @@ class ActorLedger:
     def close(self, clean: bool = True) -> None:
         self._write(clean=clean)
         self.file.close()
+
+    def adopt(self, msg: LedgerRecord) -> Path | None:
+        """Keep a rollout's counter record (a verified :class:`LedgerRecord` from that rollout) in
+        this run's counter directory, as ``<role>.<incarnation>.<pid>``, unless that rollout's own
+        file of that incarnation is already there (a shared file system): None then. Newer
+        records replace the copy whole (written aside, then renamed)."""
+        folder = self.file.path.parent
+        path = folder / f"{msg.role}.{msg.incarnation}.{msg.pid}"
+        with self._lock:
+            if path not in self._adopted:
+                if any(folder.glob(f"{msg.role}.{msg.incarnation}.*")):
+                    return None
+                self._adopted.add(path)
+        tmp = folder.parent / f".adopt-{path.name}.tmp"  # outside the counter directory: never read half-written
+        tmp.write_text(msg.record)
+        os.replace(tmp, path)
+        return path
 
 
 # -- reconciliation (the orchestrator, at the end of a run) ---------------------------------------

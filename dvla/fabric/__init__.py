@@ -19,6 +19,7 @@ from .keys import KeySpace
 from .messages import (
     Command,
     EvalResult,
+    LedgerRecord,
     RoleStatus,
     SnapshotRequest,
     TrajectoryChunk,
@@ -30,7 +31,7 @@ from .zconfig import TlsFiles, plane_config
 
 __all__ = [
     "Accounting", "CTRL", "CodecError", "Command", "DATA", "EvalResult", "Fabric", "FabricError", "Inbox",
-    "KeySpace", "Limits", "RoleStatus", "SecretError", "SignatureError", "Signer", "SnapshotRequest",
+    "KeySpace", "LedgerRecord", "Limits", "RoleStatus", "SecretError", "SignatureError", "Signer", "SnapshotRequest",
     "TlsFiles", "TrajectoryChunk", "Verifier", "WeightChunk", "WeightManifest", "decode", "encode", "load_secret",
     "new_secret", "plane_config",
 ]

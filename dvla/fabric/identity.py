@@ -162,6 +162,8 @@ def authorize(keys: KeySpace, key: str, sender: str, kind: str, *, query: bool =
         return None if sender == target and kind == "evaluator" else f"eval result on {target!r}'s key from {kind} {sender!r}"
     if plane_kind == "data/traj":
         return None if sender == target and kind == "rollout" else f"trajectory on {target!r}'s key from {kind} {sender!r}"
+    if plane_kind == "ctrl/ledger":
+        return None if sender == target and kind == "rollout" else f"ledger record on {target!r}'s key from {kind} {sender!r}"
     return None  # snapshot queries and keys dvla does not define: any certified member
 
 

@@ -80,6 +80,13 @@ class KeySpace:
     def eval_all(self) -> str:
         return f"{self.root}/ctrl/eval/*"
 
+    def ledger(self, rollout: str) -> str:
+        """LedgerRecord stream of a rollout whose counter file is elsewhere (rollout -> learner)."""
+        return f"{self.root}/ctrl/ledger/{check_name('rollout', rollout)}"
+
+    def ledger_all(self) -> str:
+        return f"{self.root}/ctrl/ledger/*"
+
     @staticmethod
     def last(key: str) -> str:
         """The final chunk of a key (the role or sender name)."""

@@ -12,6 +12,7 @@ Field type hints are the schema the codec checks decoded values against: only ``
 from __future__ import annotations
 
 import functools
+import json
 import math
 import time
 from dataclasses import dataclass, field, replace
@@ -20,6 +21,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from dvla.fabric.errors import CodecError
+from dvla.fabric.keys import check_name
 
 COMMAND_VERBS = ("stop", "checkpoint", "pause", "resume", "revoke")
 """Verbs a :class:`Command` may carry."""
@@ -476,8 +478,44 @@ class WeightSnapshot(Message):
         _require(self.version >= 0 or not self.n_chunks, "schema", "version -1 (nothing held) with parameters")
 
 
+@dataclass(frozen=True, kw_only=True)
+class LedgerRecord(Message):
+    """A rollout's chunk counters, as its counter file holds them (dvla/ledger.py), sent to its
+    learner: a rollout on another machine (``dvla join``) keeps its counter file there, so the
+    learner keeps the run's copy and the run's accounting includes it."""
+
+    TYPE_TAG: ClassVar[str] = "ledger"
+
+    #: the rollout's name
+    role: str
+    #: its counter file's incarnation (the high bits of its chunks' ``seq``)
+    incarnation: int
+    #: its process id
+    pid: int
+    #: the counter record, JSON text: an object with ``kind`` "rollout" and this role,
+    #: incarnation and pid
+    record: str
+
+    def validate(self) -> None:
+        try:
+            check_name("role", self.role)  # it names a file: one key chunk, no '/'
+        except ValueError as err:
+            raise CodecError("schema", str(err)) from None
+        _require(self.incarnation >= 0, "schema", f"incarnation {self.incarnation} < 0")
+        _require(self.pid > 0, "schema", f"pid {self.pid} <= 0")
+        try:
+            doc = json.loads(self.record)
+        except ValueError as err:
+            raise CodecError("schema", f"record is not JSON: {err}") from None
+        _require(isinstance(doc, dict) and doc.get("kind") == "rollout", "schema", "record is not a rollout's counter record")
+        for name in ("role", "incarnation", "pid"):
+            _require(doc.get(name) == getattr(self, name), "schema",
+                     f"record's {name} {doc.get(name)!r} is not the message's {getattr(self, name)!r}")
+
+
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.TYPE_TAG: cls
-    for cls in (TrajectoryChunk, WeightManifest, WeightChunk, Command, RoleStatus, EvalResult, SnapshotRequest, WeightSnapshot)
+    for cls in (TrajectoryChunk, WeightManifest, WeightChunk, Command, RoleStatus, EvalResult, SnapshotRequest,
+                WeightSnapshot, LedgerRecord)
 }
 """Wire type tag -> message class."""

@@ -27,8 +27,8 @@ import torch
 from ..config import RoleConfig, resolve_device
 from ..fabric import Fabric
 from ..fabric.accounting import OTHER_PEER
-from ..fabric.fabric import DATA
-from ..fabric.messages import ChunkSpec, TrajectoryChunk
+from ..fabric.fabric import CTRL, DATA
+from ..fabric.messages import ChunkSpec, LedgerRecord, TrajectoryChunk
 from ..learn import PPOLearner, gae_batch, make_policy
 from ..learn.group import LearnerGroup
 from ..learn.envs import chunk_envs, chunk_spec, probe_spec
@@ -115,6 +115,9 @@ class Actor:
     def build(self, sl: Swimlane) -> None:
         f, ppo = self.fabric, self.cfg.task.ppo
         self.inbox = f.subscribe_traj(maxsize=INBOX, expect=TrajectoryChunk)  # rollouts -> ingest
+        # counter records of rollouts elsewhere (`dvla join`): the root keeps the run's copies
+        self.ledgers = f.subscribe_ctrl(f.keys.ledger_all(), maxsize=64, expect=LedgerRecord) if self.is_root else None
+        self._ledgers_polled = 0.0
         self.filled = sl.queue("filled", self.slots.n_slots)  # ingest -> batch: slot ids
         self.batches = sl.queue("batches", 1)  # batch -> learn: one stacked Trajectories
         self.versions = sl.queue("versions", 2)  # learn -> publish: NewVersion
@@ -150,6 +153,8 @@ class Actor:
     # -- lanes --------------------------------------------------------------------------------
     def _ingest(self, ctx: LaneContext) -> None:
         while ctx.running:
+            if time.monotonic() - self._ledgers_polled >= 0.5:
+                self._adopt_ledgers()
             with ctx.waiting():
                 chunk = self.inbox.get(timeout=0.1)
             if chunk is None:
@@ -181,6 +186,21 @@ class Actor:
         # are stopped first, so a short quiet period catches their last chunks.
         while (chunk := self.inbox.get(timeout=0.5)) is not None:
             self.ledger.settle(self.ledger.got(chunk.rollout, chunk.seq), "dropped.shutdown")
+        self._adopt_ledgers()  # the last records of rollouts elsewhere, sent as they stopped
+
+    def _adopt_ledgers(self) -> None:
+        """Keep the counter records rollouts elsewhere sent (verified: signed by that rollout)."""
+        self._ledgers_polled = time.monotonic()
+        while self.ledgers is not None and (got := self.ledgers.get_nowait()) is not None:
+            sender, record = got
+            if record.role != sender:
+                self.fabric.accounting.rejected(CTRL, "sender_mismatch", sender)
+                log.warning("ledger record of %r sent by %r refused", record.role, sender)
+                continue
+            try:
+                self.ledger.adopt(record)
+            except OSError as err:
+                log.warning("ledger record of %s not kept: %s", sender, err)
 
     def _reject(self, chunk: TrajectoryChunk, src: str, reason: str, detail: str) -> None:
         """Count a chunk that must not reach the learner; log the 1st, 10th, 100th, ... per sender

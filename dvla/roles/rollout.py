@@ -60,6 +60,8 @@ log = logging.getLogger("dvla.rollout")
 #: can take with it). A group's pool holds SHIP_QUEUE + 2 chunks: one being filled, at most
 #: SHIP_QUEUE queued and one being published, so the group never waits for a chunk.
 SHIP_QUEUE = 8
+#: seconds between two counter records sent to the learner (`report_ledger`)
+LEDGER_REPORT_S = 2.0
 
 
 class Shipment(NamedTuple):
@@ -213,6 +215,7 @@ class Rollout:
         self._lockstep_version = -1  # sync mode: actions of older versions are recomputed
         self._since_version = 0
         self._ready = threading.Event()
+        self._ledger_sent = 0.0
 
     @property
     def policy_version(self) -> int:
@@ -403,10 +406,20 @@ class Rollout:
                     ctx.sleep(0.05)
             with ctx.busy():
                 self._publish(shipment)
+                if self.cfg.report_ledger and time.monotonic() - self._ledger_sent >= LEDGER_REPORT_S:
+                    self._report_ledger()
             ctx.count()
         # Flush what is already finished so that the accounting identity holds at shutdown.
         while (shipment := self.to_ship.get_nowait()) is not None:
             self._publish(shipment)
+
+    def _report_ledger(self) -> None:
+        """Send the counter record to the learner (its copy is the run's: `report_ledger`)."""
+        self._ledger_sent = time.monotonic()
+        try:
+            self.fabric.publish_ctrl(self.fabric.keys.ledger(self.cfg.name), self.ledger.record())
+        except Exception as err:  # the link is down: the next report (or the last) carries it
+            log.warning("%s: ledger record not sent: %s", self.cfg.name, err)
 
     def _publish(self, shipment: Shipment) -> None:
         try:
@@ -448,6 +461,8 @@ class Rollout:
         while hasattr(self, "to_ship") and (chunk := self.to_ship.get_nowait()) is not None:
             self._publish(chunk)
         self.ledger.close()
+        if self.cfg.report_ledger:  # the final, clean record
+            self._report_ledger()
         for g in self.groups:
             g.envs.close()
         if self.sim_workers is not None:

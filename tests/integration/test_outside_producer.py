@@ -234,9 +234,12 @@ def test_dvla_join_dials_the_routers_dvla_up_started_for_the_topology(live_run: 
     router = wait_for(lambda: (s := role_status(runs, "router-node0-0")) and linked(s) and s, 30)
     assert router and router["kind"] == "router", role_status(runs, "router-node0-0")
     cred = issue(runs, "robot-5")
+    # The robot's own run directory is not the run's (no shared file system): only the secret is copied.
+    robot_runs = runs.parent / "robot-machine"
+    secret = json.loads((runs / RUN / "state.json").read_text()).get("secret_file") or str(runs / RUN / "secret")
     robot = subprocess.Popen([sys.executable, "-m", "dvla", "join", str(runs.parent / "outside.yaml"), "--credential",
-                              str(cred), "--runs", str(runs)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                             text=True)
+                              str(cred), "--runs", str(robot_runs), "--secret", secret], cwd=ROOT,
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         consumed = lambda: actor_data(runs).get("peers", {}).get("robot-5", {}).get("consumed", 0)  # noqa: E731
         assert wait_for(lambda: consumed() >= 5 or robot.poll() is not None, 90), actor_data(runs)
@@ -248,3 +251,10 @@ def test_dvla_join_dials_the_routers_dvla_up_started_for_the_topology(live_run: 
         out = robot.communicate(timeout=60)[0]
     assert robot.returncode == 0, out[-3000:]
     assert f"through ctrl tcp/127.0.0.1:{router['extra']['listen']['ctrl'][0].rsplit(':', 1)[1]}" in out, out[:500]
+    # Its counter file is on its machine; the learner keeps the run's copy, up to its clean last record.
+    (own,) = (robot_runs / RUN / "counters").glob("robot-5.*")
+    mine = json.loads(own.read_text())
+    assert mine["clean"] and mine["shipped"] >= 5, mine
+    copy = runs / RUN / "counters" / own.name
+    assert wait_for(lambda: copy.exists() and json.loads(copy.read_text())["clean"], 15), list(copy.parent.iterdir())
+    assert json.loads(copy.read_text()) == mine

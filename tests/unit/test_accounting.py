@@ -5,6 +5,7 @@ with nothing unaccounted."""
 
 from __future__ import annotations
 
+import json
 import os
 import threading
 
@@ -219,3 +220,22 @@ def test_a_gap_no_link_break_explains_stays_unaccounted(tmp_path: Path) -> None:
     # a gap after the break was not in the link when it broke
     books = _robot_run(tmp_path / "c", (300, 309), break_at=200)
     assert books["unaccounted"] == 10 and books["lost"] == 0
+
+
+def test_the_learner_keeps_the_counter_record_of_a_rollout_elsewhere(tmp_path: Path) -> None:
+    run, robot_machine = tmp_path / "run", tmp_path / "robot"
+    r = _ship(robot_machine, "robot-1", 6)  # its counter file is on its own machine
+    a = ActorLedger(run, "actor-0", Accounting(), slots=4, inbox_cap=64)
+    for i in range(6):
+        a.settle(a.got("robot-1", r.first_seq + i), "consumed")
+    a.close()
+    assert "no counter file" in reconcile(run)["notes"][0]  # before: consumed with no producer
+    path = a.adopt(r.record())
+    assert path == run / "counters" / f"robot-1.0.{os.getpid()}" and json.loads(path.read_text())["clean"]
+    books = reconcile(run)
+    assert (books["produced"], books["consumed"], books["unaccounted"], books["notes"]) == (6, 6, 0, [])
+    assert not list(run.glob(".adopt-*"))  # written aside, renamed into place
+    # on a shared file system the rollout's own file is there: nothing is written over it
+    own = RolloutLedger(run, "rollout-b", queue_cap=8)
+    assert a.adopt(own.record()) is None
+    own.close()

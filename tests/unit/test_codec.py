@@ -5,6 +5,7 @@ no large allocations)."""
 from __future__ import annotations
 
 import dataclasses
+import re
 import struct
 import tracemalloc
 
@@ -31,6 +32,7 @@ from dvla.fabric.messages import (
     MESSAGE_TYPES,
     Command,
     EvalResult,
+    LedgerRecord,
     RoleStatus,
     SnapshotRequest,
     TrajectoryChunk,
@@ -88,6 +90,8 @@ def control_messages() -> list:
                    return_mean=-3.25, time_ns=6),
         SnapshotRequest(requester="rollout-3", have_version=-1),
         WeightSnapshot(sender="actor", version=4, manifest=b"\x01" * 40, n_chunks=3, created_ns=7),
+        LedgerRecord(role="robot-1", incarnation=2, pid=77,
+                     record='{"role":"robot-1","incarnation":2,"pid":77,"kind":"rollout","shipped":5}'),
     ]
 
 
@@ -655,3 +659,15 @@ def test_a_snapshot_header_holds_a_version_or_nothing():
     for bad in (dict(version=-1, n_chunks=2), dict(version=-2, n_chunks=0), dict(version=4, n_chunks=-1)):
         with pytest.raises(CodecError):
             WeightSnapshot(sender="r", manifest=b"m", **bad).validate()
+
+
+@pytest.mark.parametrize("role, record, why", [
+    ("../x", '{"kind":"rollout","role":"../x","incarnation":0,"pid":1}', "not a valid key chunk"),
+    ("robot-1", "not json", "not JSON"),
+    ("robot-1", '{"kind":"actor","role":"robot-1","incarnation":0,"pid":1}', "not a rollout's counter record"),
+    ("robot-1", '{"kind":"rollout","role":"robot-2","incarnation":0,"pid":1}', "record's role 'robot-2'"),
+    ("robot-1", '{"kind":"rollout","role":"robot-1","incarnation":3,"pid":1}', "record's incarnation 3"),
+])
+def test_a_ledger_record_names_a_file_and_matches_its_record(role: str, record: str, why: str) -> None:
+    with pytest.raises(FabricError, match=re.escape(why)):
+        decode(wire({"role": role, "incarnation": 0, "pid": 1, "record": record}, tag="ledger"))

@@ -107,6 +107,8 @@ def test_authorize_rules():
     assert ok(KEYS.traj("rollout-a"), "rollout-a", "rollout")
     assert not ok(KEYS.traj("rollout-b"), "rollout-a", "rollout")  # another rollout's name
     assert not ok(KEYS.traj("actor-0"), "actor-0", "actor")
+    assert ok(KEYS.ledger("robot-1"), "robot-1", "rollout")  # a rollout's own counter record
+    assert not ok(KEYS.ledger("robot-1"), "robot-2", "rollout") and not ok(KEYS.ledger("robot-1"), "robot-1", "evaluator")
     assert ok(KEYS.snapshot("replicator-a"), "rollout-a", "rollout", query=True)  # any member asks
     assert ok(KEYS.snapshot("replicator-a"), "replicator-a", "replicator")
     assert not ok(KEYS.snapshot("replicator-a"), "replicator-b", "replicator")

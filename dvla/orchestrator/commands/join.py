@@ -95,6 +95,7 @@ def rollout_config(topo: Topology, ident: Identity, actor: str | None, ctrl: tup
         data=PlaneEndpoints(mode="client", connect=data, tls=topo.tls if "data" in tls_planes else None),
         parent=target.name, ancestors=(target.name,), children=(), actors=(target.name,), rollouts=(),
         cpus=None, lane_cpus=None, sim_workers=0, node_rollouts=1, group=None, eval_shard=(0, 1), lockstep_steps=0,
+        report_ledger=True,  # its counter file is on this machine: the learner keeps the run's copy
     )
 
 
