@@ -4,7 +4,9 @@ routers `dvla up` starts for the topology's `router:`; its link is cut for 10 s 
 a run of over 2 minutes. Chunks from before and after the cut are consumed, versions reach the
 robot after it, and the run's accounting has nothing unaccounted: the chunks that were in the
 cut link's buffers are lost with it (the robot saw its link break; the ledger places the gap
-there, within the buffers' bound). Needs root, `ip netns` and iptables."""
+there, within the buffers' bound). The robot keeps its own run directory, as on a machine of its
+own: its counter record reaches the run through the learner. Needs root, `ip netns` and
+iptables."""
 
 from __future__ import annotations
 
@@ -140,8 +142,12 @@ racks:
         cred = tmp_path / "robot-1.id"
         res = dvla("identity", "issue", RUN, "--kind", "rollout", "--name", "robot-1", "-o", str(cred), "--runs", str(runs))
         assert res.returncode == 0, res.stderr
+        # The robot's run directory is its own (no shared file system): its counter record reaches
+        # the run's accounting through the learner.
+        secret = json.loads((runs / RUN / "state.json").read_text()).get("secret_file") or str(runs / RUN / "secret")
         robot = subprocess.Popen(in_ns(sys.executable, "-m", "dvla", "join", str(topo), "--credential", str(cred),
-                                       "--runs", str(runs), "--connect-ctrl", f"tcp/{HOST_IP}:{edge}",
+                                       "--runs", str(tmp_path / "robot-machine"), "--secret", secret,
+                                       "--connect-ctrl", f"tcp/{HOST_IP}:{edge}",
                                        "--connect-data", f"tcp/{HOST_IP}:{edge + 1}"),
                                  cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         t0 = time.monotonic()
@@ -170,6 +176,8 @@ racks:
         (runs.parent / "robot.log").write_text(out)
         print(json.dumps({"robot_consumed_before_cut": before_chunks, "accounting": acct}))
         assert acct["consumed"] > 0 and acct["unaccounted"] == 0 and acct["notes"] == [], acct
+        assert [p.name for p in (runs / RUN / "counters").glob("robot-1.*")] == \
+            [p.name for p in (tmp_path / "robot-machine" / RUN / "counters").glob("robot-1.*")]  # the learner's copy
         assert acct["lost_within_bounds"], acct
         # what was lost went with the robot's link (nothing was killed)
         assert {x["where"] for x in acct["lost_by_incarnation"]} <= {"link"}, acct
