@@ -475,7 +475,10 @@ class Fabric:
         """Call `callback` (on a Zenoh thread: it must not block) each time this process's
         trajectory publisher goes from matching a subscriber to matching none: the link to the
         learner broke (a cut, a router restart) or the learner went away. Whatever was still in
-        the link's buffers at that moment went down with it (the rollout's ledger records it)."""
+        the link's buffers at that moment went down with it (the rollout's ledger records it).
+        Nothing to watch without a data session."""
+        if self.data is None:
+            return
         pub = self._publisher(DATA, self.keys.traj(self.name))
 
         def _changed(status: Any) -> None:

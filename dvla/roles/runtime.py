@@ -24,7 +24,7 @@ from ..config import RoleConfig
 from ..fabric import Fabric, load_secret, plane_config
 from ..fabric.identity import IDENTITY_ENV, Identity, IdentityError, read_revoked
 from ..fabric.messages import ArraySpec, ChunkSpec, Command, RoleStatus
-from ..fabric.zconfig import plane_max_message_size
+from ..fabric.zconfig import DATA_BLOCK_WAIT_BEFORE_CLOSE_US, plane_max_message_size
 from ..learn.spec import EnvSetupError, PolicySetupError
 from .swimlane import Swimlane, pin_cpus, set_torch_threads
 
@@ -74,7 +74,8 @@ def open_fabric(cfg: RoleConfig) -> Fabric:
     data = None
     if cfg.data.listen or cfg.data.connect:
         data = plane_config(mode=cfg.data.mode, listen=cfg.data.listen, connect=cfg.data.connect,
-                            shared_memory=cfg.shared_memory, tls=cfg.data.tls, max_message_size=data_plane_cap(cfg.task))
+                            shared_memory=cfg.shared_memory, tls=cfg.data.tls, max_message_size=data_plane_cap(cfg.task),
+                            block_close_us=DATA_BLOCK_WAIT_BEFORE_CLOSE_US)
     identity = Identity.from_env()
     if identity is not None and (identity.name, identity.kind, identity.run) != (cfg.name, cfg.kind, cfg.run):
         raise IdentityError(f"{IDENTITY_ENV} names {identity.kind} {identity.name!r} of run {identity.run!r}, "

@@ -159,7 +159,9 @@ racks:
         sh("ip", "link", "set", HOST_END, "down")  # the robot's link is cut
         time.sleep(CUT_S)
         sh("ip", "link", "set", HOST_END, "up")
+        t_up = time.monotonic()
         assert wait_for(lambda: consumed(runs) >= before_chunks + 10 or robot.poll() is not None, 90)
+        resumed_s = time.monotonic() - t_up  # reported: the data link's BLOCK wait closes the dead link
         assert robot.poll() is None, robot.communicate()[0][-3000:]
         assert wait_for(lambda: status(runs).get("robot-1", {}).get("policy_version", -1) > before_version, 60)
         time.sleep(max(0.0, 125 - (time.monotonic() - t0)))  # over 2 minutes of the robot in all
@@ -174,7 +176,8 @@ racks:
         up.wait(timeout=60)
         acct = json.loads((runs / RUN / "result.json").read_text())["accounting"]
         (runs.parent / "robot.log").write_text(out)
-        print(json.dumps({"robot_consumed_before_cut": before_chunks, "accounting": acct}))
+        print(json.dumps({"robot_consumed_before_cut": before_chunks, "resumed_after_link_up_s": round(resumed_s, 1),
+                          "accounting": acct}))
         assert acct["consumed"] > 0 and acct["unaccounted"] == 0 and acct["notes"] == [], acct
         assert [p.name for p in (runs / RUN / "counters").glob("robot-1.*")] == \
             [p.name for p in (tmp_path / "robot-machine" / RUN / "counters").glob("robot-1.*")]  # the learner's copy

@@ -8,7 +8,13 @@ import pytest
 import zenoh
 
 from dvla.fabric.messages import ArraySpec, ChunkSpec
-from dvla.fabric.zconfig import MAX_MESSAGE_SIZE_KEY, plane_config, plane_max_message_size
+from dvla.fabric.zconfig import (
+    BLOCK_WAIT_BEFORE_CLOSE_US,
+    DATA_BLOCK_WAIT_BEFORE_CLOSE_US,
+    MAX_MESSAGE_SIZE_KEY,
+    plane_config,
+    plane_max_message_size,
+)
 
 
 def test_max_message_size_is_carried_and_a_session_opens_with_it() -> None:
@@ -35,3 +41,10 @@ def test_plane_max_message_size_from_declared_sizes() -> None:
     assert plane_max_message_size(big) == int(big * 1.25) + (64 << 10) < 1 << 30
     with pytest.raises(ValueError):
         plane_max_message_size(-1)
+
+
+def test_each_plane_says_how_long_a_blocked_put_may_wait_before_its_link_is_closed() -> None:
+    key = "transport/link/tx/queue/congestion_control/block/wait_before_close"
+    assert json.loads(plane_config().get_json(key)) == BLOCK_WAIT_BEFORE_CLOSE_US == 30_000_000
+    data = plane_config(block_close_us=DATA_BLOCK_WAIT_BEFORE_CLOSE_US)
+    assert json.loads(data.get_json(key)) == 10_000_000
