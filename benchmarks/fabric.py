@@ -563,13 +563,11 @@ def _ctrl_addr(layout: Layout, shared: bool) -> str:
     return layout.data_addr if shared else layout.ctrl_addr
 
 
-#: what floods the data link in a loaded ctrl RTT phase: the source's trajectory chunks through
-#: its data session ("fabric"), or, as the control, plain TCP from the same process over the same
-#: link ("tcp": no Zenoh, no envelopes, no Python per byte): the delay the flooded link and this
-#: machine's kernel add by themselves
-#: what loads the machine during a "loaded" phase: the trajectory flood through the fabric; plain
-#: TCP on the same link; or no traffic at all, only processes that burn the CPU the fabric's flood
-#: burned (`hog_cores`): whether what is left of the isolation loss is the CPU, not the planes
+#: what loads a loaded ctrl RTT phase: the source's trajectory chunks through its data session
+#: ("fabric"); as controls, plain TCP from the same process over the same link ("tcp": no Zenoh,
+#: no envelopes, no Python per byte: the delay the flooded link and this machine's kernel add by
+#: themselves), or no traffic at all, only processes burning the CPU the fabric's flood burned
+#: ("cpu", `hog_cores`: how much of the isolation loss is the CPU, not the planes)
 FLOODS = ("fabric", "tcp", "cpu")
 #: processes that share the CPU control's load (each busy for `hog_cores / HOGS` of the time)
 HOGS = 2
@@ -680,9 +678,10 @@ def _rtt_source(layout: Layout, shared: bool, ctrl_port: int, data_port: int, se
         deadline = time.monotonic() + max_s
         sent = 0
         while not stop.is_set() and time.monotonic() < deadline and sent < max_msgs:
-            if not flood.wait(0.1) or kind == "cpu":  # the CPU control sends nothing
-                if kind == "cpu":
-                    stop.wait(0.1)
+            if kind == "cpu":  # the CPU control answers status queries and sends nothing
+                stop.wait(0.1)
+                continue
+            if not flood.wait(0.1):
                 continue
             if raw is not None:
                 raw.sendall(block)

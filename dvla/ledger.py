@@ -149,7 +149,7 @@ class RolloutLedger:
 
     def _write(self, clean: bool = False) -> None:
         with self._lock:
-            breaks = [list(b) for b in self.breaks]
+            breaks = list(self.breaks)  # appended to by a Zenoh thread
         self.file.write({"kind": "rollout", "produced": self.produced, "shipped": self.shipped,
                          "bytes": self.bytes_shipped, "queue_cap": self.queue_cap, "breaks": breaks,
                          "breaks_total": self.breaks_total, "clean": clean})
@@ -231,8 +231,7 @@ class ActorLedger:
             peers = self.accounting.snapshot().get(DATA, {}).get("peers", {})
             fabric = {p: {"received": c.get("received", 0), "rejected": c.get("rejected", 0),
                           "backpressure": c.get("dropped.backpressure", 0)} for p, c in peers.items()}
-            sources = {k: {n: (list(map(list, v)) if n == "gaps" else v) for n, v in c.items()}
-                       for k, c in self._src.items()}
+            sources = {k: dict(v) for k, v in self._src.items()}
             self.file.write({"kind": "actor", "sources": sources, "fabric": fabric, **self.bounds, "clean": clean})
 
     def close(self, clean: bool = True) -> None:
