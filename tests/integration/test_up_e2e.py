@@ -202,10 +202,12 @@ def test_up_with_the_simulators_pinned_apart(tmp_path: Path) -> None:
 
 
 SCENES = {
-    # a batched torch env with ManiSkillVectorEnv's calls: four envs in one scene on this CPU
-    "batched-factory": ("  env: batched_reach:make\n  env_batching: scene\n  envs_per_rollout: 4\n", 4),
+    # a batched torch env with ManiSkillVectorEnv's calls: four envs in one scene on this CPU. It
+    # steps so fast that one rollout could fill a small budget while the other is still starting
+    # on a loaded machine: the budget is several times what one rollout needs to start shipping.
+    "batched-factory": ("  env: batched_reach:make\n  env_batching: scene\n  envs_per_rollout: 4\n", 4, 6000),
     # real ManiSkill through ManiSkillVectorEnv: one env per scene is all physx_cpu allows
-    "maniskill-cpu": ("  env: PushCube-v1\n  env_batching: scene\n  envs_per_rollout: 1\n", 1),
+    "maniskill-cpu": ("  env: PushCube-v1\n  env_batching: scene\n  envs_per_rollout: 1\n", 1, 1200),
 }
 
 
@@ -215,15 +217,18 @@ def test_up_with_one_scene_per_rollout(tmp_path: Path, kind: str, monkeypatch: p
     """`env_batching: scene` (the GPU path, dvla/learn/vector_env.py) on a CPU: each rollout
     records its steps as tensors and ships chunks of all its envs, versions reach the rollouts and
     the accounting closes."""
-    lines, n = SCENES[kind]
+    lines, n, budget = SCENES[kind]
     text = (ROOT / "topologies/tiny.yaml").read_text()
     for old in ("  env: PushCube-v1\n", "  envs_per_rollout: 2\n"):
         assert old in text
         text = text.replace(old, "", 1)
     text = text.replace("task:\n", "task:\n" + lines, 1)
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(ROOT / "tests" / "plugin_env"), str(ROOT)]))
-    run_dir = up_tiny_variant(tmp_path, text, 1200)
+    run_dir = up_tiny_variant(tmp_path, text, budget)
     for name in ("rollout-node0-0", "rollout-node0-1"):
         s = json.loads((run_dir / "summaries" / f"{name}.json").read_text())
         assert s["error"] is None and s["extra"]["one_scene"] is True and s["extra"]["env_groups"] == [n], s["extra"]
-        assert s["extra"]["chunks_shipped"] > 0 and s["extra"]["episodes"] > 0 and s["policy_version"] >= 2
+        log_tail = (run_dir / "logs" / f"{name}.log").read_text()[-2000:]
+        shipped = (s["extra"]["chunks_shipped"], s["extra"]["episodes"], s["policy_version"], s["wall_s"], s["lanes"],
+                   log_tail)
+        assert s["extra"]["chunks_shipped"] > 0 and s["extra"]["episodes"] > 0 and s["policy_version"] >= 2, shipped
