@@ -395,6 +395,13 @@ class TaskConfig:
     eval: EvalConfig = field(default_factory=EvalConfig)
     #: stop conditions
     budget: BudgetConfig = field(default_factory=BudgetConfig)
+    #: a warm start: the policy's tensors to begin from instead of its constructor's, as a
+    #: safetensors file holding exactly what the policy replicates (every tensor; with LoRA the
+    #: adapters and the new heads, as `replicated_tensors` gives them) or a run's ``checkpoints``
+    #: directory (its current checkpoint's weights). Read by the actor before its first version; a
+    #: run resuming from its own checkpoint ignores it. See docs/policies.md ("Warm starts")
+    init_weights: str | None = rule(None, path=True, check=lambda p: None if os.path.exists(p) else
+                                    f"init_weights not found: {p} (expected a safetensors file or a checkpoints directory)")
     #: envs stepped by each rollout process (split into two groups for double-buffered sampling)
     envs_per_rollout: int = rule(4, ge=1)
     #: steps per env in one trajectory chunk

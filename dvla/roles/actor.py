@@ -36,7 +36,8 @@ from ..learn.grpo import grpo_batch
 from ..learn.policies import extras_spec, policy_base_hash
 from ..ledger import ActorLedger
 from ..replication import ParamLayout, checksum, flatten, replicated_tensors, unflatten_into
-from .checkpoint import Checkpoint, load_checkpoint, optimizer_tensors, reserve_versions, save_checkpoint
+from .checkpoint import (Checkpoint, load_checkpoint, load_init_weights, optimizer_tensors, reserve_versions,
+                         save_checkpoint)
 from .runtime import main
 from .slots import SlotPool
 from .swimlane import LaneContext, Swimlane, sample_percentile
@@ -74,6 +75,8 @@ class Actor:
         self.resumed: Checkpoint | None = None
         if self.is_root:
             self.resumed = load_checkpoint(self.ckpt_dir, self.policy, self.learner.optimizer, self._checksum)
+            if self.resumed is None and task.init_weights:  # a warm start; a resumed run has its own
+                log.info("warm start: policy weights from %s", load_init_weights(task.init_weights, self.policy))
         start = self.resumed.high_water if self.resumed else 0
         env_steps = self.resumed.env_steps if self.resumed else 0
         start, env_steps = self.group.sync_from_root(self.policy, self.learner.optimizer, [start, env_steps])

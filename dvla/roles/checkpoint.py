@@ -18,7 +18,8 @@ from typing import Any
 import torch
 from safetensors.torch import save_file
 
-from ..learn.checkpoint_files import DIR_RE, FILES, MANIFEST, CheckpointError, read_json, read_safetensors, sha256
+from ..learn.checkpoint_files import (DIR_RE, FILES, MANIFEST, CheckpointError, read_current, read_json,
+                                     read_safetensors, sha256)
 from ..learn.optstate import optimizer_from_tensors, optimizer_to_tensors
 from ..replication import replicated_tensors
 
@@ -129,6 +130,43 @@ def load_checkpoint(directory: Path, policy: torch.nn.Module, optimizer: torch.o
 
 
 
+
+
+def load_init_weights(path: str | Path, policy: torch.nn.Module) -> str:
+    """Apply a warm start (``task.init_weights``) to ``policy``: a safetensors file, or a
+    ``checkpoints`` directory whose current checkpoint is read with its sha256 checked. The file
+    must hold exactly the tensors the policy replicates, each of its shape, every floating one
+    finite (cast to the policy's dtype); otherwise CheckpointError names the file and the first
+    key at fault and nothing is applied. Returns what was loaded, for the log."""
+    where = Path(path)
+    if where.is_dir():
+        current = read_current(where)
+        if current is None:
+            raise CheckpointError(f"{where}: init_weights names a directory without a checkpoint (no {MANIFEST})")
+        version, weights = current
+        source = f"{where} (checkpoint v{version})"
+    elif where.is_file():
+        weights, _ = read_safetensors(where)
+        source = str(where)
+    else:
+        raise CheckpointError(f"{where}: init_weights not found (expected a safetensors file or a checkpoints directory)")
+    expected = replicated_tensors(policy)
+    if weights.keys() != expected.keys():
+        missing, extra = sorted(expected.keys() - weights.keys()), sorted(weights.keys() - expected.keys())
+        raise CheckpointError(f"{source}: not this policy's tensors (missing {missing[:3]}{'...' if len(missing) > 3 else ''}"
+                              f", unexpected {extra[:3]}{'...' if len(extra) > 3 else ''})")
+    for k, want in expected.items():
+        got = weights[k]
+        if tuple(got.shape) != tuple(want.shape):
+            raise CheckpointError(f"{source}: {k} has shape {tuple(got.shape)}, the policy's is {tuple(want.shape)}")
+        if want.is_floating_point() != got.is_floating_point() or (not want.is_floating_point() and got.dtype != want.dtype):
+            raise CheckpointError(f"{source}: {k} is {got.dtype}, the policy's is {want.dtype}")
+        if got.is_floating_point() and not bool(torch.isfinite(got).all()):
+            raise CheckpointError(f"{source}: {k} holds non-finite values")
+    with torch.no_grad():
+        for k, want in expected.items():  # state-dict tensors share the parameters' storage
+            want.copy_(weights[k].to(want.dtype))
+    return source
 
 
 def optimizer_tensors(optimizer: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], str]:

@@ -232,3 +232,23 @@ def test_up_with_one_scene_per_rollout(tmp_path: Path, kind: str, monkeypatch: p
         shipped = (s["extra"]["chunks_shipped"], s["extra"]["episodes"], s["policy_version"], s["wall_s"], s["lanes"],
                    log_tail)
         assert s["extra"]["chunks_shipped"] > 0 and s["extra"]["episodes"] > 0 and s["policy_version"] >= 2, shipped
+
+
+@pytest.mark.timeout(300)
+def test_up_warm_starts_from_another_runs_checkpoint(tmp_path: Path) -> None:
+    """`task.init_weights` names a finished run's checkpoints: the new run's first version is
+    exactly that checkpoint's weights (same checksum), and it learns on from there."""
+    text = (ROOT / "topologies/tiny.yaml").read_text()
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    first = up_tiny_variant(tmp_path / "a", text, 800)
+    manifest = json.loads((first / "checkpoints" / "MANIFEST.json").read_text())
+    assert "task:\n" in text
+    warm = text.replace("task:\n", f"task:\n  init_weights: {first / 'checkpoints'}\n", 1)
+    second = up_tiny_variant(tmp_path / "b", warm, 800)
+    with open(second / "versions.csv") as f:
+        versions = list(csv.reader(f))
+    assert versions[0][0] == "1" and versions[0][1] == manifest["checksum"], (versions[:2], manifest)
+    assert len({row[1] for row in versions}) > 1  # and learning moved it on
+    log = (second / "logs" / "actor-node0-0.log").read_text()
+    assert f"warm start: policy weights from {first / 'checkpoints'} (checkpoint v{manifest['version']})" in log

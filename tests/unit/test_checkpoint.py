@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from dvla.roles.checkpoint import MANIFEST, CheckpointError, load_checkpoint, optimizer_tensors, save_checkpoint
+from dvla.roles.checkpoint import (MANIFEST, CheckpointError, load_checkpoint, load_init_weights, optimizer_tensors,
+                                   save_checkpoint)
 
 
 class _Payload:
@@ -143,3 +144,53 @@ def test_another_policy_shape_is_refused_and_nothing_applied(ckpt: Path) -> None
     with pytest.raises(CheckpointError, match="policy.safetensors"):
         load_checkpoint(ckpt, policy, torch.optim.Adam(policy.parameters()), _checksum)
     assert _checksum(policy) == before
+
+
+# --- warm starts (task.init_weights) ------------------------------------------------------------
+
+
+def test_init_weights_from_a_file_and_from_a_checkpoints_directory(ckpt: Path, tmp_path: Path) -> None:
+    """A warm start loads what the policy replicates, from a safetensors file or from a run's
+    current checkpoint; the policy then holds exactly those tensors."""
+    from safetensors.torch import save_file
+
+    trained, _ = _trained()
+    file = tmp_path / "bc.safetensors"
+    save_file({k: v.contiguous() for k, v in trained.state_dict().items()}, str(file))
+    for source in (file, ckpt):
+        policy, _ = _fresh()
+        assert not torch.equal(policy.weight, trained.weight)
+        described = load_init_weights(source, policy)
+        assert str(source) in described
+        assert torch.equal(policy.weight, trained.weight) and torch.equal(policy.bias, trained.bias)
+
+
+@pytest.mark.parametrize("tensors,fault", [
+    ({"weight": torch.zeros(2, 3)}, "missing ['bias']"),
+    ({"weight": torch.zeros(2, 3), "bias": torch.zeros(2), "head.w": torch.zeros(1)}, "unexpected ['head.w']"),
+    ({"weight": torch.zeros(3, 2), "bias": torch.zeros(2)}, "weight has shape (3, 2)"),
+    ({"weight": torch.zeros(2, 3), "bias": torch.tensor([0.0, float("nan")])}, "bias holds non-finite"),
+    ({"weight": torch.zeros(2, 3, dtype=torch.int64), "bias": torch.zeros(2)}, "weight is torch.int64"),
+])
+def test_an_init_weights_file_of_another_policy_is_refused_naming_the_key(tmp_path: Path, tensors: dict,
+                                                                         fault: str) -> None:
+    from safetensors.torch import save_file
+
+    file = tmp_path / "other.safetensors"
+    save_file(tensors, str(file))
+    policy, _ = _fresh()
+    before = {k: v.clone() for k, v in policy.state_dict().items()}
+    with pytest.raises(CheckpointError) as err:
+        load_init_weights(file, policy)
+    assert str(file) in str(err.value) and fault in str(err.value), err.value
+    assert all(torch.equal(before[k], v) for k, v in policy.state_dict().items())  # nothing applied
+
+
+def test_init_weights_refuses_a_pickle_and_an_empty_directory(tmp_path: Path) -> None:
+    pickled = tmp_path / "policy.pt"
+    torch.save(torch.nn.Linear(3, 2).state_dict(), pickled)
+    with pytest.raises(CheckpointError, match="pickle"):
+        load_init_weights(pickled, _fresh()[0])
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(CheckpointError, match="without a checkpoint"):
+        load_init_weights(tmp_path / "empty", _fresh()[0])
