@@ -54,8 +54,10 @@ def read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str
     """Tensors and metadata of a safetensors file. Anything else is refused unread: never
     ``torch.load`` or pickle, whose loading runs code the file chooses."""
     with open(path, "rb") as f:
-        head = f.read(4)
-    if head.startswith(_PICKLE_MAGIC):
+        head = f.read(9)
+    # safetensors: an 8-byte little-endian header length, then the JSON header's "{". The length's
+    # first byte may be 0x80 (a header of 128, 384, ... bytes), so that alone says nothing.
+    if head[8:9] != b"{" and head.startswith(_PICKLE_MAGIC):
         raise CheckpointError(f"{path}: a pickle (torch.save) file, refused unread: checkpoints are safetensors only")
     try:
         with safe_open(str(path), framework="pt") as f:

@@ -194,3 +194,20 @@ def test_init_weights_refuses_a_pickle_and_an_empty_directory(tmp_path: Path) ->
     (tmp_path / "empty").mkdir()
     with pytest.raises(CheckpointError, match="without a checkpoint"):
         load_init_weights(tmp_path / "empty", _fresh()[0])
+
+
+def test_a_safetensors_file_whose_header_length_starts_0x80_is_not_taken_for_a_pickle(tmp_path: Path) -> None:
+    """A safetensors file begins with its header's length (8 bytes, little-endian): one header in
+    256 has 0x80 as the first byte, pickle's protocol-2 magic. Such a file still loads."""
+    from safetensors.torch import save_file
+
+    from dvla.learn.checkpoint_files import read_safetensors
+
+    file = tmp_path / "w.safetensors"
+    for pad in range(300):
+        save_file({"w": torch.ones(2)}, str(file), metadata={"pad": "x" * pad})
+        if file.read_bytes()[0] == 0x80:
+            break
+    assert file.read_bytes()[0] == 0x80
+    tensors, meta = read_safetensors(file)
+    assert torch.equal(tensors["w"], torch.ones(2)) and meta["pad"]
