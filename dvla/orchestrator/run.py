@@ -63,6 +63,8 @@ class UpOptions:
     mode: str | None = None
     #: override the topology's master seed
     seed: int | None = None
+    #: override task.init_weights (a warm start: a safetensors file or a run's checkpoints directory)
+    init_weights: str | None = None
     #: first port to hand out (None: the topology's base_port)
     base_port: int | None = None
     #: runs/ directory
@@ -83,7 +85,7 @@ def apply_overrides(topo: Topology, opts: UpOptions) -> Topology:
 
     budget = dataclasses.replace(topo.task.budget, **given(max_env_steps=opts.max_env_steps,
                                                            until_success=opts.until_success, max_wall_s=opts.max_wall_s))
-    task = dataclasses.replace(topo.task, budget=budget)
+    task = dataclasses.replace(topo.task, budget=budget, **given(init_weights=opts.init_weights))
     return dataclasses.replace(topo, task=task, **given(mode=opts.mode, seed=opts.seed))
 
 

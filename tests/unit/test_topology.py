@@ -499,3 +499,16 @@ def test_bad_sim_workers_are_refused_naming_the_key(roles: str, message: str) ->
 def test_sim_workers_belong_to_rollouts() -> None:
     with pytest.raises(TopologyError, match=r"roles\[0\]\.sim_workers: 2 is a rollout setting, this placement is a actor"):
         parse_topology(FLOW.replace("{role: actor}", "{role: actor, sim_workers: 2}"), "t.yaml")
+
+
+def test_up_options_override_the_budget_mode_seed_and_warm_start() -> None:
+    """`dvla up --max-env-steps/--mode/--seed/--init-weights` replace the topology's values;
+    options left unset keep them."""
+    from dvla.orchestrator.run import UpOptions, apply_overrides
+
+    topo = load_topology(Path(__file__).resolve().parents[2] / "topologies" / "tiny.yaml")
+    same = apply_overrides(topo, UpOptions())
+    assert same == topo
+    got = apply_overrides(topo, UpOptions(max_env_steps=123, mode="sync", seed=7, init_weights="/w/bc.safetensors"))
+    assert (got.task.budget.max_env_steps, got.mode, got.seed, got.task.init_weights) == (123, "sync", 7, "/w/bc.safetensors")
+    assert got.task.budget.until_success == topo.task.budget.until_success and got.racks == topo.racks

@@ -29,6 +29,9 @@ def up(
     mode: Annotated[Optional[str], typer.Option(help="async (swimlanes) or sync (lock-step baseline)")] = None,
     seed: Annotated[Optional[int], typer.Option(help="master seed (overrides the topology's)")] = None,
     base_port: Annotated[Optional[int], typer.Option(help="first TCP port of the run")] = None,
+    init_weights: Annotated[Optional[Path], typer.Option(
+        help="warm start: the policy's tensors (safetensors) or a run's checkpoints directory (overrides task.init_weights)")
+    ] = None,
     runs: Annotated[Path, typer.Option(help="directory of run directories")] = RUNS_ROOT,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no live view; one line per 10 s")] = False,
     resume: Annotated[bool, typer.Option("--resume", help="continue the run from its last checkpoint (error if none)")] = False,
@@ -45,10 +48,13 @@ def up(
     for key, message in range_problems(BudgetConfig(max_env_steps=max_env_steps, until_success=until_success,
                                                     max_wall_s=max_wall_s)):
         raise fail(f"--{key.replace('_', '-')}: {message}")
+    if init_weights is not None and not init_weights.exists():
+        raise fail(f"--init-weights: not found: {init_weights} (expected a safetensors file or a checkpoints directory)")
     topo = topology_or_exit(topology)
     opts = UpOptions(
         max_env_steps=max_env_steps, until_success=until_success, max_wall_s=max_wall_s,
         mode=mode, seed=seed, base_port=base_port, runs_root=runs, resume=resume, fresh=fresh,
+        init_weights=str(init_weights.resolve()) if init_weights is not None else None,
     )
     live = sys.stdout.isatty() and not quiet and not detach
     last_line = [0.0]
