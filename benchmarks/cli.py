@@ -238,6 +238,59 @@ def vla(
     _save(doc, json_path, format_table)
 
 
+@app.command("learn-vla")
+def learn_vla(
+    json_path: Annotated[Path, typer.Option("--json", help="write the results (JSON) here; the plot goes beside it (.png)")],
+    topology: Annotated[Optional[Path], typer.Argument(help="the RL stage's topology (default: topologies/local-vla-rl.yaml)")] = None,
+    seeds: Annotated[str, typer.Option(help="comma-separated seeds of the RL runs")] = "1,2,3",
+    modes: Annotated[str, typer.Option(help="comma-separated modes of the warm-started runs (async, sync)")] = "async,sync",
+    control: Annotated[bool, typer.Option(help="also run the random initialisation (first mode) per seed")] = True,
+    expert: Annotated[Optional[Path], typer.Option(help="a finished state run to record demonstrations from "
+                                                   "(default: train one with topologies/local.yaml)")] = None,
+    demos_file: Annotated[Optional[Path], typer.Option("--demos-file", help="recorded demonstrations (.npz) to clone from")] = None,
+    demos: Annotated[int, typer.Option(help="solved expert episodes to record", min=1)] = 300,
+    clone_epochs: Annotated[int, typer.Option(help="behaviour cloning epochs", min=1)] = 3,
+    warm: Annotated[Optional[Path], typer.Option(help="a warm start (safetensors) to use instead of cloning one")] = None,
+    rise: Annotated[float, typer.Option(help="the level the RL runs must reach: warm start's success + this")] = 0.3,
+    base_port: Annotated[int, typer.Option(help="first TCP port")] = 21400,
+) -> None:
+    """The SFT -> RL recipe on this machine: an expert trained on PushCube's state vector,
+    its solved episodes recorded with rendered observations, a VLA cloned from them (the warm
+    start), then RL through `dvla up` from the warm start per seed and mode, and from the random
+    initialisation as the control; success curves by env steps and by seconds (JSON + PNG)."""
+    import tempfile
+
+    from benchmarks.learn_vla import DEFAULT_TOPOLOGY, Recipe, format_table, plot, run_bench
+
+    try:
+        seed_list = tuple(int(x) for x in seeds.split(",") if x.strip())
+    except ValueError:
+        raise fail(f"--seeds takes comma-separated integers, got {seeds!r}")
+    mode_list = tuple(m.strip() for m in modes.split(",") if m.strip())
+    if not seed_list or not mode_list or any(m not in ("async", "sync") for m in mode_list):
+        raise fail(f"--seeds needs at least one seed and --modes async and/or sync (got {seeds!r}, {modes!r})")
+    for name, path in (("--expert", expert), ("--demos-file", demos_file), ("--warm", warm), ("topology", topology)):
+        if path is not None and not path.exists():
+            raise fail(f"{name}: not found: {path}")
+    if not 0 < rise <= 1:
+        raise fail(f"--rise must be in (0, 1], got {rise}")
+    recipe = Recipe(topology=(topology or DEFAULT_TOPOLOGY).resolve(), seeds=seed_list, modes=mode_list, control=control,
+                    expert=expert.resolve() if expert else None, demos_file=demos_file.resolve() if demos_file else None,
+                    demos=demos, clone_epochs=clone_epochs, warm=warm.resolve() if warm else None, rise=rise,
+                    base_port=base_port)
+
+    def run(progress: Callable[[str], None]) -> dict:
+        with tempfile.TemporaryDirectory(prefix="dvla-bench-learn-vla-") as tmp:
+            doc = run_bench(recipe, Path(tmp), progress)
+        png = json_path.with_suffix(".png")
+        png.parent.mkdir(parents=True, exist_ok=True)
+        plot(doc, png)
+        doc["plot"] = str(png)
+        return doc
+
+    _run_and_save("learn-vla", json_path, format_table, run)
+
+
 @app.command("envs")
 def envs(
     json_path: Annotated[Path, typer.Option("--json", help="write the results (JSON) here")],

@@ -1,0 +1,418 @@
+"""The field's SFT -> RL recipe in miniature, without a download: an expert dvla trained itself on
+PushCube's state vector is replayed with rendered observations (demonstrations), a VLA is cloned
+from them (the warm start), and ``dvla up`` raises it by RL from there (``task.init_weights``).
+
+The pieces, each usable on its own (``python -m benchmarks.learn_vla --help``):
+
+- :func:`record_demos`: the expert's deterministic actions on a state env group, and an rgb env
+  group of the same task stepped in lock-step from the same seeds (same initial states, same
+  physics on physx_cpu: the agent's joints are checked equal at every step). Each env's rgb
+  observations (image, proprio, instruction tokens, exactly as a rollout sees them) and actions
+  are kept for the episodes the expert solves.
+- :func:`clone`: behaviour cloning of the task's policy (built as the actor builds it) on those
+  demonstrations: the log-likelihood of the expert's actions with the policy's exploration noise
+  held at its initial value (a Gaussian head: mean-squared error scaled; action bins:
+  cross-entropy), proprio statistics folded from the demonstrations first. Saves
+  ``replicated_tensors(policy)`` as safetensors: what ``task.init_weights`` reads.
+- :func:`evaluate`: deterministic episodes from fixed seeds (``run_eval_episodes``), success with
+  its 95 % Wilson interval.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+#: first seed of the demonstration episodes (far from every run's rollout and evaluation seeds)
+DEMO_SEED = 50_000_000
+#: first seed of the warm start's evaluation episodes
+EVAL_SEED = 60_000_000
+
+
+def _progress(msg: str) -> None:
+    print(msg, flush=True)
+
+
+def rgb_task(task: Any, image_size: int, policy: str, policy_kwargs: dict[str, Any]) -> Any:
+    """``task`` with rendered observations and a VLA policy (everything else unchanged)."""
+    return dataclasses.replace(task, obs_mode="rgb", image_size=image_size, policy=policy,
+                               policy_kwargs=dict(policy_kwargs), init_weights=None)
+
+
+def load_expert(run_dir: Path) -> tuple[Any, Any]:
+    """(task, policy) of a finished state-observation run: its topology's task and its current
+    checkpoint's weights in the task's policy."""
+    from dvla.learn import make_policy
+    from dvla.learn.envs import probe_spec
+    from dvla.orchestrator.topology import load_topology
+    from dvla.roles.checkpoint import load_init_weights
+
+    task = load_topology(run_dir / "topology.yaml").task
+    if task.obs_mode != "state":
+        raise ValueError(f"{run_dir}: the expert must be a state-observation run (obs_mode {task.obs_mode!r})")
+    obs_spec, act_dim = probe_spec(task)
+    policy = make_policy(task.policy, obs_spec, act_dim, **task.policy_kwargs)
+    load_init_weights(run_dir / "checkpoints", policy)
+    return task, policy.eval()
+
+
+def record_demos(expert_run: Path, out: Path, episodes: int, image_size: int = 64, n_envs: int = 4,
+                 seed: int = DEMO_SEED, progress: Callable[[str], None] = _progress,
+                 solved_only: bool = True) -> dict[str, Any]:
+    """Record ``episodes`` solved episodes (every episode: ``solved_only=False``) of the expert
+    with rgb observations into ``out`` (.npz: rgb, proprio, tokens, action, episode; plus
+    ``out``.json: what was recorded)."""
+    import torch
+
+    from dvla.learn.envs import EnvGroup, obs_to_torch
+    from dvla.learn.policies import sample_actions
+
+    task, expert = load_expert(expert_run)
+    vis = rgb_task(task, image_size, "tiny-vla", {})
+    state_g, rgb_g = EnvGroup(task, n_envs, seed), EnvGroup(vis, n_envs, seed)
+    keys = ("rgb", "proprio", "tokens")
+    kept: dict[str, list[np.ndarray]] = {k: [] for k in (*keys, "action", "episode")}
+    current: list[dict[str, list[np.ndarray]]] = [{k: [] for k in (*keys, "action")} for _ in range(n_envs)]
+    solved = np.zeros(n_envs, dtype=bool)
+    played = n_kept = steps = 0
+    started = time.perf_counter()
+    try:
+        s_obs, r_obs = state_g.reset(seed=seed), rgb_g.reset(seed=seed)
+        while n_kept < episodes:
+            n_prop = r_obs["proprio"].shape[1]
+            if not np.allclose(s_obs[:, :n_prop], r_obs["proprio"], atol=1e-4):
+                raise RuntimeError("the state and rgb envs left lock-step (joint states differ)")
+            with torch.no_grad():
+                action = sample_actions(expert, obs_to_torch(s_obs), deterministic=True)[0].float().numpy()
+            action = np.clip(action, state_g.action_low, state_g.action_high)  # what the env plays
+            for i in range(n_envs):
+                for k in keys:
+                    current[i][k].append(r_obs[k][i])
+                current[i]["action"].append(action[i])
+            s_res, r_res = state_g.step(action), rgb_g.step(action)
+            steps += n_envs
+            if not np.array_equal(s_res.episode_done, r_res.episode_done):
+                raise RuntimeError("the state and rgb envs left lock-step (episodes ended apart)")
+            solved |= s_res.success
+            for i in np.flatnonzero(s_res.episode_done):
+                played += 1
+                if (solved[i] or not solved_only) and n_kept < episodes:
+                    for k in (*keys, "action"):
+                        kept[k].append(np.stack(current[i][k]))
+                    kept["episode"].append(np.full(len(current[i]["action"]), n_kept, dtype=np.int32))
+                    n_kept += 1
+                current[i] = {k: [] for k in (*keys, "action")}
+                solved[i] = False
+            s_obs, r_obs = s_res.next_obs, r_res.next_obs
+            if played and played % 20 == 0 and s_res.episode_done.any():
+                progress(f"demos: {n_kept}/{episodes} kept of {played} played ({steps} steps, "
+                         f"{time.perf_counter() - started:.0f} s)")
+    finally:
+        state_g.close()
+        rgb_g.close()
+    arrays = {k: np.concatenate(v) for k, v in kept.items()}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(out, **arrays)
+    meta = {"expert_run": str(expert_run), "env": task.env, "control_mode": task.control_mode,
+            "max_episode_steps": task.max_episode_steps, "image_size": image_size,
+            "instruction_tokens": vis.instruction_tokens, "instruction": vis.instruction,
+            "episodes": n_kept, "episodes_played": played, "expert_success": n_kept / max(played, 1),
+            "transitions": int(len(arrays["action"])), "env_steps": steps, "seed": seed,
+            "seconds": time.perf_counter() - started}
+    Path(f"{out}.json").write_text(json.dumps(meta, indent=2) + "\n")
+    return meta
+
+
+def load_demos(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path) as z:
+        return {k: z[k] for k in z.files}
+
+
+def first_episodes(demos: dict[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
+    """The transitions of demo episodes 0 .. n - 1."""
+    held = int(demos["episode"].max()) + 1
+    if n > held:
+        raise ValueError(f"{n} episodes asked, the demos hold {held}")
+    keep = demos["episode"] < n
+    return {k: v[keep] for k, v in demos.items()}
+
+
+def clone(task: Any, demos: dict[str, np.ndarray], out: Path, epochs: int = 20, batch: int = 64, lr: float = 1e-3,
+          seed: int = 0, progress: Callable[[str], None] = _progress) -> dict[str, Any]:
+    """Behaviour cloning of ``task``'s policy on ``demos``; saves its replicated tensors to
+    ``out`` (safetensors). Returns the loss per epoch."""
+    import torch
+    from safetensors.torch import save_file
+
+    from dvla.learn import make_policy
+    from dvla.learn.envs import probe_spec
+    from dvla.replication import replicated_tensors
+
+    torch.manual_seed(seed)
+    obs_spec, act_dim = probe_spec(task)
+    policy = make_policy(task.policy, obs_spec, act_dim, **task.policy_kwargs)
+    obs = {k: torch.from_numpy(demos[k]) for k in ("rgb", "proprio", "tokens") if k in obs_spec}
+    action = torch.from_numpy(demos["action"]).float()
+    if hasattr(policy, "observe"):
+        policy.observe(obs)
+    noise = [p for n, p in policy.named_parameters() if n.split(".")[-1] == "log_std"]
+    for p in noise:  # exploration noise stays where RL expects to start it
+        p.requires_grad_(False)
+    trained = [p for p in policy.parameters() if p.requires_grad]
+    opt = torch.optim.Adam(trained, lr=lr)
+    n = len(action)
+    gen = torch.Generator().manual_seed(seed)
+    losses = []
+    started = time.perf_counter()
+    policy.train()
+    for epoch in range(epochs):
+        order = torch.randperm(n, generator=gen)
+        total = 0.0
+        for lo in range(0, n, batch):
+            idx = order[lo:lo + batch]
+            logprob = policy.evaluate({k: v[idx] for k, v in obs.items()}, action[idx])[0]
+            loss = -logprob.mean()
+            opt.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(trained, 1.0)
+            opt.step()
+            total += loss.item() * len(idx)
+        losses.append(total / n)
+        progress(f"clone: epoch {epoch + 1}/{epochs} loss {losses[-1]:.4f} ({time.perf_counter() - started:.0f} s)")
+    for p in noise:
+        p.requires_grad_(True)
+    policy.eval()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_file({k: v.detach().contiguous() for k, v in replicated_tensors(policy).items()}, str(out))
+    return {"losses": losses, "transitions": n, "seconds": time.perf_counter() - started, "policy": policy}
+
+
+def evaluate(task: Any, weights: Path | None, episodes: int, seed: int = EVAL_SEED, n_envs: int = 8) -> dict[str, Any]:
+    """Deterministic episodes (episode j from seed ``seed + j``) of ``task``'s policy with
+    ``weights`` (None: its random initialisation)."""
+    import torch
+
+    from dvla.learn import make_policy, run_eval_episodes
+    from dvla.learn.envs import probe_spec
+    from dvla.roles.checkpoint import load_init_weights
+
+    torch.manual_seed(0)
+    obs_spec, act_dim = probe_spec(task)
+    policy = make_policy(task.policy, obs_spec, act_dim, **task.policy_kwargs)
+    if weights is not None:
+        load_init_weights(weights, policy)
+    res = run_eval_episodes(policy.eval(), task, episodes, seed, n_envs=n_envs)
+    assert res is not None
+    return {k: res[k] for k in ("success_once", "success_once_low", "success_once_high", "return_mean", "episodes")}
+
+
+# --- the whole recipe: dvla bench learn-vla ------------------------------------------------------
+
+#: the RL stage's topology (rgb PushCube, tiny-vla, the stop rule on the evaluation's lower bound)
+DEFAULT_TOPOLOGY = Path(__file__).resolve().parents[1] / "topologies" / "local-vla-rl.yaml"
+#: the expert's topology (state PushCube, the MLP policy)
+EXPERT_TOPOLOGY = Path(__file__).resolve().parents[1] / "topologies" / "local.yaml"
+
+
+@dataclasses.dataclass(frozen=True)
+class Recipe:
+    """What `dvla bench learn-vla` runs (every stage can be given instead of made)."""
+
+    #: the RL stage's topology
+    topology: Path = DEFAULT_TOPOLOGY
+    #: seeds of the RL runs
+    seeds: tuple[int, ...] = (1, 2, 3)
+    #: modes of the warm-started runs, interleaved per seed
+    modes: tuple[str, ...] = ("async", "sync")
+    #: also run the random initialisation (the control) in the first mode, per seed
+    control: bool = True
+    #: a finished state run to use as the expert (None: train one with EXPERT_TOPOLOGY)
+    expert: Path | None = None
+    #: recorded demonstrations to use (None: record `demos` episodes from the expert)
+    demos_file: Path | None = None
+    demos: int = 300
+    #: behaviour cloning epochs over the demonstrations
+    clone_epochs: int = 3
+    #: a warm start to use (None: clone one)
+    warm: Path | None = None
+    #: episodes of the warm start's own evaluation (fixed seeds)
+    warm_eval: int = 64
+    #: the level the RL runs must reach: warm start's success + this
+    rise: float = 0.3
+    base_port: int = 21400
+
+
+def reached(curve: list[dict[str, float]], level: float) -> dict[str, float] | None:
+    """The first evaluation of a run's curve at or above ``level`` (None: never)."""
+    return next((p for p in curve if p["success_once"] >= level), None)
+
+
+def run_bench(recipe: Recipe, work: Path, progress: Callable[[str], None] = _progress) -> dict[str, Any]:
+    import subprocess
+    import sys
+
+    import torch
+
+    from benchmarks.e2e import _one_run
+    from dvla.orchestrator.topology import load_topology
+
+    doc: dict[str, Any] = {"recipe": {k: str(v) if isinstance(v, Path) else v
+                                      for k, v in dataclasses.asdict(recipe).items()}}
+    task = load_topology(recipe.topology).task
+    warm = recipe.warm
+    if warm is None:
+        demos_file = recipe.demos_file
+        if demos_file is None:
+            expert = recipe.expert
+            if expert is None:
+                progress(f"expert: dvla up {EXPERT_TOPOLOGY.name} (state PushCube)")
+                cmd = [sys.executable, "-m", "dvla", "up", str(EXPERT_TOPOLOGY), "--seed", "1", "--quiet", "--fresh",
+                       "--runs", str(work / "expert"), "--base-port", str(recipe.base_port)]
+                proc = subprocess.run(cmd, capture_output=True, text=True)
+                if proc.returncode != 0:
+                    raise RuntimeError(f"the expert's run failed: {(proc.stdout + proc.stderr)[-500:]}")
+                expert = next((work / "expert").glob("*/result.json")).parent
+                doc["expert"] = {"run": str(expert), **{k: v for k, v in json.loads((expert / "result.json").read_text()).items()
+                                                      if k in ("reason", "env_steps", "train_s")}}
+            progress(f"demos: {recipe.demos} solved episodes of the expert with {task.image_size} px images")
+            demos_file = work / "demos.npz"
+            doc["demos"] = record_demos(expert, demos_file, recipe.demos, task.image_size, progress=progress)
+        progress(f"clone: {task.policy}, {recipe.clone_epochs} epochs")
+        warm = work / "warm.safetensors"
+        threads = torch.get_num_threads()
+        torch.set_num_threads(2)
+        try:
+            res = clone(task, load_demos(demos_file), warm, epochs=recipe.clone_epochs, progress=progress)
+        finally:
+            torch.set_num_threads(threads)
+        doc["clone"] = {k: v for k, v in res.items() if k != "policy"}
+    progress(f"warm start: {recipe.warm_eval} evaluation episodes")
+    doc["warm"] = {"weights": str(warm), **evaluate(task, warm, recipe.warm_eval)}
+    level = min(1.0, doc["warm"]["success_once"] + recipe.rise)
+    doc["level"] = level
+    arms = [(m, "warm", ["--init-weights", str(warm)]) for m in recipe.modes]
+    if recipe.control:
+        arms.append((recipe.modes[0], "control", []))
+    runs = []
+    for seed in recipe.seeds:
+        for mode, arm, extra in arms:
+            progress(f"RL: seed {seed}, {arm}, {mode} (to success >= {level:.2f} with 97.5 % confidence, or the budget)")
+            r = _one_run(recipe.topology, seed, mode, work / "rl", recipe.base_port + 100, [*extra, "--until-success", f"{level:.4f}"])
+            r["arm"] = arm
+            r["reached"] = reached(r["curve"], level)
+            runs.append(r)
+            progress(f"RL: seed {seed}, {arm}, {mode}: {r['reason']}, {r['env_steps']} env steps, "
+                     f"reached {level:.2f}: {r['reached']}")
+    doc["runs"] = runs
+    doc["summary"] = summarise(runs, level)
+    return doc
+
+
+def summarise(runs: list[dict[str, Any]], level: float) -> dict[str, Any]:
+    """Per arm and mode: how many runs reached the level, the env steps and training seconds to
+    it (every run's, and the median), the best evaluation."""
+    import statistics
+
+    out: dict[str, Any] = {}
+    for key in sorted({(r["arm"], r["mode"]) for r in runs}):
+        mine = [r for r in runs if (r["arm"], r["mode"]) == key]
+        hit = [r["reached"] for r in mine if r["reached"]]
+        out[f"{key[0]}-{key[1]}"] = {
+            "runs": len(mine),
+            "reached": len(hit),
+            "env_steps_to_level": [p["env_steps"] if p else None for p in (r["reached"] for r in mine)],
+            "train_s_to_level": [p["train_s"] if p else None for p in (r["reached"] for r in mine)],
+            "env_steps_median": statistics.median(p["env_steps"] for p in hit) if hit else None,
+            "train_s_median": statistics.median(p["train_s"] for p in hit) if hit else None,
+            "best": [max((p["success_once"] for p in r["curve"]), default=None) for r in mine],
+            "train_steps_per_s": [r["train_steps_per_s"] for r in mine],
+        }
+    return out
+
+
+def plot(doc: dict[str, Any], path: Path) -> None:
+    """Success against env steps and against seconds of training: one colour per arm and mode,
+    one line per seed; the warm start's success and the level as horizontal lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), sharey=True)
+    keys = sorted({(r["arm"], r["mode"]) for r in doc["runs"]})
+    for ax, x, label in ((axes[0], "env_steps", "env steps"), (axes[1], "train_s", "seconds of training")):
+        for i, key in enumerate(keys):
+            for j, r in enumerate(r for r in doc["runs"] if (r["arm"], r["mode"]) == key):
+                c = r["curve"]
+                ax.plot([p[x] for p in c], [p["success_once"] for p in c], "-o", ms=3, color=f"C{i}", alpha=0.8,
+                        label=f"{key[0]} {key[1]}" if j == 0 else None)
+        ax.axhline(doc["warm"]["success_once"], color="grey", ls=":", label="warm start (cloned)")
+        ax.axhline(doc["level"], color="black", ls="--", label=f"level {doc['level']:.2f}")
+        ax.set_xlabel(label)
+        ax.grid(True, alpha=0.3)
+    axes[0].set_ylabel("evaluation success (deterministic episodes)")
+    axes[0].legend(fontsize=8)
+    fig.suptitle("dvla bench learn-vla: SFT -> RL on rgb PushCube")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def format_table(doc: dict[str, Any]) -> str:
+    lines = [f"warm start: success {doc['warm']['success_once']:.3f} over {doc['warm']['episodes']} episodes; "
+             f"level {doc['level']:.3f}"]
+    for name, s in doc["summary"].items():
+        lines.append(f"{name:14s} reached {s['reached']}/{s['runs']}  env steps {s['env_steps_to_level']}  "
+                     f"seconds {s['train_s_to_level']}  best {s['best']}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+
+    import torch
+
+    from dvla.orchestrator.topology import load_topology
+
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.learn_vla", description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    rec = sub.add_parser("demos", help="record an expert run's solved episodes with rgb observations")
+    rec.add_argument("expert_run", type=Path)
+    rec.add_argument("out", type=Path)
+    rec.add_argument("--episodes", type=int, default=200)
+    rec.add_argument("--image-size", type=int, default=64)
+    rec.add_argument("--envs", type=int, default=4)
+    bc = sub.add_parser("clone", help="behaviour cloning of a topology's policy on recorded demos")
+    bc.add_argument("topology", type=Path, help="the RL topology (its task: rgb obs, the VLA policy)")
+    bc.add_argument("demos", type=Path)
+    bc.add_argument("out", type=Path)
+    bc.add_argument("--epochs", type=int, default=20)
+    bc.add_argument("--episodes", type=int, default=0, help="clone from the first N demo episodes only (0: all)")
+    bc.add_argument("--lr", type=float, default=1e-3)
+    bc.add_argument("--batch", type=int, default=64)
+    bc.add_argument("--eval", type=int, default=64, help="evaluation episodes after cloning (0: none)")
+    bc.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args(argv)
+    if args.cmd == "demos":
+        print(json.dumps(record_demos(args.expert_run, args.out, args.episodes, args.image_size, args.envs), indent=2))
+        return
+    torch.set_num_threads(args.threads)
+    task = load_topology(args.topology).task
+    demos = load_demos(args.demos)
+    if args.episodes:
+        demos = first_episodes(demos, args.episodes)
+    res = clone(task, demos, args.out, epochs=args.epochs, batch=args.batch, lr=args.lr)
+    doc = {k: v for k, v in res.items() if k != "policy"}
+    if args.eval:
+        doc["eval"] = evaluate(task, args.out, args.eval)
+    Path(f"{args.out}.json").write_text(json.dumps(doc, indent=2) + "\n")
+    print(json.dumps(doc, indent=2))
+
+
+if __name__ == "__main__":
+    main()

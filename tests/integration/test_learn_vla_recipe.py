@@ -1,0 +1,95 @@
+"""The pieces of `dvla bench learn-vla` (benchmarks/learn_vla.py) at toy size, on real ManiSkill
+envs: an expert run's policy replayed on a state env group with an rgb env group of the same task
+in lock-step (the recorded observations are exactly what a rollout sees), a tiny-vla cloned from
+those episodes and saved as a warm start that `task.init_weights` loads into the RL task's policy.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from benchmarks.learn_vla import clone, evaluate, first_episodes, load_demos, record_demos, rgb_task
+from dvla.learn import make_policy
+from dvla.learn.envs import probe_spec
+from dvla.learn.vla.tokenizer import instruction_tokenizer
+from dvla.orchestrator.topology import load_topology
+from dvla.replication import replicated_tensors
+from dvla.roles.checkpoint import load_init_weights, optimizer_tensors, save_checkpoint
+
+ROOT = Path(__file__).resolve().parents[2]
+STEPS = 6  # steps per episode (the time limit: a random expert solves nothing)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def expert_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A run directory as a finished state run leaves it: its topology and a current checkpoint
+    (an untrained MLP: the recording machinery, not the expert's skill, is under test)."""
+    run = tmp_path_factory.mktemp("expert")
+    text = (ROOT / "topologies" / "tiny.yaml").read_text()
+    assert "  chunk_steps: 10\n" in text
+    (run / "topology.yaml").write_text(text.replace("  chunk_steps: 10\n", f"  chunk_steps: 10\n  max_episode_steps: {STEPS}\n"))
+    task = load_topology(run / "topology.yaml").task
+    torch.manual_seed(3)
+    obs_spec, act_dim = probe_spec(task)
+    policy = make_policy(task.policy, obs_spec, act_dim, **task.policy_kwargs)
+    with torch.no_grad():
+        for p in policy.parameters():
+            p.add_(0.3 * torch.randn_like(p))  # an arm that moves
+    opt = torch.optim.Adam(policy.parameters())
+    save_checkpoint(run / "checkpoints", policy.state_dict(), optimizer_tensors(opt), 5, 1000, "unchecked")
+    return run
+
+
+def test_demos_replay_the_expert_with_rendered_observations_and_a_clone_warm_starts_the_vla(
+        expert_run: Path, tmp_path: Path) -> None:
+    out = tmp_path / "demos.npz"
+    meta = record_demos(expert_run, out, episodes=3, image_size=32, n_envs=2, solved_only=False,
+                        progress=lambda _m: None)
+    demos = load_demos(out)
+    assert json.loads(Path(f"{out}.json").read_text()) == json.loads(json.dumps(meta))
+    n = len(demos["action"])
+    assert meta["episodes"] == 3 and meta["transitions"] == n == 3 * STEPS
+    assert demos["rgb"].shape == (n, 32, 32, 3) and demos["rgb"].dtype == np.uint8 and demos["rgb"].std() > 0
+    assert demos["proprio"].shape == (n, 18) and demos["action"].shape == (n, 8)
+    assert np.abs(demos["action"]).max() <= 1.0 and np.abs(demos["action"]).max() > 0.05  # clipped, and moving
+    assert sorted(set(demos["episode"].tolist())) == [0, 1, 2] and np.all(np.diff(demos["episode"]) >= 0)
+    # the arm moves within an episode as the actions say (consecutive joint states differ)
+    first = demos["proprio"][demos["episode"] == 0]
+    assert np.abs(np.diff(first[:, :9], axis=0)).max() > 1e-3
+
+    base = load_topology(ROOT / "topologies" / "local-vla-rl.yaml").task
+    task = rgb_task(dataclasses.replace(base, max_episode_steps=STEPS), 32, "tiny-vla", {"size": "tiny", "patch_size": 8})
+    from dvla.learn.vla.instructions import instruction_for
+
+    want = instruction_tokenizer(task.policy_kwargs, task.instruction_tokens, task.policy).encode(instruction_for(task.env))
+    assert (demos["tokens"] == want).all()
+    assert len(first_episodes(demos, 2)["action"]) == 2 * STEPS
+    with pytest.raises(ValueError, match="4 episodes asked"):
+        first_episodes(demos, 4)
+
+    warm = tmp_path / "warm.safetensors"
+    res = clone(task, demos, warm, epochs=6, batch=8, lr=3e-3, progress=lambda _m: None)
+    assert res["losses"][-1] < res["losses"][0], res["losses"]  # the expert's actions grew likelier
+    cloned = res["policy"]
+    obs_spec, act_dim = probe_spec(task)
+    fresh = make_policy(task.policy, obs_spec, act_dim, **task.policy_kwargs)
+    load_init_weights(warm, fresh)
+    for k, v in replicated_tensors(cloned).items():
+        assert torch.equal(replicated_tensors(fresh)[k], v), k
+    assert torch.equal(fresh.log_std, torch.full_like(fresh.log_std, float(cloned.log_std[0])))  # noise kept
+    got = evaluate(task, warm, episodes=2, n_envs=2)
+    assert got["episodes"] == 2 and 0.0 <= got["success_once"] <= 1.0
