@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks.learn_vla import clone, evaluate, first_episodes, load_demos, record_demos, rgb_task
+from benchmarks.learn_vla import NOISE_STD, clone, evaluate, first_episodes, load_demos, record_demos, rgb_task
 from dvla.learn import make_policy
 from dvla.learn.envs import probe_spec
 from dvla.learn.vla.tokenizer import instruction_tokenizer
@@ -67,6 +67,8 @@ def test_demos_replay_the_expert_with_rendered_observations_and_a_clone_warm_sta
     assert demos["proprio"].shape == (n, 18) and demos["action"].shape == (n, 8)
     assert np.abs(demos["action"]).max() <= 1.0 and np.abs(demos["action"]).max() > 0.05  # clipped, and moving
     assert sorted(set(demos["episode"].tolist())) == [0, 1, 2] and np.all(np.diff(demos["episode"]) >= 0)
+    assert demos["reward"].shape == (n,) and np.isfinite(demos["reward"]).all() and demos["reward"].std() > 0
+    assert demos["terminated"].shape == (n,) and not demos["terminated"].any()  # time limits, no successes
     # the arm moves within an episode as the actions say (consecutive joint states differ)
     first = demos["proprio"][demos["episode"] == 0]
     assert np.abs(np.diff(first[:, :9], axis=0)).max() > 1e-3
@@ -84,12 +86,13 @@ def test_demos_replay_the_expert_with_rendered_observations_and_a_clone_warm_sta
     warm = tmp_path / "warm.safetensors"
     res = clone(task, demos, warm, epochs=6, batch=8, lr=3e-3, progress=lambda _m: None)
     assert res["losses"][-1] < res["losses"][0], res["losses"]  # the expert's actions grew likelier
+    assert res["value_losses"][-1] < res["value_losses"][0], res["value_losses"]  # and the critic its returns
     cloned = res["policy"]
     obs_spec, act_dim = probe_spec(task)
     fresh = make_policy(task.policy, obs_spec, act_dim, **task.policy_kwargs)
     load_init_weights(warm, fresh)
     for k, v in replicated_tensors(cloned).items():
         assert torch.equal(replicated_tensors(fresh)[k], v), k
-    assert torch.equal(fresh.log_std, torch.full_like(fresh.log_std, float(cloned.log_std[0])))  # noise kept
+    assert torch.allclose(fresh.log_std.exp(), torch.full_like(fresh.log_std, NOISE_STD))  # the noise it acts with
     got = evaluate(task, warm, episodes=2, n_envs=2)
     assert got["episodes"] == 2 and 0.0 <= got["success_once"] <= 1.0
