@@ -77,6 +77,15 @@ def _run_and_save(name: str, json_path: Path, format_table: Callable[[dict], str
     _save(doc, json_path, format_table)
 
 
+def _with_plot(doc: dict, json_path: Path, plot: Callable[[dict, Path], None]) -> dict:
+    """``doc`` with its plot drawn beside the JSON (same name, .png) and named in it."""
+    png = json_path.with_suffix(".png")
+    png.parent.mkdir(parents=True, exist_ok=True)
+    plot(doc, png)
+    doc["plot"] = str(png)
+    return doc
+
+
 def _f(x: float | None) -> str:
     return "-" if x is None else f"{x:.1f}"
 
@@ -282,11 +291,7 @@ def learn_vla(
     def run(progress: Callable[[str], None]) -> dict:
         with tempfile.TemporaryDirectory(prefix="dvla-bench-learn-vla-") as tmp:
             doc = run_bench(recipe, Path(tmp), progress)
-        png = json_path.with_suffix(".png")
-        png.parent.mkdir(parents=True, exist_ok=True)
-        plot(doc, png)
-        doc["plot"] = str(png)
-        return doc
+        return _with_plot(doc, json_path, plot)
 
     _run_and_save("learn-vla", json_path, format_table, run)
 
@@ -360,11 +365,7 @@ def rollout(
         with tempfile.TemporaryDirectory(prefix="dvla-bench-rollout-") as tmp:
             os.environ["DVLA_BENCH_DIR"] = tmp  # the rollouts' counter files
             doc = run_bench(topo.resolve(), profile, progress)
-        png = json_path.with_suffix(".png")
-        png.parent.mkdir(parents=True, exist_ok=True)
-        plot(doc, png)
-        doc["plot"] = str(png)
-        return doc
+        return _with_plot(doc, json_path, plot)
 
     _run_and_save("rollout", json_path, format_table, run)
 

@@ -6,6 +6,8 @@ import os
 import shutil
 import tempfile
 
+import pytest
+
 _CACHE: str | None = None
 _BASETEMP: str | None = None
 
@@ -32,3 +34,15 @@ def pytest_unconfigure(config: object) -> None:
         os.environ.pop("TORCHINDUCTOR_CACHE_DIR", None)
     if _BASETEMP is not None:
         shutil.rmtree(_BASETEMP, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """torch on one thread for a module (the same figures on every machine, no contention with
+    the suite); used by modules that train, through ``pytest.mark.usefixtures``."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

@@ -25,13 +25,7 @@ from dvla.roles.checkpoint import load_init_weights, optimizer_tensors, save_che
 ROOT = Path(__file__).resolve().parents[2]
 STEPS = 6  # steps per episode (the time limit: a random expert solves nothing)
 
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

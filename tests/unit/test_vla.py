@@ -174,3 +174,19 @@ def test_slots_carry_structured_observations_in_their_dtypes():
     assert spec.problem(_chunk(4, 1, rng, rgb_dtype=np.int32))[0] == "shape"
     code, detail = ChunkSpec(obs={"state": ArraySpec((35,), "float32")}, act_dim=8, T=4, N=2).problem(a)
     assert code == "shape" and "obs keys" in detail
+
+
+def test_fixed_proprio_statistics_stay_as_loaded():
+    """`proprio_stats: fixed` keeps a warm start's statistics (the learner's `observe` folds
+    nothing); `running` folds every batch; anything else is refused naming the key."""
+    running = make_policy("tiny-vla", SPEC, 8, size="tiny")
+    fixed = make_policy("tiny-vla", SPEC, 8, size="tiny", proprio_stats="fixed")
+    loaded = {"proprio_mean": torch.full((SPEC["proprio"].shape[0],), 0.5), "proprio_count": torch.tensor(100.0)}
+    fixed.load_state_dict(loaded, strict=False)
+    batch = obs_batch(16)
+    running.observe(batch)
+    fixed.observe(batch)
+    assert float(running.proprio_count) == 16 and not torch.equal(running.proprio_mean, torch.zeros_like(running.proprio_mean))
+    assert float(fixed.proprio_count) == 100 and torch.equal(fixed.proprio_mean, loaded["proprio_mean"])
+    with pytest.raises(ValueError, match="proprio_stats"):
+        make_policy("tiny-vla", SPEC, 8, size="tiny", proprio_stats="frozen")

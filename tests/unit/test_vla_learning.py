@@ -38,7 +38,7 @@ from dvla.roles.slots import SlotPool
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "plugin_env"))
 from reach_colour import COLOURS  # noqa: E402
 
-pytestmark = pytest.mark.learning
+pytestmark = [pytest.mark.learning, pytest.mark.usefixtures("one_torch_thread")]
 
 #: envs of the one rollout (two double-buffered groups of 8: two chunks a version), steps per chunk
 ENVS, STEPS = 16, 4
@@ -52,15 +52,6 @@ EVAL_SEED = 1_000_000
 BAR = 0.8
 
 Tamper = Callable[[Trajectories], Trajectories]
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """One torch thread: the same figures on every machine (and no contention with the suite)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

@@ -61,6 +61,7 @@ class TinyVLA(nn.Module):
         patch_size: int | None = None,
         mlp_ratio: int = 4,
         init_log_std: float = -0.5,
+        proprio_stats: str = "running",
         device: Any = None,
     ):
         super().__init__()
@@ -78,6 +79,10 @@ class TinyVLA(nn.Module):
             raise ValueError(f"policy_kwargs.patch_size: {patch_size} must divide the image size {h}x{w}")
         if d_model % heads:
             raise ValueError(f"policy_kwargs.d_model: {d_model} must be a multiple of heads={heads}")
+        if proprio_stats not in ("running", "fixed"):
+            raise ValueError(f"policy_kwargs.proprio_stats: {proprio_stats!r} (expected 'running' or 'fixed')")
+        #: "fixed": the proprio statistics stay as built or loaded (a warm start's), `observe` folds nothing
+        self.proprio_stats = proprio_stats
         self.act_dim = int(act_dim)
         self.d_model = d_model
         factory = {"device": device}
@@ -124,7 +129,7 @@ class TinyVLA(nn.Module):
     @torch.no_grad()
     def observe(self, obs: Mapping[str, Tensor]) -> None:
         """Fold a batch's proprioception into the running statistics (Chan's parallel update)."""
-        if not self.n_proprio:
+        if not self.n_proprio or self.proprio_stats == "fixed":
             return
         fold_moments(self.proprio_mean, self.proprio_var, self.proprio_count, obs["proprio"].reshape(-1, self.n_proprio))
 
