@@ -265,7 +265,7 @@ def learn_vla(
 ) -> None:
     """The SFT -> RL recipe on this machine: an expert trained on PushCube's state vector,
     its solved episodes recorded with rendered observations, a VLA cloned from them (the warm
-    start), then RL through `dvla up` from the warm start per seed and mode, and from the random
+    start, kept beside the JSON as .warm.safetensors), then RL through `dvla up` from the warm start per seed and mode, and from the random
     initialisation as the control; success curves by env steps and by seconds (JSON + PNG)."""
     import tempfile
 
@@ -290,7 +290,7 @@ def learn_vla(
 
     def run(progress: Callable[[str], None]) -> dict:
         with tempfile.TemporaryDirectory(prefix="dvla-bench-learn-vla-") as tmp:
-            doc = run_bench(recipe, Path(tmp), progress)
+            doc = run_bench(recipe, Path(tmp), progress, warm_out=json_path.with_suffix(".warm.safetensors"))
         return _with_plot(doc, json_path, plot)
 
     _run_and_save("learn-vla", json_path, format_table, run)

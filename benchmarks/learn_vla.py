@@ -38,10 +38,15 @@ def _progress(msg: str) -> None:
     print(msg, flush=True)
 
 
-def rgb_task(task: Any, image_size: int, policy: str, policy_kwargs: dict[str, Any]) -> Any:
-    """``task`` with rendered observations and a VLA policy (everything else unchanged)."""
-    return dataclasses.replace(task, obs_mode="rgb", image_size=image_size, policy=policy,
-                               policy_kwargs=dict(policy_kwargs), init_weights=None)
+def observed_as(expert_task: Any, rl_task: Any) -> Any:
+    """The expert's task seen as ``rl_task`` sees it: its env and controller, ``rl_task``'s
+    observations (rgb, image size, instruction and its tokenizer, which comes with the policy)."""
+    for key in ("env", "control_mode", "action_chunk"):
+        if getattr(expert_task, key) != getattr(rl_task, key):
+            raise ValueError(f"the expert's task.{key} is {getattr(expert_task, key)!r}, the RL task's "
+                             f"{getattr(rl_task, key)!r}: its actions would not be the RL policy's")
+    return dataclasses.replace(expert_task, **{k: getattr(rl_task, k) for k in (
+        "obs_mode", "image_size", "instruction", "instruction_tokens", "policy", "policy_kwargs")}, init_weights=None)
 
 
 def load_expert(run_dir: Path) -> tuple[Any, Any]:
@@ -61,19 +66,19 @@ def load_expert(run_dir: Path) -> tuple[Any, Any]:
     return task, policy.eval()
 
 
-def record_demos(expert_run: Path, out: Path, episodes: int, image_size: int = 64, n_envs: int = 4,
+def record_demos(expert_run: Path, rl_task: Any, out: Path, episodes: int, n_envs: int = 4,
                  seed: int = DEMO_SEED, progress: Callable[[str], None] = _progress,
                  solved_only: bool = True) -> dict[str, Any]:
     """Record ``episodes`` solved episodes (every episode: ``solved_only=False``) of the expert
-    with rgb observations into ``out`` (.npz: rgb, proprio, tokens, action, episode; plus
-    ``out``.json: what was recorded)."""
+    with ``rl_task``'s rgb observations into ``out`` (.npz: rgb, proprio, tokens, action, reward,
+    episode, terminated; plus ``out``.json: what was recorded)."""
     import torch
 
     from dvla.learn.envs import EnvGroup, obs_to_torch
     from dvla.learn.policies import sample_actions
 
     task, expert = load_expert(expert_run)
-    vis = rgb_task(task, image_size, "tiny-vla", {})
+    vis = observed_as(task, rl_task)
     state_g, rgb_g = EnvGroup(task, n_envs, seed), EnvGroup(vis, n_envs, seed)
     keys = ("rgb", "proprio", "tokens")
     per_step = (*keys, "action", "reward")
@@ -126,7 +131,7 @@ def record_demos(expert_run: Path, out: Path, episodes: int, image_size: int = 6
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out, **arrays)
     meta = {"expert_run": str(expert_run), "env": task.env, "control_mode": task.control_mode,
-            "max_episode_steps": task.max_episode_steps, "image_size": image_size,
+            "max_episode_steps": task.max_episode_steps, "image_size": vis.image_size, "policy": vis.policy,
             "instruction_tokens": vis.instruction_tokens, "instruction": vis.instruction,
             "episodes": n_kept, "episodes_played": played, "expert_success": n_kept / max(played, 1),
             "transitions": int(len(arrays["action"])), "env_steps": steps, "seed": seed,
@@ -296,7 +301,10 @@ def reached(curve: list[dict[str, float]], level: float) -> dict[str, float] | N
     return next((p for p in curve if p["success_once"] >= level), None)
 
 
-def run_bench(recipe: Recipe, work: Path, progress: Callable[[str], None] = _progress) -> dict[str, Any]:
+def run_bench(recipe: Recipe, work: Path, progress: Callable[[str], None] = _progress,
+              warm_out: Path | None = None) -> dict[str, Any]:
+    """The recipe's stages in ``work`` (removed by the caller); a warm start cloned here is
+    written to ``warm_out`` (None: in ``work``) so it outlives the bench."""
     import subprocess
     import sys
 
@@ -325,9 +333,9 @@ def run_bench(recipe: Recipe, work: Path, progress: Callable[[str], None] = _pro
                                                       if k in ("reason", "env_steps", "train_s")}}
             progress(f"demos: {recipe.demos} solved episodes of the expert with {task.image_size} px images")
             demos_file = work / "demos.npz"
-            doc["demos"] = record_demos(expert, demos_file, recipe.demos, task.image_size, progress=progress)
+            doc["demos"] = record_demos(expert, task, demos_file, recipe.demos, progress=progress)
         progress(f"clone: {task.policy}, {recipe.clone_epochs} epochs")
-        warm = work / "warm.safetensors"
+        warm = warm_out or work / "warm.safetensors"
         threads = torch.get_num_threads()
         torch.set_num_threads(2)
         try:
@@ -429,7 +437,8 @@ def main(argv: list[str] | None = None) -> None:
     rec.add_argument("expert_run", type=Path)
     rec.add_argument("out", type=Path)
     rec.add_argument("--episodes", type=int, default=200)
-    rec.add_argument("--image-size", type=int, default=64)
+    rec.add_argument("--topology", type=Path, default=DEFAULT_TOPOLOGY,
+                     help="the RL topology whose observations are recorded (image size, instruction, tokenizer)")
     rec.add_argument("--envs", type=int, default=4)
     bc = sub.add_parser("clone", help="behaviour cloning of a topology's policy on recorded demos")
     bc.add_argument("topology", type=Path, help="the RL topology (its task: rgb obs, the VLA policy)")
@@ -443,7 +452,8 @@ def main(argv: list[str] | None = None) -> None:
     bc.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
     if args.cmd == "demos":
-        print(json.dumps(record_demos(args.expert_run, args.out, args.episodes, args.image_size, args.envs), indent=2))
+        rl_task = load_topology(args.topology).task
+        print(json.dumps(record_demos(args.expert_run, rl_task, args.out, args.episodes, args.envs), indent=2))
         return
     torch.set_num_threads(args.threads)
     task = load_topology(args.topology).task

@@ -80,6 +80,14 @@ def reserve_versions(directory: Path, version: int, reserved: int) -> int:
     return version + RESERVE
 
 
+def _check_names(source: str, weights: dict[str, torch.Tensor], expected: dict[str, torch.Tensor]) -> None:
+    """CheckpointError unless ``weights`` names exactly the tensors the policy replicates."""
+    if weights.keys() != expected.keys():
+        missing, extra = sorted(expected.keys() - weights.keys()), sorted(weights.keys() - expected.keys())
+        raise CheckpointError(f"{source}: not this policy's tensors (missing {missing[:3]}{'...' if len(missing) > 3 else ''}"
+                              f", unexpected {extra[:3]}{'...' if len(extra) > 3 else ''})")
+
+
 def load_checkpoint(directory: Path, policy: torch.nn.Module, optimizer: torch.optim.Optimizer,
                     flat_checksum: Any) -> Checkpoint | None:
     """Restore the current checkpoint into ``policy`` and ``optimizer`` (None when there is none).
@@ -111,10 +119,7 @@ def load_checkpoint(directory: Path, policy: torch.nn.Module, optimizer: torch.o
         raise CheckpointError(f"{where / 'optimizer.safetensors'}: unusable optimizer state ({why})") from err
     # A checkpoint holds what replicates: a frozen base comes from its own checkpoint directory.
     expected = replicated_tensors(policy)
-    if weights.keys() != expected.keys():
-        missing, extra = sorted(expected.keys() - weights.keys()), sorted(weights.keys() - expected.keys())
-        raise CheckpointError(f"{where / 'policy.safetensors'}: not this policy's tensors (missing {missing[:3]}"
-                              f"{'...' if len(missing) > 3 else ''}, unexpected {extra[:3]}{'...' if len(extra) > 3 else ''})")
+    _check_names(f"{where / 'policy.safetensors'}", weights, expected)
     backup = {k: v.clone() for k, v in expected.items()}
     try:
         policy.load_state_dict(weights, strict=False)
@@ -151,10 +156,7 @@ def load_init_weights(path: str | Path, policy: torch.nn.Module) -> str:
     else:
         raise CheckpointError(f"{where}: init_weights not found (expected a safetensors file or a checkpoints directory)")
     expected = replicated_tensors(policy)
-    if weights.keys() != expected.keys():
-        missing, extra = sorted(expected.keys() - weights.keys()), sorted(weights.keys() - expected.keys())
-        raise CheckpointError(f"{source}: not this policy's tensors (missing {missing[:3]}{'...' if len(missing) > 3 else ''}"
-                              f", unexpected {extra[:3]}{'...' if len(extra) > 3 else ''})")
+    _check_names(source, weights, expected)
     for k, want in expected.items():
         got = weights[k]
         if tuple(got.shape) != tuple(want.shape):

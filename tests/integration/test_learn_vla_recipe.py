@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks.learn_vla import NOISE_STD, clone, evaluate, first_episodes, load_demos, record_demos, rgb_task
+from benchmarks.learn_vla import NOISE_STD, clone, evaluate, first_episodes, load_demos, observed_as, record_demos
 from dvla.learn import make_policy
 from dvla.learn.envs import probe_spec
 from dvla.learn.vla.tokenizer import instruction_tokenizer
@@ -50,9 +50,12 @@ def expert_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_demos_replay_the_expert_with_rendered_observations_and_a_clone_warm_starts_the_vla(
         expert_run: Path, tmp_path: Path) -> None:
+    base = load_topology(ROOT / "topologies" / "local-vla-rl.yaml").task
+    task = dataclasses.replace(base, image_size=32, max_episode_steps=STEPS)  # the RL task, its observations recorded
+    with pytest.raises(ValueError, match="task.env is 'PushCube-v1'"):
+        observed_as(load_topology(expert_run / "topology.yaml").task, dataclasses.replace(task, env="PickCube-v1"))
     out = tmp_path / "demos.npz"
-    meta = record_demos(expert_run, out, episodes=3, image_size=32, n_envs=2, solved_only=False,
-                        progress=lambda _m: None)
+    meta = record_demos(expert_run, task, out, episodes=3, n_envs=2, solved_only=False, progress=lambda _m: None)
     demos = load_demos(out)
     assert json.loads(Path(f"{out}.json").read_text()) == json.loads(json.dumps(meta))
     n = len(demos["action"])
@@ -67,8 +70,6 @@ def test_demos_replay_the_expert_with_rendered_observations_and_a_clone_warm_sta
     first = demos["proprio"][demos["episode"] == 0]
     assert np.abs(np.diff(first[:, :9], axis=0)).max() > 1e-3
 
-    base = load_topology(ROOT / "topologies" / "local-vla-rl.yaml").task
-    task = rgb_task(dataclasses.replace(base, max_episode_steps=STEPS), 32, "tiny-vla", {"size": "tiny", "patch_size": 8})
     from dvla.learn.vla.instructions import instruction_for
 
     want = instruction_tokenizer(task.policy_kwargs, task.instruction_tokens, task.policy).encode(instruction_for(task.env))
