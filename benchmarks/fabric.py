@@ -43,7 +43,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .stats import percentile
+from .stats import percentile, process_cpu_s
 
 log = logging.getLogger("dvla.bench.fabric")
 
@@ -586,15 +586,8 @@ def _cpu_hog(flood: Any, stop: Any, duty: float, max_s: float) -> None:
 
 
 def _proc_cpu_s(pids: list[int]) -> float:
-    """User + system CPU seconds of live processes so far (/proc/PID/stat)."""
-    total = 0
-    for pid in pids:
-        try:
-            fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
-            total += int(fields[11]) + int(fields[12])
-        except (OSError, IndexError, ValueError):
-            pass
-    return total / os.sysconf("SC_CLK_TCK")
+    """User + system CPU seconds of live processes so far."""
+    return sum(x for x in map(process_cpu_s, pids) if x is not None)
 
 
 def _tcp_drain(sock: socket.socket, received: Any, received_bytes: Any, stop: Any) -> None:

@@ -29,6 +29,7 @@ from dvla.orchestrator.launcher import Launcher, Supervised, log_tail
 from dvla.orchestrator.plan import Plan, make_plan
 from dvla.orchestrator.run import tool_fabric
 from .repnode import write_trigger
+from .stats import process_cpu_s
 
 log = logging.getLogger("dvla.repcluster")
 
@@ -224,16 +225,9 @@ class RepCluster:
         return sum(self.cpu_by_process().values())
 
     def cpu_by_process(self) -> dict[str, float]:
-        """User + system CPU seconds used so far by each live process of the cluster (from /proc)."""
-        tick = os.sysconf("SC_CLK_TCK")
-        out = {}
-        for name, pid in self.launcher.pids().items():
-            try:
-                fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            out[name] = (int(fields[11]) + int(fields[12])) / tick  # utime, stime
-        return out
+        """User + system CPU seconds used so far by each live process of the cluster."""
+        cpu = {name: process_cpu_s(pid) for name, pid in self.launcher.pids().items()}
+        return {name: s for name, s in cpu.items() if s is not None}
 
     def node_tx_bytes(self, name: str) -> int | None:
         """Bytes sent so far by the NIC (eth0) of the node `name` runs on; None without netns."""

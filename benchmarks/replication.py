@@ -76,7 +76,7 @@ def measure(cluster: RepCluster, versions: int, timeout_s: float, progress: Call
         # 100 ms (signing, routing, replies) on the same two cores the transfer needs.
         held = cluster.wait_held(v, timeout_s=timeout_s, poll_s=0.5)
         cpu1 = cluster.cpu_by_process()
-        cpu_by = {n: round(cpu1[n] - cpu0[n], 2) for n in cpu1 if n in cpu0}
+        cpu_by = {n: round(cpu1[n] - cpu0[n], 5) for n in cpu1 if n in cpu0}
         cpu_s = sum(cpu_by.values())
         pub = _wait_sent(cluster, v, timeout_s)
         relays = relay_timing(cluster, v, pub["t0_ns"], held)

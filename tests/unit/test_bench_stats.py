@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 import threading
 
 import pytest
@@ -15,6 +17,7 @@ from benchmarks.stats import (
     histogram_percentile,
     latency_bucket,
     percentile,
+    process_cpu_s,
     weighted_percentile,
 )
 
@@ -106,3 +109,20 @@ def test_latency_histogram_counts_every_sample_from_a_thread_while_read() -> Non
         json.dumps(h.counts())  # a status thread reading concurrently
     t.join()
     assert sum(h.counts()["no_swap"].values()) == n
+
+
+def test_process_cpu_is_read_below_the_clock_tick() -> None:
+    """Another process's CPU is read to well below /proc's 10 ms tick: a child that spins 4 ms and
+    then sleeps reads 3-200 ms (ticks would read 0 or 10 ms), and nothing once it is gone."""
+    spin = "import time\nt = time.thread_time()\nwhile time.thread_time() - t < 0.004: pass\nprint(flush=True)\ntime.sleep(30)"
+    child = subprocess.Popen([sys.executable, "-S", "-c", spin], stdout=subprocess.PIPE)
+    try:
+        before = process_cpu_s(child.pid)
+        assert child.stdout is not None and child.stdout.readline() == b"\n"
+        after = process_cpu_s(child.pid)
+        assert before is not None and after is not None
+        assert 0.003 <= after - before < 0.2 and after % 0.01 > 1e-6, (before, after)
+    finally:
+        child.kill()
+        child.wait()
+    assert process_cpu_s(child.pid) is None
