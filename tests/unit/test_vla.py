@@ -190,33 +190,3 @@ def test_fixed_proprio_statistics_stay_as_loaded():
     assert float(fixed.proprio_count) == 100 and torch.equal(fixed.proprio_mean, loaded["proprio_mean"])
     with pytest.raises(ValueError, match="proprio_stats"):
         make_policy("tiny-vla", SPEC, 8, size="tiny", proprio_stats="frozen")
-
-
-def _grad_owners(policy: torch.nn.Module, loss: torch.Tensor) -> set[str]:
-    policy.zero_grad(set_to_none=True)
-    loss.backward()
-    return {name.split(".")[0] for name, p in policy.named_parameters() if p.grad is not None and p.grad.abs().sum() > 0}
-
-
-def test_a_separate_critic_keeps_the_value_loss_off_the_action_features():
-    """`critic: separate` reads the value from an encoder of its own: the value's gradient reaches
-    only that encoder and the value head, the action's only the actor's encoder, mean head and
-    log-std; with the default shared encoder the value's gradient moves the actor's encoder too.
-    Both forms give the same log-prob, value and entropy by `act` and `evaluate`."""
-    torch.manual_seed(0)
-    obs, acts = obs_batch(6), torch.randn(6, 8)
-    shared = make_policy("tiny-vla", SPEC, 8, size="tiny")
-    separate = make_policy("tiny-vla", SPEC, 8, size="tiny", critic="separate")
-    assert separate.critic is not None and shared.critic is None
-    assert any(k.startswith("critic.") for k in separate.state_dict()) and not any(k.startswith("critic.") for k in shared.state_dict())
-    assert count_parameters(separate) > 1.8 * count_parameters(shared)
-    for policy in (shared, separate):
-        logprob, entropy, value = policy.evaluate(obs, acts)
-        assert torch.allclose(value, policy.value(obs), atol=1e-6)
-        _a, act_logprob, act_value = policy.act(obs, deterministic=True)
-        assert torch.allclose(act_value, value, atol=1e-6) and logprob.shape == entropy.shape == (6,)
-    assert _grad_owners(separate, separate.value(obs).square().sum()) == {"critic", "value_head"}
-    assert _grad_owners(separate, separate.evaluate(obs, acts)[0].sum()) == {"trunk", "mean_head", "log_std"}
-    assert _grad_owners(shared, shared.value(obs).square().sum()) == {"trunk", "value_head"}
-    with pytest.raises(ValueError, match="policy_kwargs.critic"):
-        make_policy("tiny-vla", SPEC, 8, size="tiny", critic="detached")

@@ -3,9 +3,7 @@
 One transformer encoder reads ``[ACT] [VAL] | image patches | proprioception | instruction words``
 (padding words masked); ``[ACT]`` reads the mean of a Gaussian over the action (learned
 state-independent log-std; with ``task.action_chunk`` K, K actions side by side), ``[VAL]`` the
-value. With ``critic: separate`` the value is read from a second encoder of the same size (its own
-patches, words and layers), so the critic's loss never moves the features the actions are read
-from. Sizes: ``policy_kwargs`` on top of a named preset (``size``, default ``tiny``, about 0.4 M
+value. Sizes: ``policy_kwargs`` on top of a named preset (``size``, default ``tiny``, about 0.4 M
 parameters; ``1b`` for GPU machines: see :data:`PRESETS`).
 """
 
@@ -44,59 +42,6 @@ def _spec_shape(spec: Any) -> tuple[int, ...]:
     return tuple(int(x) for x in spec.shape)
 
 
-class _Trunk(nn.Module):
-    """Image patches, proprioception and instruction words through a transformer encoder, read
-    out at ``readouts`` learned tokens placed first (the actor's ``[ACT] [VAL]`` or a separate
-    critic's ``[VAL]``). Proprioception arrives standardised by the policy."""
-
-    def __init__(self, obs: Mapping[str, Any], *, d_model: int, layers: int, heads: int, patch_size: int,
-                 mlp_ratio: int, readouts: int, factory: dict[str, Any]):
-        super().__init__()
-        h, w, c = _spec_shape(obs["rgb"])
-        self.patchify = nn.Conv2d(c, d_model, kernel_size=patch_size, stride=patch_size, **factory)
-        n_patches = (h // patch_size) * (w // patch_size)
-        self.patch_pos = nn.Parameter(torch.zeros(1, n_patches, d_model, **factory))
-        self.readout = nn.Parameter(torch.zeros(1, readouts, d_model, **factory))
-        n_proprio = _spec_shape(obs["proprio"])[0] if "proprio" in obs else 0
-        if n_proprio:
-            self.proprio_in = nn.Linear(n_proprio, d_model, **factory)
-        self.n_words = _spec_shape(obs["tokens"])[0] if "tokens" in obs else 0
-        if self.n_words:
-            vocab = getattr(obs["tokens"], "vocab", None)
-            if not vocab:
-                raise ValueError("tiny-vla: the 'tokens' observation spec does not say its vocab size")
-            self.word_embed = nn.Embedding(int(vocab), d_model, **factory)
-            self.word_pos = nn.Parameter(torch.zeros(1, self.n_words, d_model, **factory))
-        block = nn.TransformerEncoderLayer(
-            d_model, heads, dim_feedforward=mlp_ratio * d_model, dropout=0.0,
-            activation="gelu", batch_first=True, norm_first=True, **factory,
-        )
-        self.encoder = nn.TransformerEncoder(block, layers, enable_nested_tensor=False)
-        self.norm = nn.LayerNorm(d_model, **factory)
-
-    def init_weights(self) -> None:
-        for p in (self.patch_pos, self.readout, *([self.word_pos] if self.n_words else [])):
-            nn.init.normal_(p, std=0.02)
-
-    def forward(self, obs: Mapping[str, Tensor], proprio: Tensor | None) -> Tensor:
-        """[B, readouts, d_model]: the readout tokens after the encoder."""
-        rgb = obs["rgb"]
-        b = rgb.shape[0]
-        dtype = self.readout.dtype
-        img = rgb.to(dtype).permute(0, 3, 1, 2) / 255.0 - 0.5
-        parts = [self.readout.expand(b, -1, -1), self.patchify(img).flatten(2).transpose(1, 2) + self.patch_pos]
-        masks = [torch.zeros(b, parts[0].shape[1] + parts[1].shape[1], dtype=torch.bool, device=rgb.device)]
-        if proprio is not None:
-            parts.append(self.proprio_in(proprio).unsqueeze(1))
-            masks.append(torch.zeros(b, 1, dtype=torch.bool, device=rgb.device))
-        if self.n_words:
-            ids = obs["tokens"].long()
-            parts.append(self.word_embed(ids) + self.word_pos)
-            masks.append(ids == PAD_ID)
-        x = self.encoder(torch.cat(parts, 1), src_key_padding_mask=torch.cat(masks, 1))
-        return self.norm(x[:, : self.readout.shape[1]])
-
-
 @register_policy("tiny-vla")
 class TinyVLA(nn.Module):
     """Patch + word + proprioception transformer with Gaussian action and value readouts. ``obs``
@@ -117,7 +62,6 @@ class TinyVLA(nn.Module):
         mlp_ratio: int = 4,
         init_log_std: float = -0.5,
         proprio_stats: str = "running",
-        critic: str = "shared",
         device: Any = None,
     ):
         super().__init__()
@@ -137,24 +81,34 @@ class TinyVLA(nn.Module):
             raise ValueError(f"policy_kwargs.d_model: {d_model} must be a multiple of heads={heads}")
         if proprio_stats not in ("running", "fixed"):
             raise ValueError(f"policy_kwargs.proprio_stats: {proprio_stats!r} (expected 'running' or 'fixed')")
-        if critic not in ("shared", "separate"):
-            raise ValueError(f"policy_kwargs.critic: {critic!r} (expected 'shared' or 'separate')")
         #: "fixed": the proprio statistics stay as built or loaded (a warm start's), `observe` folds nothing
         self.proprio_stats = proprio_stats
         self.act_dim = int(act_dim)
         self.d_model = d_model
         factory = {"device": device}
-        trunk = dict(d_model=d_model, layers=layers, heads=heads, patch_size=patch_size, mlp_ratio=mlp_ratio,
-                     factory=factory)
-        #: the encoder the actions are read from ([ACT], and [VAL] unless the critic is separate)
-        self.trunk = _Trunk(obs, readouts=1 if critic == "separate" else 2, **trunk)
-        #: the critic's own encoder ([VAL]) with ``critic: separate``, else None
-        self.critic = _Trunk(obs, readouts=1, **trunk) if critic == "separate" else None
+        self.patchify = nn.Conv2d(c, d_model, kernel_size=patch_size, stride=patch_size, **factory)
+        n_patches = (h // patch_size) * (w // patch_size)
+        self.patch_pos = nn.Parameter(torch.zeros(1, n_patches, d_model, **factory))
+        self.readout = nn.Parameter(torch.zeros(1, 2, d_model, **factory))  # [ACT], [VAL]
         self.n_proprio = _spec_shape(obs["proprio"])[0] if "proprio" in obs else 0
         if self.n_proprio:
+            self.proprio_in = nn.Linear(self.n_proprio, d_model, **factory)
             self.register_buffer("proprio_mean", torch.zeros(self.n_proprio, **factory))
             self.register_buffer("proprio_var", torch.ones(self.n_proprio, **factory))
             self.register_buffer("proprio_count", torch.zeros((), **factory))
+        self.n_words = _spec_shape(obs["tokens"])[0] if "tokens" in obs else 0
+        if self.n_words:
+            vocab = getattr(obs["tokens"], "vocab", None)
+            if not vocab:
+                raise ValueError("tiny-vla: the 'tokens' observation spec does not say its vocab size")
+            self.word_embed = nn.Embedding(int(vocab), d_model, **factory)
+            self.word_pos = nn.Parameter(torch.zeros(1, self.n_words, d_model, **factory))
+        block = nn.TransformerEncoderLayer(
+            d_model, heads, dim_feedforward=mlp_ratio * d_model, dropout=0.0,
+            activation="gelu", batch_first=True, norm_first=True, **factory,
+        )
+        self.encoder = nn.TransformerEncoder(block, layers, enable_nested_tensor=False)
+        self.norm = nn.LayerNorm(d_model, **factory)
         self.mean_head = nn.Linear(d_model, self.act_dim, **factory)
         self.value_head = nn.Linear(d_model, 1, **factory)
         self.log_std = nn.Parameter(torch.full((self.act_dim,), float(init_log_std), **factory))
@@ -162,9 +116,8 @@ class TinyVLA(nn.Module):
             self._init_weights()
 
     def _init_weights(self) -> None:
-        for trunk in (self.trunk, self.critic):
-            if trunk is not None:
-                trunk.init_weights()
+        for p in (self.patch_pos, self.readout, *([self.word_pos] if self.n_words else [])):
+            nn.init.normal_(p, std=0.02)
         # Near-zero initial mean action (as the MLP policy): the untrained arm stays still.
         nn.init.orthogonal_(self.mean_head.weight, 0.01)
         nn.init.zeros_(self.mean_head.bias)
@@ -180,31 +133,35 @@ class TinyVLA(nn.Module):
             return
         fold_moments(self.proprio_mean, self.proprio_var, self.proprio_count, obs["proprio"].reshape(-1, self.n_proprio))
 
-    def _proprio(self, obs: Mapping[str, Tensor]) -> Tensor | None:
-        if not self.n_proprio:
-            return None
-        p = obs["proprio"].to(self.mean_head.weight.dtype)
-        return ((p - self.proprio_mean) / (self.proprio_var + 1e-8).sqrt()).clamp(-10.0, 10.0)
-
-    def _features(self, obs: Mapping[str, Tensor]) -> tuple[Tensor, Tensor]:
-        """The [ACT] and [VAL] readouts, [B, d_model] each."""
-        proprio = self._proprio(obs)
-        z = self.trunk(obs, proprio)
-        if self.critic is not None:
-            return z[:, 0], self.critic(obs, proprio)[:, 0]
-        return z[:, 0], z[:, 1]
+    def _encode(self, obs: Mapping[str, Tensor]) -> Tensor:
+        """[B, 2, d_model]: the two readout tokens after the encoder."""
+        rgb = obs["rgb"]
+        b = rgb.shape[0]
+        dtype = self.readout.dtype
+        img = rgb.to(dtype).permute(0, 3, 1, 2) / 255.0 - 0.5
+        parts = [self.readout.expand(b, -1, -1), self.patchify(img).flatten(2).transpose(1, 2) + self.patch_pos]
+        masks = [torch.zeros(b, parts[0].shape[1] + parts[1].shape[1], dtype=torch.bool, device=rgb.device)]
+        if self.n_proprio:
+            p = obs["proprio"].to(dtype)
+            p = ((p - self.proprio_mean) / (self.proprio_var + 1e-8).sqrt()).clamp(-10.0, 10.0)
+            parts.append(self.proprio_in(p).unsqueeze(1))
+            masks.append(torch.zeros(b, 1, dtype=torch.bool, device=rgb.device))
+        if self.n_words:
+            ids = obs["tokens"].long()
+            parts.append(self.word_embed(ids) + self.word_pos)
+            masks.append(ids == PAD_ID)
+        x = self.encoder(torch.cat(parts, 1), src_key_padding_mask=torch.cat(masks, 1))
+        return self.norm(x[:, :2])
 
     # --- the policy protocol ------------------------------------------------------------------
 
     def _heads(self, obs: Mapping[str, Tensor]) -> tuple[Normal, Tensor]:
-        act, val = self._features(obs)
-        mean = self.mean_head(act)
-        return Normal(mean, self.log_std.exp().expand_as(mean)), self.value_head(val).squeeze(-1)
+        z = self._encode(obs)
+        mean = self.mean_head(z[:, 0])
+        return Normal(mean, self.log_std.exp().expand_as(mean)), self.value_head(z[:, 1]).squeeze(-1)
 
     def value(self, obs: Mapping[str, Tensor]) -> Tensor:
-        if self.critic is not None:
-            return self.value_head(self.critic(obs, self._proprio(obs))[:, 0]).squeeze(-1)
-        return self.value_head(self._features(obs)[1]).squeeze(-1)
+        return self.value_head(self._encode(obs)[:, 1]).squeeze(-1)
 
     @torch.no_grad()
     def act(self, obs: Mapping[str, Tensor], deterministic: bool = False,
