@@ -48,7 +48,9 @@ racks:
 
 @pytest.mark.timeout(900)
 @pytest.mark.parametrize("family,folder,chunk,extra", [
-    ("openvla", "openvla-tiny", 1, ""),
+    # openvla shares openvla-oft's base (backbone, LoRA, export) and ships token extras as
+    # vla-tokens' dvla up test does: ~77 s, run with `make test-slow`
+    pytest.param("openvla", "openvla-tiny", 1, "", marks=pytest.mark.slow),
     ("openvla-oft", "openvla-oft-tiny", 2, ", cameras: [0, 0]"),
 ])
 def test_an_openvla_family_trains_through_dvla_up_and_exports(tmp_path: Path, family: str, folder: str, chunk: int,
