@@ -265,8 +265,9 @@ def learn_vla(
 ) -> None:
     """The SFT -> RL recipe on this machine: an expert trained on PushCube's state vector,
     its solved episodes recorded with rendered observations, a VLA cloned from them (the warm
-    start, kept beside the JSON as .warm.safetensors), then RL through `dvla up` from the warm start per seed and mode, and from the random
-    initialisation as the control; success curves by env steps and by seconds (JSON + PNG)."""
+    start, kept beside the JSON as .warm.safetensors), then RL through `dvla up` from the warm
+    start per seed and mode, and from the random initialisation as the control; success curves
+    by env steps and by seconds (JSON + PNG)."""
     import tempfile
 
     from benchmarks.learn_vla import DEFAULT_TOPOLOGY, Recipe, format_table, plot, run_bench
