@@ -78,7 +78,7 @@ def test_up_learns_a_multi_step_rendered_task(tmp_path: Path, mode: str, monkeyp
     assert evals[-1][1] >= 0.8 and result["final_env_steps"] < BUDGET, evals
     # No accounting identity here: this cheap env makes the rollouts ship ~6x what the busy actor
     # learns from (most chunks are dropped stale, counted), and in that regime a few chunks of a
-    # cleanly stopped rollout were sometimes missing at the actor (5 of ~32 runs: docs/reliability.md,
-    # "Known gap"). The identity's own tests are in
-    # tests/chaos/test_accounting.py and the other `dvla up` tests.
+    # cleanly stopped rollout were sometimes missing at the actor (5 of ~32 runs; docs/
+    # reliability.md, "Known gap"). The identity's own tests are tests/chaos/test_accounting.py
+    # and the other `dvla up` tests.
     assert pids_of_run(run_dir) == []
