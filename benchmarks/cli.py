@@ -259,9 +259,14 @@ def learn_vla(
     demos_file: Annotated[Optional[Path], typer.Option("--demos-file", help="recorded demonstrations (.npz) to clone from")] = None,
     demos: Annotated[int, typer.Option(help="solved expert episodes to record", min=1)] = 300,
     clone_epochs: Annotated[int, typer.Option(help="behaviour cloning epochs", min=1)] = 3,
+    clone_lr: Annotated[float, typer.Option(help="behaviour cloning step size (Adam)")] = 1e-3,
     warm: Annotated[Optional[Path], typer.Option(help="a warm start (safetensors) to use instead of cloning one")] = None,
     rise: Annotated[float, typer.Option(help="the level the RL runs must reach: warm start's success + this")] = 0.3,
     base_port: Annotated[int, typer.Option(help="first TCP port")] = 21400,
+    runs: Annotated[Optional[Path], typer.Option(help="keep each RL run's directory here, as ARM-MODE-seedS "
+                                                      "(default: a temporary directory)")] = None,
+    max_wall_s: Annotated[Optional[float], typer.Option(help="stop each RL run after this many seconds "
+                                                              "(dvla up --max-wall-s; default: the topology's budget)")] = None,
 ) -> None:
     """The SFT -> RL recipe on this machine: an expert trained on PushCube's state vector,
     its solved episodes recorded with rendered observations, a VLA cloned from them (the warm
@@ -284,10 +289,15 @@ def learn_vla(
             raise fail(f"{name}: not found: {path}")
     if not 0 < rise <= 1:
         raise fail(f"--rise must be in (0, 1], got {rise}")
+    if max_wall_s is not None and not max_wall_s > 0:
+        raise fail(f"--max-wall-s must be > 0, got {max_wall_s}")
+    if not clone_lr > 0:
+        raise fail(f"--clone-lr must be > 0, got {clone_lr}")
     recipe = Recipe(topology=(topology or DEFAULT_TOPOLOGY).resolve(), seeds=seed_list, modes=mode_list, control=control,
                     expert=expert.resolve() if expert else None, demos_file=demos_file.resolve() if demos_file else None,
-                    demos=demos, clone_epochs=clone_epochs, warm=warm.resolve() if warm else None, rise=rise,
-                    base_port=base_port)
+                    demos=demos, clone_epochs=clone_epochs, clone_lr=clone_lr, warm=warm.resolve() if warm else None,
+                    rise=rise, base_port=base_port, runs=runs.resolve() if runs else None,
+                    max_wall_s=max_wall_s)
 
     def run(progress: Callable[[str], None]) -> dict:
         with tempfile.TemporaryDirectory(prefix="dvla-bench-learn-vla-") as tmp:

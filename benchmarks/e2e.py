@@ -54,6 +54,8 @@ def _one_run(topology: Path, seed: int, mode: str, tmp: Path, base_port: int, ex
     res = json.loads(result_files[0].read_text()) if result_files else {}
     curve = _curve(result_files[0].parent / "evals.csv", res.get("startup_s")) if result_files else []
     trained = _version_steps(result_files[0].parent / "versions.csv") if result_files else {}
+    for point in curve:  # what the evaluated version had learned from (env_steps: when its evaluation ended)
+        point["policy_env_steps"] = trained.get(point["version"])
     qualifying = curve[-1]["version"] if curve and res.get("success_reached") else None
     independent = (evaluate_run(result_files[0].parent, final_eval, fresh_seed(seed))
                    if final_eval > 0 and result_files else None)

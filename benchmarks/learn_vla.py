@@ -82,8 +82,9 @@ def record_demos(expert_run: Path, rl_task: Any, out: Path, episodes: int, n_env
     state_g, rgb_g = EnvGroup(task, n_envs, seed), EnvGroup(vis, n_envs, seed)
     keys = ("rgb", "proprio", "tokens")
     per_step = (*keys, "action", "reward")
-    kept: dict[str, list[np.ndarray]] = {k: [] for k in (*per_step, "episode", "terminated")}
+    kept: dict[str, list[np.ndarray]] = {k: [] for k in (*per_step, "episode", "terminated", "instruction_id")}
     current: list[dict[str, list[np.ndarray]]] = [{k: [] for k in per_step} for _ in range(n_envs)]
+    texts: list[str] = []  # every instruction seen, in order: a step's instruction_id indexes it
     solved = np.zeros(n_envs, dtype=bool)
     played = n_kept = steps = 0
     started = time.perf_counter()
@@ -117,6 +118,10 @@ def record_demos(expert_run: Path, rl_task: Any, out: Path, episodes: int, n_env
                     ended = np.zeros(n, dtype=bool)
                     ended[-1] = bool(r_res.terminated[i])
                     kept["terminated"].append(ended)
+                    text = rgb_g.instructions[i] or ""
+                    if text not in texts:
+                        texts.append(text)
+                    kept["instruction_id"].append(np.full(n, texts.index(text), dtype=np.int32))
                     n_kept += 1
                 current[i] = {k: [] for k in per_step}
                 solved[i] = False
@@ -128,6 +133,7 @@ def record_demos(expert_run: Path, rl_task: Any, out: Path, episodes: int, n_env
         state_g.close()
         rgb_g.close()
     arrays = {k: np.concatenate(v) for k, v in kept.items()}
+    arrays["instruction_text"] = np.array(texts, dtype=np.str_)
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out, **arrays)
     meta = {"expert_run": str(expert_run), "env": task.env, "control_mode": task.control_mode,
@@ -151,7 +157,25 @@ def first_episodes(demos: dict[str, np.ndarray], n: int) -> dict[str, np.ndarray
     if n > held:
         raise ValueError(f"{n} episodes asked, the demos hold {held}")
     keep = demos["episode"] < n
-    return {k: v[keep] for k, v in demos.items()}
+    return {k: (v[keep] if k != "instruction_text" else v) for k, v in demos.items()}
+
+
+def demo_tokens(task: Any, demos: dict[str, np.ndarray]) -> np.ndarray:
+    """Every demonstration step's instruction as ``task``'s policy reads it: the recorded text
+    (``instruction_text`` indexed by ``instruction_id``; files recorded before these were kept:
+    ``task.instruction``, else the env's default) through ``task``'s tokenizer, so demos recorded
+    for one policy clone another whose tokenizer differs (a Hugging Face checkpoint's own)."""
+    from dvla.learn.vla.instructions import instruction_for
+    from dvla.learn.vla.tokenizer import instruction_tokenizer
+
+    tokenizer = instruction_tokenizer(task.policy_kwargs, task.instruction_tokens, task.policy)
+    if "instruction_text" in demos:
+        texts = [str(t) for t in demos["instruction_text"]]
+        ids = demos["instruction_id"]
+    else:
+        texts = [task.instruction if task.instruction is not None else instruction_for(task.env)]
+        ids = np.zeros(len(demos["action"]), dtype=np.int64)
+    return np.stack([tokenizer.encode(t) for t in texts])[ids]
 
 
 #: exploration noise (std of a Gaussian head) the warm start acts with. The cloned mean is
@@ -181,26 +205,35 @@ def returns(demos: dict[str, np.ndarray], gamma: float, reward_scale: float = 1.
 
 def clone(task: Any, demos: dict[str, np.ndarray], out: Path, epochs: int = 20, batch: int = 64, lr: float = 1e-3,
           seed: int = 0, progress: Callable[[str], None] = _progress, noise_std: float | None = NOISE_STD) -> dict[str, Any]:
-    """Behaviour cloning of ``task``'s policy on ``demos``; saves its replicated tensors to
-    ``out`` (safetensors), with a Gaussian head's noise set to ``noise_std`` (None: left at the
-    constructor's). Returns the loss per epoch."""
+    """Behaviour cloning of ``task``'s policy on ``demos`` on the device the task's actor learns
+    on (``task.device``; micro-batches of ``task.ppo.micro_batch`` where set); saves its replicated
+    tensors to ``out`` (safetensors), with a Gaussian head's noise set to ``noise_std`` (None: left
+    at the constructor's). Returns the loss per epoch."""
     import torch
     from safetensors.torch import save_file
 
+    from dvla.config import resolve_device
     from dvla.learn import make_policy
     from dvla.learn.envs import probe_spec
     from dvla.replication import replicated_tensors
 
     torch.manual_seed(seed)
+    device = torch.device(resolve_device(task.device))
     obs_spec, act_dim = probe_spec(task)
-    policy = make_policy(task.policy, obs_spec, act_dim, **task.policy_kwargs)
-    obs = {k: torch.from_numpy(demos[k]) for k in ("rgb", "proprio", "tokens") if k in obs_spec}
+    if "rgb" in obs_spec and tuple(demos["rgb"].shape[1:]) != tuple(obs_spec["rgb"].shape):
+        raise ValueError(f"the demos' images are {demos['rgb'].shape[1:]}, the task's {obs_spec['rgb'].shape} "
+                         f"(task.image_size {task.image_size}): record them at the RL task's image size")
+    policy = make_policy(task.policy, obs_spec, act_dim, **task.policy_kwargs).to(device)
+    obs = {k: torch.from_numpy(demos[k]) for k in ("rgb", "proprio") if k in obs_spec}
+    if "tokens" in obs_spec:
+        obs["tokens"] = torch.from_numpy(demo_tokens(task, demos))
     action = torch.from_numpy(demos["action"]).float()
     # the critic learns the demonstrations' returns beside the actions: RL then starts from a
     # value that knows the task instead of a random one (whose advantages undid the clone)
     target = torch.from_numpy(returns(demos, task.ppo.gamma, task.ppo.reward_scale)) if "reward" in demos else None
-    if hasattr(policy, "observe"):
-        policy.observe(obs)
+    if hasattr(policy, "observe"):  # input statistics (proprioception) from every demonstration
+        policy.observe({k: v.to(device) for k, v in obs.items() if k != "rgb"})
+    micro = task.ppo.micro_batch or batch
     noise = [p for n, p in policy.named_parameters() if n.split(".")[-1] == "log_std"]
     for p in noise:  # the noise is not cloned (its likelihood optimum is the tiny fitting error)
         p.requires_grad_(False)
@@ -216,15 +249,19 @@ def clone(task: Any, demos: dict[str, np.ndarray], out: Path, epochs: int = 20, 
         total = total_v = 0.0
         for lo in range(0, n, batch):
             idx = order[lo:lo + batch]
-            logprob, _entropy, value = policy.evaluate({k: v[idx] for k, v in obs.items()}, action[idx])
-            loss = -logprob.mean()
-            v_loss = ((value.float() - target[idx]) ** 2).mean() if target is not None else torch.zeros(())
             opt.zero_grad()
-            (loss + task.ppo.vf_coef * v_loss).backward()
+            for mlo in range(0, len(idx), micro):  # gradients of the batch, `micro` at a time
+                part = idx[mlo:mlo + micro]
+                logprob, _entropy, value = policy.evaluate({k: v[part].to(device) for k, v in obs.items()},
+                                                           action[part].to(device))
+                loss = -logprob.float().sum() / len(idx)
+                v_loss = (((value.float() - target[part].to(device)) ** 2).sum() / len(idx)
+                          if target is not None else torch.zeros((), device=device))
+                (loss + task.ppo.vf_coef * v_loss).backward()
+                total += loss.item() * len(idx)
+                total_v += v_loss.item() * len(idx)
             torch.nn.utils.clip_grad_norm_(trained, 1.0)
             opt.step()
-            total += loss.item() * len(idx)
-            total_v += v_loss.item() * len(idx)
         losses.append(total / n)
         value_losses.append(total_v / n)
         progress(f"clone: epoch {epoch + 1}/{epochs} loss {losses[-1]:.4f} value loss {value_losses[-1]:.4f} "
@@ -236,26 +273,28 @@ def clone(task: Any, demos: dict[str, np.ndarray], out: Path, epochs: int = 20, 
                 p.fill_(float(np.log(noise_std)))
     policy.eval()
     out.parent.mkdir(parents=True, exist_ok=True)
-    save_file({k: v.detach().contiguous() for k, v in replicated_tensors(policy).items()}, str(out))
+    save_file({k: v.detach().cpu().contiguous() for k, v in replicated_tensors(policy).items()}, str(out))
     return {"losses": losses, "value_losses": value_losses if target is not None else None,
             "return_std": float(target.std()) if target is not None else None, "transitions": n, "seconds": time.perf_counter() - started, "policy": policy}
 
 
 def evaluate(task: Any, weights: Path | None, episodes: int, seed: int = EVAL_SEED, n_envs: int = 8) -> dict[str, Any]:
     """Deterministic episodes (episode j from seed ``seed + j``) of ``task``'s policy with
-    ``weights`` (None: its random initialisation)."""
+    ``weights`` (None: its random initialisation), on the evaluators' device (``task.eval_device``)."""
     import torch
 
+    from dvla.config import resolve_device
     from dvla.learn import make_policy, run_eval_episodes
     from dvla.learn.envs import probe_spec
     from dvla.roles.checkpoint import load_init_weights
 
     torch.manual_seed(0)
+    device = resolve_device(task.eval_device)
     obs_spec, act_dim = probe_spec(task)
     policy = make_policy(task.policy, obs_spec, act_dim, **task.policy_kwargs)
     if weights is not None:
         load_init_weights(weights, policy)
-    res = run_eval_episodes(policy.eval(), task, episodes, seed, n_envs=n_envs)
+    res = run_eval_episodes(policy.to(device).eval(), task, episodes, seed, device=device, n_envs=n_envs)
     assert res is not None
     return {k: res[k] for k in ("success_once", "success_once_low", "success_once_high", "return_mean", "episodes")}
 
@@ -285,8 +324,9 @@ class Recipe:
     #: recorded demonstrations to use (None: record `demos` episodes from the expert)
     demos_file: Path | None = None
     demos: int = 300
-    #: behaviour cloning epochs over the demonstrations
+    #: behaviour cloning epochs over the demonstrations, and their step size
     clone_epochs: int = 3
+    clone_lr: float = 1e-3
     #: a warm start to use (None: clone one)
     warm: Path | None = None
     #: episodes of the warm start's own evaluation (fixed seeds)
@@ -294,6 +334,10 @@ class Recipe:
     #: the level the RL runs must reach: warm start's success + this
     rise: float = 0.3
     base_port: int = 21400
+    #: keep each RL run's directory here, as ARM-MODE-seedS (None: in the bench's temporary directory)
+    runs: Path | None = None
+    #: stop each RL run after this many seconds (``dvla up --max-wall-s``; None: the topology's budget)
+    max_wall_s: float | None = None
 
 
 def reached(curve: list[dict[str, float]], level: float) -> dict[str, float] | None:
@@ -339,22 +383,28 @@ def run_bench(recipe: Recipe, work: Path, progress: Callable[[str], None] = _pro
         threads = torch.get_num_threads()
         torch.set_num_threads(2)
         try:
-            res = clone(task, load_demos(demos_file), warm, epochs=recipe.clone_epochs, progress=progress)
+            res = clone(task, load_demos(demos_file), warm, epochs=recipe.clone_epochs, lr=recipe.clone_lr,
+                        progress=progress)
         finally:
             torch.set_num_threads(threads)
-        doc["clone"] = {k: v for k, v in res.items() if k != "policy"}
+        res.pop("policy")  # the RL runs load the warm start from its file
+        doc["clone"] = res
     progress(f"warm start: {recipe.warm_eval} evaluation episodes")
     doc["warm"] = {"weights": str(warm), **evaluate(task, warm, recipe.warm_eval)}
+    if torch.cuda.is_available():
+        torch.cuda.empty_cache()  # the GPU memory the clone and evaluation held goes to the RL run's roles
     level = min(1.0, doc["warm"]["success_once"] + recipe.rise)
     doc["level"] = level
-    arms = [(m, "warm", ["--init-weights", str(warm)]) for m in recipe.modes]
+    wall = ["--max-wall-s", str(recipe.max_wall_s)] if recipe.max_wall_s else []
+    arms = [(m, "warm", ["--init-weights", str(warm), *wall]) for m in recipe.modes]
     if recipe.control:
-        arms.append((recipe.modes[0], "control", []))
+        arms.append((recipe.modes[0], "control", wall))
     runs = []
     for seed in recipe.seeds:
         for mode, arm, extra in arms:
             progress(f"RL: seed {seed}, {arm}, {mode} (to success >= {level:.2f} with 97.5 % confidence, or the budget)")
-            r = _one_run(recipe.topology, seed, mode, work / "rl", recipe.base_port + 100, [*extra, "--until-success", f"{level:.4f}"])
+            where = recipe.runs / f"{arm}-{mode}-seed{seed}" if recipe.runs is not None else work / "rl"
+            r = _one_run(recipe.topology, seed, mode, where, recipe.base_port + 100, [*extra, "--until-success", f"{level:.4f}"])
             r["arm"] = arm
             r["reached"] = reached(r["curve"], level)
             runs.append(r)

@@ -66,6 +66,8 @@ def test_bench_e2e_runs_both_modes_per_seed(tmp_path: Path) -> None:
         assert r["accounting"]["unaccounted"] == 0
         assert r["curve"] and all(0.0 <= p["success_once"] <= 1.0 for p in r["curve"]), r
         assert [p["env_steps"] for p in r["curve"]] == sorted(p["env_steps"] for p in r["curve"])
+        # each evaluated version's own env steps (versions.csv): at most what was learned when its evaluation ended
+        assert all(isinstance(p["policy_env_steps"], int) and p["policy_env_steps"] <= p["env_steps"] for p in r["curve"]), r
         # the final checkpoint on 3 episodes of its own seeds, each to the time limit
         final = r["final_eval"]
         assert (final["episodes"], final["seed"]) == (3, 9_003_000) and final["version"] >= 1, final

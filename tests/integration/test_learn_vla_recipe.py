@@ -9,12 +9,14 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import torch
 
-from benchmarks.learn_vla import NOISE_STD, clone, evaluate, first_episodes, load_demos, observed_as, record_demos
+from benchmarks.learn_vla import (NOISE_STD, clone, demo_tokens, evaluate, first_episodes, load_demos, observed_as,
+                                  record_demos)
 from dvla.learn import make_policy
 from dvla.learn.envs import probe_spec
 from dvla.learn.vla.tokenizer import instruction_tokenizer
@@ -48,14 +50,21 @@ def expert_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return run
 
 
-def test_demos_replay_the_expert_with_rendered_observations_and_a_clone_warm_starts_the_vla(
-        expert_run: Path, tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def recorded(expert_run: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Any, Path, dict[str, Any]]:
+    """(the RL task, its demos file, what record_demos returned): three episodes of the expert."""
     base = load_topology(ROOT / "topologies" / "local-vla-rl.yaml").task
     task = dataclasses.replace(base, image_size=32, max_episode_steps=STEPS)  # the RL task, its observations recorded
+    out = tmp_path_factory.mktemp("demos") / "demos.npz"
+    meta = record_demos(expert_run, task, out, episodes=3, n_envs=2, solved_only=False, progress=lambda _m: None)
+    return task, out, meta
+
+
+def test_demos_replay_the_expert_with_rendered_observations_and_a_clone_warm_starts_the_vla(
+        expert_run: Path, recorded: tuple[Any, Path, dict[str, Any]], tmp_path: Path) -> None:
+    task, out, meta = recorded
     with pytest.raises(ValueError, match="task.env is 'PushCube-v1'"):
         observed_as(load_topology(expert_run / "topology.yaml").task, dataclasses.replace(task, env="PickCube-v1"))
-    out = tmp_path / "demos.npz"
-    meta = record_demos(expert_run, task, out, episodes=3, n_envs=2, solved_only=False, progress=lambda _m: None)
     demos = load_demos(out)
     assert json.loads(Path(f"{out}.json").read_text()) == json.loads(json.dumps(meta))
     n = len(demos["action"])
@@ -74,6 +83,10 @@ def test_demos_replay_the_expert_with_rendered_observations_and_a_clone_warm_sta
 
     want = instruction_tokenizer(task.policy_kwargs, task.instruction_tokens, task.policy).encode(instruction_for(task.env))
     assert (demos["tokens"] == want).all()
+    # the instruction's text is kept with every step, so another policy's tokenizer can read it
+    assert [str(t) for t in demos["instruction_text"]] == [instruction_for(task.env)]
+    assert demos["instruction_id"].shape == (n,) and not demos["instruction_id"].any()
+    assert (demo_tokens(task, demos) == demos["tokens"]).all()
     assert len(first_episodes(demos, 2)["action"]) == 2 * STEPS
     with pytest.raises(ValueError, match="4 episodes asked"):
         first_episodes(demos, 4)
@@ -91,3 +104,36 @@ def test_demos_replay_the_expert_with_rendered_observations_and_a_clone_warm_sta
     assert torch.allclose(fresh.log_std.exp(), torch.full_like(fresh.log_std, NOISE_STD))  # the noise it acts with
     got = evaluate(task, warm, episodes=2, n_envs=2)
     assert got["episodes"] == 2 and 0.0 <= got["success_once"] <= 1.0
+
+
+def test_a_hugging_face_vla_is_cloned_from_the_same_demos_through_its_own_tokenizer(
+        recorded: tuple[Any, Path, dict[str, Any]], tmp_path: Path) -> None:
+    """Demos recorded for tiny-vla clone a vla-tokens checkpoint: the recorded instruction text is
+    tokenised by the checkpoint's own tokenizer (other ids, another length), the images are the
+    task's size (the checkpoint's vision tower reads 32 px), and images of another size are refused."""
+    from dvla.learn.vla.build import main as build
+    from dvla.learn.vla.instructions import instruction_for
+
+    task, out, _meta = recorded
+    assert build([str(tmp_path / "ckpt"), "--family", "tokens"]) == 0
+    hf = dataclasses.replace(task, policy="vla-tokens", instruction_tokens=12,
+                             policy_kwargs={"checkpoint": str(tmp_path / "ckpt"), "lora": {"r": 4}})
+    demos = load_demos(out)
+    n = len(demos["action"])
+    tokens = demo_tokens(hf, demos)
+    want = instruction_tokenizer(hf.policy_kwargs, 12, "vla-tokens").encode(instruction_for(task.env))
+    assert tokens.shape == (n, 12) and (tokens == want).all()
+    assert not np.array_equal(tokens[:, :12], demos["tokens"][:, :12])  # not the hashed ids the demos hold
+    # a file recorded before the text was kept: the task's instruction (here the env's default)
+    older = {k: v for k, v in demos.items() if k not in ("instruction_text", "instruction_id")}
+    assert (demo_tokens(hf, older) == tokens).all()
+
+    res = clone(hf, demos, tmp_path / "warm.safetensors", epochs=5, batch=8, lr=3e-3, progress=lambda _m: None)
+    assert res["losses"][-1] < res["losses"][0], res["losses"]
+    obs_spec, act_dim = probe_spec(hf)
+    fresh = make_policy(hf.policy, obs_spec, act_dim, **hf.policy_kwargs)
+    load_init_weights(tmp_path / "warm.safetensors", fresh)
+    for k, v in replicated_tensors(res["policy"]).items():
+        assert torch.equal(replicated_tensors(fresh)[k], v), k
+    with pytest.raises(ValueError, match="task.image_size 64"):
+        clone(dataclasses.replace(hf, image_size=64), demos, tmp_path / "no.safetensors", epochs=1)

@@ -301,13 +301,15 @@ def test_shipped_topologies_exist() -> None:
 
 
 def _prepare(path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """local-hf-vla.yaml names a checkpoint its header says how to write: written here, in a temp
+    """local-hf-vla.yaml and gpu-vla-rl.yaml name a checkpoint their headers say how to write:
+    written here (at the test size: the file is under test, not the 0.5 B weights), in a temp
     directory that becomes the working directory (the path is relative)."""
-    if path.name == "local-hf-vla.yaml":
+    ckpt = {"local-hf-vla.yaml": "runs/ckpt/vla-tokens", "gpu-vla-rl.yaml": "runs/ckpt/vla-tokens-0.5b"}.get(path.name)
+    if ckpt is not None:
         from dvla.learn.vla.build import main as build
 
         monkeypatch.chdir(tmp_path)
-        assert build(["runs/ckpt/vla-tokens", "--family", "tokens"]) == 0
+        assert build([ckpt, "--family", "tokens"]) == 0
 
 
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.name)
