@@ -9,12 +9,19 @@ slot is taken, `acquire` waits and backpressure reaches the rollouts through the
 from __future__ import annotations
 
 import threading
+import warnings
 
 import torch
 
 from ..fabric.messages import ChunkSpec, TrajectoryChunk, chunk_arrays, nest
 from ..learn.ppo import Trajectories
 from .freelist import FreeList
+
+# `fill` wraps each received (read-only) array with torch.from_numpy only to copy from it; torch
+# warns on the first such wrap in every actor's log that writing to it would be undefined. Nothing
+# writes to it: the warning is silenced for this module's calls alone.
+warnings.filterwarnings("ignore", message="The given NumPy array is not writable", category=UserWarning,
+                        module=r"dvla\.roles\.slots")
 
 
 class SlotPool:
