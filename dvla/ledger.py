@@ -478,15 +478,20 @@ class _Books:
         actor at the end)."""
         ranges = {r["incarnation"]: sorted(self.received.get(f"{name}#{r['incarnation']}", [])) for r in incarnations}
         inner = {i: sum(last - first + 1 - got for first, last, got, *_ in rs) for i, rs in ranges.items()}
-        # The fabric's drops and rejects of this rollout explain chunks missing inside ranges;
+        tails = {r["incarnation"]: r.get("produced", 0) - 1 - ranges[r["incarnation"]][-1][1]
+                 if ranges[r["incarnation"]] else r.get("produced", 0) for r in incarnations}
+        # The fabric's drops and rejects of this rollout explain chunks missing inside ranges, and
+        # at the end of a clean incarnation (its last chunks, dropped before the actor got them);
         # rejects beyond those were never produced by it: forged.
-        gaps = sum(max(0, n) for n in inner.values())
+        inner_gaps = sum(max(0, n) for n in inner.values())
+        gaps = inner_gaps + sum(max(0, tails[r["incarnation"]]) for r in incarnations if r.get("clean"))
         drops = min(self.fabric_drops[name], gaps)
         rejects = min(self.fabric_rejects[name], gaps - drops)
         self.dropped["backpressure"] += drops
         self.rejected["undecodable"] += rejects
         self.foreign += self.fabric_drops[name] + self.fabric_rejects[name] - drops - rejects
-        explained = drops + rejects
+        explained = min(drops + rejects, inner_gaps)  # inside the ranges first, then the tails
+        explained_tails = drops + rejects - explained
         for r in incarnations:
             rs, left = ranges[r["incarnation"]], inner[r["incarnation"]]
             take = max(0, min(explained, left))
@@ -507,7 +512,11 @@ class _Books:
                     killed["lost_bound"] += _chunks_in(self.window, chunk_bytes)
                 elif n:
                     self.note(n, f"{r['file']}: {n} chunks missing across a clean actor restart")
-            tail = r.get("produced", 0) - 1 - rs[-1][1] if rs else r.get("produced", 0)
+            tail = tails[r["incarnation"]]
+            if r.get("clean"):  # its last chunks may be among the fabric's drops too
+                take = max(0, min(explained_tails, tail))
+                explained_tails -= take
+                tail -= take
             self._place_tail(name, r, tail, rs[-1][3] if rs else None, chunk_bytes)
 
     def _place_breaks(self, name: str, r: dict[str, Any], rs: list[tuple[Any, ...]], missing: int,

@@ -216,6 +216,12 @@ def test_a_clean_rollout_s_unconfirmed_tail_is_lost_with_its_close(tmp_path: Pat
     assert books["lost"] == 0 and books["unaccounted"] == 3
 
 
+def test_the_last_chunks_dropped_by_the_actor_s_fabric_are_its_drops_not_foreign(tmp_path: Path) -> None:
+    books = _clean_tail_run(tmp_path, unconfirmed=0, fabric_dropped=3)
+    assert (books["dropped"], books["dropped_by_reason"], books["foreign_rejected"]) == (3, {"backpressure": 3}, 0)
+    assert books["unaccounted"] == 0 and books["lost"] == 0 and books["notes"] == []
+
+
 def test_receipts_say_how_far_a_rollout_incarnation_s_chunks_got(tmp_path: Path) -> None:
     from dvla.fabric.messages import ReceiptRequest
 
