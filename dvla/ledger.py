@@ -11,6 +11,10 @@ A counter file, ``RUN_DIR/counters/<role>.<incarnation>.<pid>``, is rewritten in
 ``pwrite`` per event and no fsync (the kernel keeps the pages when the process dies). The n-th
 file of a role is its n-th incarnation (they never overlap); a rollout puts it in the high bits of
 each chunk's ``seq``. Remote roles send their files back when they exit (orchestrator/ssh.py).
+
+Receipts: a stopping rollout asks its learner how far its chunks got
+(:meth:`RolloutLedger.await_receipt`, answered by :meth:`ActorLedger.receipt`) and closes its data
+session only once the learner has its last chunk, or records what was not confirmed in time.
 """
 
 from __future__ import annotations
@@ -22,11 +26,11 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from .fabric.accounting import Accounting
-from .fabric.fabric import DATA
-from .fabric.messages import LedgerRecord
+from .fabric.fabric import DATA, Fabric
+from .fabric.messages import LedgerRecord, Receipt, ReceiptRequest
 
 COUNTERS_DIR = "counters"
 #: low bits of a chunk's seq count chunks within one incarnation; the high bits are the incarnation
@@ -36,6 +40,11 @@ INCARNATION_SHIFT = 32
 ZENOH_TX_BYTES = 3 * 65535
 #: link breaks and gaps a counter file keeps positions of (more are counted, not placed)
 MAX_EVENTS = 64
+#: at most this long a stopping rollout waits for its learner to confirm its last chunk before it
+#: closes its data session (`dvla up` gives a stopping rollout 15 s to exit), asking every
+#: RECEIPT_POLL_S seconds
+RECEIPT_WAIT_S = 10.0
+RECEIPT_POLL_S = 0.1
 
 
 def split_seq(seq: int) -> tuple[int, int]:
@@ -112,7 +121,9 @@ class RolloutLedger:
     what a kill can take with it. A *link break* (its trajectory publisher lost every subscriber
     after shipping something: the link to the actor, or the actor, went away) is recorded with
     the number of chunks shipped by then: what was still in the link's buffers at that moment
-    went with it (:func:`reconcile` places the gap just before it)."""
+    went with it (:func:`reconcile` places the gap just before it). At a clean stop the rollout
+    records how many of the last chunks it shipped its learner had not confirmed when it closed
+    its link (*unconfirmed*, :meth:`set_unconfirmed`): those may be lost with the close."""
 
     def __init__(self, run_dir: str | Path, rollout: str, queue_cap: int) -> None:
         self.file = CounterFile(run_dir, rollout)
@@ -120,6 +131,9 @@ class RolloutLedger:
         self.first_seq = self.file.incarnation << INCARNATION_SHIFT
         self.queue_cap = queue_cap
         self.produced = self.shipped = self.bytes_shipped = 0
+        #: shipped chunks the learner had not confirmed when the rollout closed, and how long it waited
+        self.unconfirmed = 0
+        self.confirm_wait_s = 0.0
         #: [shipped by then, time_ns] of each link break (the first MAX_EVENTS), and how many in all
         self.breaks: list[list[int]] = []
         self.breaks_total = 0
@@ -147,12 +161,58 @@ class RolloutLedger:
         self.bytes_shipped += nbytes
         self._write()
 
+    @property
+    def last_seq(self) -> int:
+        """The seq of the last chunk shipped (chunks are shipped in seq order); first_seq - 1: none."""
+        return self.first_seq + self.shipped - 1
+
+    def await_receipt(self, fabric: Fabric, learners: tuple[str, ...] | list[str], wait_s: float = RECEIPT_WAIT_S,
+                      poll_s: float = RECEIPT_POLL_S) -> "ReceiptWait":
+        """Ask the learners (``ctrl/receipt/<learner>``) until one has the last chunk shipped, at
+        most `wait_s`; record the chunks still unconfirmed then (``unconfirmed`` in the counter
+        file, which :func:`reconcile` places as lost ``where: close`` if they never arrived).
+
+        Why: ``put`` returns once Zenoh has queued a chunk, and with a learner that reads slowly
+        (its inbox full) MBs of chunks then wait in the rollout's socket buffers. Closing the data
+        session leaves them to a half-closed socket, and the kernel resets that connection, dropping
+        them, as soon as the learner sends anything on it (its Zenoh keep-alive, every 2.5 s):
+        docs/reliability.md, "Closing a rollout"."""
+        last = self.last_seq
+        t0 = time.monotonic()
+        confirmed, queries, why = self.first_seq - 1, 0, "no learner to ask"
+        if last >= self.first_seq and learners:  # else nothing shipped, or nobody to ask
+            request = ReceiptRequest(rollout=self.file.role, seq=last)
+            deadline = t0 + wait_s
+            why = f"no confirmation within {wait_s:g} s"
+            while True:
+                if not fabric.traj_matched():  # no learner on the link: nothing more gets there
+                    why = "no learner on the trajectory link"
+                    break
+                for learner in learners:
+                    timeout = max(0.1, min(1.0, deadline - time.monotonic()))
+                    try:
+                        replies = fabric.query(fabric.keys.receipt(learner), request, expect=Receipt, timeout=timeout)
+                    except Exception as err:  # the ctrl link is down: ask again until the deadline
+                        why, replies = f"receipt query to {learner} failed: {err}", []
+                    queries += 1
+                    for sender, receipt in replies:
+                        if sender == learner and receipt.rollout == self.file.role and receipt.seq <= last:
+                            confirmed = max(confirmed, receipt.seq)
+                if confirmed >= last or time.monotonic() + poll_s >= deadline:
+                    break
+                time.sleep(poll_s)
+        self.unconfirmed = last - confirmed
+        self.confirm_wait_s = time.monotonic() - t0
+        self._write()
+        return ReceiptWait(self.unconfirmed, self.confirm_wait_s, queries, "" if not self.unconfirmed else why)
+
     def _write(self, clean: bool = False) -> None:
         with self._lock:
             breaks = list(self.breaks)  # appended to by a Zenoh thread
         self.file.write({"kind": "rollout", "produced": self.produced, "shipped": self.shipped,
                          "bytes": self.bytes_shipped, "queue_cap": self.queue_cap, "breaks": breaks,
-                         "breaks_total": self.breaks_total, "clean": clean})
+                         "breaks_total": self.breaks_total, "unconfirmed": self.unconfirmed,
+                         "confirm_wait_s": round(self.confirm_wait_s, 3), "clean": clean})
 
     def close(self) -> None:
         self._write(clean=True)
@@ -162,6 +222,18 @@ class RolloutLedger:
         """The record last written, as a message for the learner (``report_ledger``)."""
         return LedgerRecord(role=self.file.role, incarnation=self.file.incarnation, pid=os.getpid(),
                             record=self.file.text)
+
+
+class ReceiptWait(NamedTuple):
+    """What :meth:`RolloutLedger.await_receipt` found."""
+
+    #: chunks shipped that no learner confirmed (0: it has them all)
+    unconfirmed: int
+    waited_s: float
+    #: receipt queries sent
+    queries: int
+    #: why some are unconfirmed ("" when none is)
+    why: str
 
 
 class ActorLedger:
@@ -180,6 +252,9 @@ class ActorLedger:
         self._lock = threading.Lock()
         self._src: dict[str, dict[str, int]] = {}
         self._slot: dict[int, str] = {}
+        #: per source, the newest chunk index the fabric dropped before the inbox (receipts only:
+        #: the fabric counts those drops itself)
+        self._fabric_dropped: dict[str, int] = {}
         self._last_tick = 0.0
         #: counter files this actor keeps for rollouts elsewhere (:meth:`adopt`)
         self._adopted: set[Path] = set()
@@ -207,6 +282,27 @@ class ActorLedger:
             c = self._src[src]
             c[what] = c.get(what, 0) + 1
         self._write()
+
+    def fabric_dropped(self, rollout: str, seq: int) -> None:
+        """The fabric dropped this chunk before the inbox (backpressure; it counts the drop): it
+        left the link all the same (:meth:`newest`). Called on a Zenoh thread."""
+        src, index = source_key(rollout, seq), split_seq(seq)[1]
+        with self._lock:
+            self._fabric_dropped[src] = max(index, self._fabric_dropped.get(src, -1))
+
+    def receipt(self, req: ReceiptRequest) -> Receipt:
+        """The answer to a stopping rollout's receipt query (served on ``ctrl/receipt/<actor>``, on
+        Zenoh's thread: one look-up under the lock)."""
+        return Receipt(rollout=req.rollout, seq=self.newest(req.rollout, req.seq))
+
+    def newest(self, rollout: str, seq: int) -> int:
+        """The seq of the newest chunk of the incarnation `seq` belongs to that came off the link
+        (got, or dropped by the fabric before the inbox); -1: none (a stopping rollout asks)."""
+        src = source_key(rollout, seq)
+        with self._lock:
+            c = self._src.get(src)
+            index = max(-1 if c is None else c["last"], self._fabric_dropped.get(src, -1))
+        return -1 if index < 0 else (split_seq(seq)[0] << INCARNATION_SHIFT) + index
 
     def hold(self, slot: int, src: str) -> None:
         """A chunk of `src` now lives in `slot` (settled by :meth:`release`)."""
@@ -382,15 +478,20 @@ class _Books:
         actor at the end)."""
         ranges = {r["incarnation"]: sorted(self.received.get(f"{name}#{r['incarnation']}", [])) for r in incarnations}
         inner = {i: sum(last - first + 1 - got for first, last, got, *_ in rs) for i, rs in ranges.items()}
-        # The fabric's drops and rejects of this rollout explain chunks missing inside ranges;
+        tails = {r["incarnation"]: r.get("produced", 0) - 1 - ranges[r["incarnation"]][-1][1]
+                 if ranges[r["incarnation"]] else r.get("produced", 0) for r in incarnations}
+        # The fabric's drops and rejects of this rollout explain chunks missing inside ranges, and
+        # at the end of a clean incarnation (its last chunks, dropped before the actor got them);
         # rejects beyond those were never produced by it: forged.
-        gaps = sum(max(0, n) for n in inner.values())
+        inner_gaps = sum(max(0, n) for n in inner.values())
+        gaps = inner_gaps + sum(max(0, tails[r["incarnation"]]) for r in incarnations if r.get("clean"))
         drops = min(self.fabric_drops[name], gaps)
         rejects = min(self.fabric_rejects[name], gaps - drops)
         self.dropped["backpressure"] += drops
         self.rejected["undecodable"] += rejects
         self.foreign += self.fabric_drops[name] + self.fabric_rejects[name] - drops - rejects
-        explained = drops + rejects
+        explained = min(drops + rejects, inner_gaps)  # inside the ranges first, then the tails
+        explained_tails = drops + rejects - explained
         for r in incarnations:
             rs, left = ranges[r["incarnation"]], inner[r["incarnation"]]
             take = max(0, min(explained, left))
@@ -411,7 +512,11 @@ class _Books:
                     killed["lost_bound"] += _chunks_in(self.window, chunk_bytes)
                 elif n:
                     self.note(n, f"{r['file']}: {n} chunks missing across a clean actor restart")
-            tail = r.get("produced", 0) - 1 - rs[-1][1] if rs else r.get("produced", 0)
+            tail = tails[r["incarnation"]]
+            if r.get("clean"):  # its last chunks may be among the fabric's drops too
+                take = max(0, min(explained_tails, tail))
+                explained_tails -= take
+                tail -= take
             self._place_tail(name, r, tail, rs[-1][3] if rs else None, chunk_bytes)
 
     def _place_breaks(self, name: str, r: dict[str, Any], rs: list[tuple[Any, ...]], missing: int,
@@ -456,5 +561,14 @@ class _Books:
         if tail and killed is not None and killed["died_ns"] >= r["updated_ns"] - 10**9:
             killed["lost"] += tail
             killed["in_transit"] += tail
-        elif tail:
-            self.note(tail, f"{r['file']}: {tail} chunks missing at the end of a clean incarnation")
+            return
+        # the rollout closed its link with its last chunks not confirmed by the learner (it waited
+        # for them, bounded): what was still in the link's buffers then went down with it
+        unconfirmed = r.get("unconfirmed", 0)
+        closed = min(tail, unconfirmed)
+        if closed:
+            self.lost.append({"role": name, "incarnation": r["incarnation"], "pid": r["pid"], "where": "close",
+                              "died_ns": r["updated_ns"], "lost": closed, "in_transit": closed,
+                              "lost_bound": unconfirmed})
+        if tail - closed:
+            self.note(tail - closed, f"{r['file']}: {tail - closed} chunks missing at the end of a clean incarnation")

@@ -20,6 +20,8 @@ from .messages import (
     Command,
     EvalResult,
     LedgerRecord,
+    Receipt,
+    ReceiptRequest,
     RoleStatus,
     SnapshotRequest,
     TrajectoryChunk,
@@ -31,7 +33,7 @@ from .zconfig import TlsFiles, plane_config
 
 __all__ = [
     "Accounting", "CTRL", "CodecError", "Command", "DATA", "EvalResult", "Fabric", "FabricError", "Inbox",
-    "KeySpace", "LedgerRecord", "Limits", "RoleStatus", "SecretError", "SignatureError", "Signer", "SnapshotRequest",
-    "TlsFiles", "TrajectoryChunk", "Verifier", "WeightChunk", "WeightManifest", "decode", "encode", "load_secret",
-    "new_secret", "plane_config",
+    "KeySpace", "LedgerRecord", "Limits", "Receipt", "ReceiptRequest", "RoleStatus", "SecretError",
+    "SignatureError", "Signer", "SnapshotRequest", "TlsFiles", "TrajectoryChunk", "Verifier", "WeightChunk",
+    "WeightManifest", "decode", "encode", "load_secret", "new_secret", "plane_config",
 ]

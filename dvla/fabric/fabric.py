@@ -186,7 +186,8 @@ class Fabric:
         self.accounting.sent(DATA, len(envelope), self.name)
         return len(envelope)
 
-    def subscribe_traj(self, maxsize: int, expect: type, block_s: float = 1.0, rollout: str = "*") -> Inbox:
+    def subscribe_traj(self, maxsize: int, expect: type, block_s: float = 1.0, rollout: str = "*",
+                       on_dropped: Callable[[Any], None] | None = None) -> Inbox:
         """Bounded inbox of TrajectoryChunks from every (or one) rollout.
 
         Zenoh's receive thread only copies each envelope out and queues it (waiting up to
@@ -197,7 +198,9 @@ class Fabric:
         rollout's name; one that does not decode or names another sender is counted as that
         sender's reject; only verified, decoded chunks are returned. An envelope that finds no
         room within `block_s` is verified there (rare: a consumer stalled that long) and counted
-        as its sender's ``dropped.backpressure``, or as an unauthenticated reject.
+        as its sender's ``dropped.backpressure``, or as an unauthenticated reject; `on_dropped` (on
+        Zenoh's thread: it must not block) then gets the dropped chunk when it decodes, so the reader
+        knows how far its sender's chunks got even when the last one was dropped.
         """
         if self.data is None:
             raise RuntimeError(f"{self.name}: this fabric was opened without a data plane")
@@ -239,8 +242,16 @@ class Fabric:
 
         def _full(item: tuple[str, bytes], _claimed: str) -> None:
             got = _verified(*item)
-            if got is not None:
-                self.accounting.dropped(DATA, "backpressure", got[0])
+            if got is None:
+                return
+            self.accounting.dropped(DATA, "backpressure", got[0])
+            if on_dropped is not None:
+                try:
+                    msg = decode(got[1], expect=expect)
+                except CodecError:
+                    return  # counted as dropped already; nothing to say where
+                if getattr(msg, "rollout", got[0]) == got[0]:
+                    on_dropped(msg)
 
         inbox = Inbox(maxsize, _open, self.accounting, DATA, block_s, on_full=_full)
 

@@ -156,8 +156,10 @@ def authorize(keys: KeySpace, key: str, sender: str, kind: str, *, query: bool =
         return None if kind == OPERATOR else f"command from {kind} {sender!r} (only the operator commands)"
     if plane_kind == "ctrl/status" and query:
         return None if kind == OPERATOR else f"status query from {kind} {sender!r} (only the operator asks)"
-    if plane_kind in ("ctrl/status", "ctrl/snapshot") and not query:
+    if plane_kind in ("ctrl/status", "ctrl/snapshot", "ctrl/receipt") and not query:
         return None if sender == target else f"reply on {target!r}'s key signed by {sender!r}"
+    if plane_kind == "ctrl/receipt":  # a query: how far the learner got the asker's chunks
+        return None if kind == "rollout" else f"receipt query from {kind} {sender!r} (only rollouts ask)"
     if plane_kind == "ctrl/eval":
         return None if sender == target and kind == "evaluator" else f"eval result on {target!r}'s key from {kind} {sender!r}"
     if plane_kind == "data/traj":

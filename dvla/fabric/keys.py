@@ -87,6 +87,10 @@ class KeySpace:
     def ledger_all(self) -> str:
         return f"{self.root}/ctrl/ledger/*"
 
+    def receipt(self, learner: str) -> str:
+        """Queryable of a learner: how far it got a rollout's chunks (a stopping rollout asks)."""
+        return f"{self.root}/ctrl/receipt/{check_name('learner', learner)}"
+
     @staticmethod
     def last(key: str) -> str:
         """The final chunk of a key (the role or sender name)."""

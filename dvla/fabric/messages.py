@@ -513,9 +513,42 @@ class LedgerRecord(Message):
                      f"record's {name} {doc.get(name)!r} is not the message's {getattr(self, name)!r}")
 
 
+@dataclass(frozen=True, kw_only=True)
+class ReceiptRequest(Message):
+    """A stopping rollout asks its learner how far it got the rollout's chunks, before it closes
+    its data session: chunks still in the link's buffers when that closes can be lost
+    (docs/reliability.md, "Closing a rollout")."""
+
+    TYPE_TAG: ClassVar[str] = "receipt.req"
+
+    #: the rollout asking
+    rollout: str
+    #: the seq of the last chunk it shipped (its incarnation in the high bits)
+    seq: int
+
+    def validate(self) -> None:
+        _require(self.seq >= 0, "schema", f"seq {self.seq} < 0")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Receipt(Message):
+    """The learner's reply to a :class:`ReceiptRequest`: the newest chunk of that rollout
+    incarnation it has taken out of its inbox (every earlier one has left the link too)."""
+
+    TYPE_TAG: ClassVar[str] = "receipt"
+
+    #: the rollout asked about
+    rollout: str
+    #: seq of the newest chunk got of the request's incarnation; -1: none yet
+    seq: int
+
+    def validate(self) -> None:
+        _require(self.seq >= -1, "schema", f"seq {self.seq} < -1")
+
+
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.TYPE_TAG: cls
     for cls in (TrajectoryChunk, WeightManifest, WeightChunk, Command, RoleStatus, EvalResult, SnapshotRequest,
-                WeightSnapshot, LedgerRecord)
+                WeightSnapshot, LedgerRecord, ReceiptRequest, Receipt)
 }
 """Wire type tag -> message class."""

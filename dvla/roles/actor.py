@@ -28,7 +28,7 @@ from ..config import RoleConfig, resolve_device
 from ..fabric import Fabric
 from ..fabric.accounting import OTHER_PEER
 from ..fabric.fabric import CTRL, DATA
-from ..fabric.messages import ChunkSpec, LedgerRecord, TrajectoryChunk
+from ..fabric.messages import ChunkSpec, LedgerRecord, ReceiptRequest, TrajectoryChunk
 from ..learn import PPOLearner, gae_batch, make_policy
 from ..learn.group import LearnerGroup
 from ..learn.envs import chunk_envs, chunk_spec, probe_spec
@@ -117,10 +117,13 @@ class Actor:
     # -- wiring -------------------------------------------------------------------------------
     def build(self, sl: Swimlane) -> None:
         f, ppo = self.fabric, self.cfg.task.ppo
-        self.inbox = f.subscribe_traj(maxsize=INBOX, expect=TrajectoryChunk)  # rollouts -> ingest
+        self.inbox = f.subscribe_traj(maxsize=INBOX, expect=TrajectoryChunk,  # rollouts -> ingest
+                                      on_dropped=lambda c: self.ledger.fabric_dropped(c.rollout, c.seq))
         # counter records of rollouts elsewhere (`dvla join`): the root keeps the run's copies
         self.ledgers = f.subscribe_ctrl(f.keys.ledger_all(), maxsize=64, expect=LedgerRecord) if self.is_root else None
         self._ledgers_polled = 0.0
+        # a stopping rollout asks how far its chunks got before it closes its link (rollout.py)
+        f.serve(f.keys.receipt(self.cfg.name), self.ledger.receipt, ReceiptRequest)
         self.filled = sl.queue("filled", self.slots.n_slots)  # ingest -> batch: slot ids
         self.batches = sl.queue("batches", 1)  # batch -> learn: one stacked Trajectories
         self.versions = sl.queue("versions", 2)  # learn -> publish: NewVersion

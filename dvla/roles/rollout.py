@@ -413,6 +413,21 @@ class Rollout:
         while (shipment := self.to_ship.get_nowait()) is not None:
             self._publish(shipment)
 
+    def _await_receipt(self) -> None:
+        """Before the fabric closes: wait (bounded) until the learner has the last chunk shipped,
+        since closing the data session can lose what is still in the link's buffers (RolloutLedger
+        .await_receipt); say what it did not confirm."""
+        learners = self.cfg.actors
+        wait = self.ledger.await_receipt(self.fabric, learners)
+        if wait.unconfirmed:
+            log.warning("%s: the last %d of %d chunks shipped were not confirmed by %s after %.1f s (%d receipt "
+                        "queries on %s: %s); closing the data session may lose them", self.cfg.name,
+                        wait.unconfirmed, self.ledger.shipped, ", ".join(learners), wait.waited_s, wait.queries,
+                        ", ".join(self.fabric.keys.receipt(a) for a in learners), wait.why)
+        elif wait.queries:
+            log.info("%s: %s has all %d chunks shipped (confirmed after %.2f s, %d receipt queries)", self.cfg.name,
+                     ", ".join(learners), self.ledger.shipped, wait.waited_s, wait.queries)
+
     def _report_ledger(self) -> None:
         """Send the counter record to the learner (its copy is the run's: `report_ledger`)."""
         self._ledger_sent = time.monotonic()
@@ -460,6 +475,7 @@ class Rollout:
         # are joined, the fabric is still open).
         while hasattr(self, "to_ship") and (chunk := self.to_ship.get_nowait()) is not None:
             self._publish(chunk)
+        self._await_receipt()
         self.ledger.close()
         if self.cfg.report_ledger:  # the final, clean record
             self._report_ledger()

@@ -245,6 +245,61 @@ def test_a_rollout_learns_when_its_trajectory_link_loses_the_learner(tmp_path: P
         pair.close()
 
 
+@pytest.mark.timeout(90)
+@pytest.mark.parametrize("receipt", [False, True], ids=["close-at-once", "receipt-first"])
+def test_a_rollout_closing_on_a_slow_learner_keeps_its_tail_only_if_it_waits(tmp_path: Path, receipt: bool) -> None:
+    """Why a stopping rollout waits for its learner's receipt (docs/reliability.md, "Closing a
+    rollout"). A put returns once Zenoh has queued the chunk; a learner that reads slowly leaves MBs
+    of chunks in the rollout's socket buffers. Closing the session leaves them to a half-closed
+    socket, which the kernel resets when the learner's Zenoh sends its next keep-alive (every lease
+    / 4: 250 ms here, 2.5 s by default), dropping them: the learner never sees the last chunks.
+    Asking for the receipt of the last chunk first (RolloutLedger.await_receipt, answered by
+    ActorLedger.receipt as the actor serves it) loses nothing."""
+    from dvla.fabric.messages import ReceiptRequest
+    from dvla.ledger import ActorLedger, RolloutLedger
+
+    ctrl_port, data_port = free_port(), free_port()
+    actor = Fabric(run=RUN, name="actor", secret=SECRET,
+                   ctrl_conf=plane_config(mode="router", listen=[f"tcp/127.0.0.1:{ctrl_port}"]),
+                   data_conf=plane_config(mode="peer", listen=[f"tcp/127.0.0.1:{data_port}"], lease_ms=1000))
+    rollout = open_client(ctrl_port, data_port, "rollout-0")
+    try:
+        received = ActorLedger(tmp_path / "actor", actor.name, actor.accounting, slots=1, inbox_cap=2)
+        actor.serve(actor.keys.receipt(actor.name), received.receipt, ReceiptRequest)
+        inbox = actor.subscribe_traj(maxsize=2, expect=TrajectoryChunk, block_s=30.0,
+                                     on_dropped=lambda c: received.fabric_dropped(c.rollout, c.seq))
+        wait_route(actor.data, rollout.data)
+        shipped = RolloutLedger(tmp_path / "rollout", rollout.name, queue_cap=8)
+        got: list[int] = []
+
+        def learn() -> None:  # the slow learner: 20 chunks a second
+            while (c := inbox.get(timeout=3.0)) is not None:
+                received.settle(received.got(c.rollout, c.seq), "consumed")
+                got.append(c.seq)
+                time.sleep(0.05)
+
+        learner = threading.Thread(target=learn, name="slow-learner", daemon=True)
+        learner.start()
+        n = 60  # 320 kB each: far more than the learner reads before the close
+        for i in range(n):
+            shipped.add_produced()
+            shipped.add_shipped(rollout.publish_traj(big_chunk(rollout.name, shipped.first_seq + i, 320_000)))
+        if receipt:
+            wait = shipped.await_receipt(rollout, [actor.name])
+            assert (wait.unconfirmed, wait.why) == (0, "") and wait.queries >= 1, wait
+        rollout.close()
+        learner.join(30)
+        assert not learner.is_alive()
+        assert got == list(range(len(got)))  # in order, and what is missing is the tail
+        if receipt:
+            assert len(got) == n and received.newest(rollout.name, shipped.last_seq) == shipped.last_seq
+        else:  # the control: without the wait this setup does lose the tail (else it tests nothing)
+            assert len(got) < n, "closing at once lost nothing: the receipt-first case proves nothing either"
+    finally:
+        rollout.close()
+        actor.close()
+
+
 @pytest.mark.timeout(30)
 def test_traj_chunks_round_trip_and_accounting_identity(pair: Pair) -> None:
     actor, rollout = pair.actor, pair.rollout
@@ -315,7 +370,9 @@ def test_a_chunk_refilled_in_place_arrives_as_each_new_chunk(pair: Pair) -> None
 def test_slow_consumer_backpressure_loses_nothing_silently(pair: Pair, block_s: float) -> None:
     actor, rollout = pair.actor, pair.rollout
     actor.serve(actor.keys.status(actor.name), lambda _req: status_of(actor.name))
-    inbox = actor.subscribe_traj(maxsize=2, expect=TrajectoryChunk, block_s=block_s)
+    dropped: list[int] = []  # each drop, decoded for the reader (how far a sender's chunks got)
+    inbox = actor.subscribe_traj(maxsize=2, expect=TrajectoryChunk, block_s=block_s,
+                                 on_dropped=lambda c: dropped.append(c.seq))
     wait_route(actor.data, rollout.data)
     n, size, pause = 60, 1 << 20, 0.03
     done = threading.Event()
@@ -345,6 +402,7 @@ def test_slow_consumer_backpressure_loses_nothing_silently(pair: Pair, block_s: 
     assert counts["rejected"] == 0
     assert actor.accounting.get(DATA, "dropped.backpressure") == counts["dropped"]
     assert consumed == sorted(consumed) and len(set(consumed)) == len(consumed)
+    assert len(dropped) == counts["dropped"] and not set(dropped) & set(consumed)
     if block_s >= 1.0:
         # The callback waited for space instead of dropping, so the sender could only run
         # ahead of the consumer by what Zenoh's and the kernel's buffers hold (some MB).

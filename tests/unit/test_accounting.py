@@ -178,6 +178,116 @@ def test_a_chunk_held_at_a_clean_exit_is_unaccounted_and_named(tmp_path: Path) -
     assert books["unaccounted"] == 1 and books["notes"] == ["actor-0.0.%d: 1 chunks held at a clean exit" % os.getpid()]
 
 
+def _clean_tail_run(tmp_path: Path, unconfirmed: int, fabric_dropped: int = 0) -> dict:
+    """A rollout that shipped 10 chunks and stopped cleanly with `unconfirmed` of them not
+    confirmed by its learner; the actor got the first 7, and its fabric dropped the next
+    `fabric_dropped` (backpressure) before its inbox."""
+    acct = Accounting(known_peers=["rollout-a"])
+    r = RolloutLedger(tmp_path, "rollout-a", queue_cap=8)
+    for _ in range(10):
+        r.add_produced()
+        r.add_shipped(1000)
+    r.unconfirmed = unconfirmed  # as await_receipt records it
+    r.close()
+    a = ActorLedger(tmp_path, "actor-0", acct, slots=4, inbox_cap=64)
+    for i in range(7):
+        a.settle(a.got("rollout-a", r.first_seq + i), "consumed")
+    for i in range(7, 7 + fabric_dropped):
+        acct.received(DATA, 1000, "rollout-a")
+        acct.dropped(DATA, "backpressure", "rollout-a")
+        a.fabric_dropped("rollout-a", r.first_seq + i)
+    a.close()
+    return reconcile(tmp_path)
+
+
+def test_a_clean_rollout_s_unconfirmed_tail_is_lost_with_its_close(tmp_path: Path) -> None:
+    books = _clean_tail_run(tmp_path / "a", unconfirmed=3)
+    (lost,) = books["lost_by_incarnation"]
+    assert (lost["role"], lost["where"], lost["lost"], lost["in_transit"], lost["lost_bound"]) == (
+        "rollout-a", "close", 3, 3, 3)
+    assert books["produced"] == 10 == books["consumed"] + books["lost"]
+    assert books["unaccounted"] == 0 and books["notes"] == [] and books["lost_within_bounds"]
+    # the learner confirmed all but 2: the third missing chunk no record explains
+    books = _clean_tail_run(tmp_path / "b", unconfirmed=2)
+    assert books["lost"] == 2 and books["unaccounted"] == 1
+    assert books["notes"] == [f"rollout-a.0.{os.getpid()}: 1 chunks missing at the end of a clean incarnation"]
+    # confirmed, yet missing: unaccounted, as before
+    books = _clean_tail_run(tmp_path / "c", unconfirmed=0)
+    assert books["lost"] == 0 and books["unaccounted"] == 3
+
+
+def test_the_last_chunks_dropped_by_the_actor_s_fabric_are_its_drops_not_foreign(tmp_path: Path) -> None:
+    books = _clean_tail_run(tmp_path, unconfirmed=0, fabric_dropped=3)
+    assert (books["dropped"], books["dropped_by_reason"], books["foreign_rejected"]) == (3, {"backpressure": 3}, 0)
+    assert books["unaccounted"] == 0 and books["lost"] == 0 and books["notes"] == []
+
+
+def test_receipts_say_how_far_a_rollout_incarnation_s_chunks_got(tmp_path: Path) -> None:
+    from dvla.fabric.messages import ReceiptRequest
+
+    r = RolloutLedger(tmp_path, "rollout-a", queue_cap=8)
+    assert r.last_seq == r.first_seq - 1  # nothing shipped
+    for _ in range(5):
+        r.add_shipped(1000)
+    assert r.last_seq == r.first_seq + 4
+    a = ActorLedger(tmp_path, "actor-0", Accounting(), slots=4, inbox_cap=64)
+    ask = ReceiptRequest(rollout="rollout-a", seq=r.last_seq)
+    assert a.receipt(ask).seq == -1  # nothing got yet
+    for i in range(3):
+        a.settle(a.got("rollout-a", r.first_seq + i), "consumed")
+    assert a.receipt(ask).seq == r.first_seq + 2
+    a.fabric_dropped("rollout-a", r.first_seq + 4)  # dropped before the inbox: it left the link all the same
+    assert a.receipt(ask).seq == r.last_seq and a.receipt(ask).rollout == "rollout-a"
+    later = 1 << INCARNATION_SHIFT  # another incarnation of the same name: its own count
+    assert a.newest("rollout-a", later + 9) == -1
+    a.settle(a.got("rollout-a", later + 2), "consumed")
+    assert a.newest("rollout-a", later + 9) == later + 2 and a.newest("rollout-a", r.last_seq) == r.last_seq
+    assert a.newest("rollout-b", 0) == -1
+    r.close()
+    a.close()
+
+
+class _Learner:
+    """Stands in for a rollout's fabric: a learner that has got chunks up to `seq` (-1: none)."""
+
+    def __init__(self, seq: int, matched: bool = True) -> None:
+        from dvla.fabric.keys import KeySpace
+
+        self.keys, self.seq, self.matched, self.asked = KeySpace("run"), seq, matched, []
+
+    def traj_matched(self) -> bool:
+        return self.matched
+
+    def query(self, key: str, request, *, expect, timeout: float):
+        from dvla.fabric.messages import Receipt
+
+        self.asked.append((key, request.rollout, request.seq))
+        return [("actor-0", Receipt(rollout=request.rollout, seq=self.seq))]
+
+
+def test_a_stopping_rollout_waits_for_its_learner_and_records_what_it_did_not_confirm(tmp_path: Path) -> None:
+    r = RolloutLedger(tmp_path, "rollout-a", queue_cap=8)
+    idle = _Learner(-1)
+    assert r.await_receipt(idle, ["actor-0"]) == (0, r.confirm_wait_s, 0, "") and idle.asked == []  # nothing shipped
+    for _ in range(5):
+        r.add_shipped(1000)
+    done = _Learner(r.last_seq)
+    wait = r.await_receipt(done, ["actor-0"])
+    assert (wait.unconfirmed, wait.queries, wait.why) == (0, 1, "")
+    assert done.asked == [("dvla/run/ctrl/receipt/actor-0", "rollout-a", r.first_seq + 4)]
+    behind = _Learner(r.first_seq + 2)  # it has the first three, and never more
+    wait = r.await_receipt(behind, ["actor-0"], wait_s=0.3, poll_s=0.05)
+    assert wait.unconfirmed == 2 and wait.queries >= 2 and 0.2 <= wait.waited_s < 2.0
+    assert wait.why == "no confirmation within 0.3 s"
+    gone = _Learner(-1, matched=False)  # the learner left the link: no query, nothing confirmed
+    assert r.await_receipt(gone, ["actor-0"])[::2] == (5, 0) and gone.asked == []
+    assert r.await_receipt(done, [])[0] == 5  # nobody to ask
+    r.unconfirmed = 2
+    r.close()
+    record = json.loads(next((tmp_path / "counters").iterdir()).read_bytes())
+    assert (record["unconfirmed"], record["clean"]) == (2, True) and record["confirm_wait_s"] >= 0
+
+
 def test_an_empty_run_has_empty_books(tmp_path: Path) -> None:
     books = reconcile(tmp_path)
     assert (books["produced"], books["unaccounted"], books["incarnations"]) == (0, 0, {"rollout": 0, "actor": 0})

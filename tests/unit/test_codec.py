@@ -33,6 +33,8 @@ from dvla.fabric.messages import (
     Command,
     EvalResult,
     LedgerRecord,
+    Receipt,
+    ReceiptRequest,
     RoleStatus,
     SnapshotRequest,
     TrajectoryChunk,
@@ -92,6 +94,8 @@ def control_messages() -> list:
         WeightSnapshot(sender="actor", version=4, manifest=b"\x01" * 40, n_chunks=3, created_ns=7),
         LedgerRecord(role="robot-1", incarnation=2, pid=77,
                      record='{"role":"robot-1","incarnation":2,"pid":77,"kind":"rollout","shipped":5}'),
+        ReceiptRequest(rollout="rollout-3", seq=(2 << 32) + 17),
+        Receipt(rollout="rollout-3", seq=-1),
     ]
 
 

@@ -110,6 +110,11 @@ def test_authorize_rules():
     assert ok(KEYS.ledger("robot-1"), "robot-1", "rollout")  # a rollout's own counter record
     assert not ok(KEYS.ledger("robot-1"), "robot-2", "rollout") and not ok(KEYS.ledger("robot-1"), "robot-1", "evaluator")
     assert ok(KEYS.snapshot("replicator-a"), "rollout-a", "rollout", query=True)  # any member asks
+    assert ok(KEYS.receipt("actor-0"), "rollout-a", "rollout", query=True)  # a stopping rollout asks
+    assert not ok(KEYS.receipt("actor-0"), "ev-0", "evaluator", query=True)
+    assert ok(KEYS.receipt("actor-0"), "actor-0", "actor")  # the learner answers on its own key
+    assert not ok(KEYS.receipt("actor-0"), "actor-1", "actor")
+    assert not ok(KEYS.receipt("actor-0"), "rollout-a", "rollout")
     assert ok(KEYS.snapshot("replicator-a"), "replicator-a", "replicator")
     assert not ok(KEYS.snapshot("replicator-a"), "replicator-b", "replicator")
 
