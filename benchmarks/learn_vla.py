@@ -86,7 +86,7 @@ def record_demos(expert_run: Path, rl_task: Any, out: Path, episodes: int, n_env
     current: list[dict[str, list[np.ndarray]]] = [{k: [] for k in per_step} for _ in range(n_envs)]
     texts: list[str] = []  # every instruction seen, in order: a step's instruction_id indexes it
     solved = np.zeros(n_envs, dtype=bool)
-    played = n_kept = steps = 0
+    played = n_kept = n_solved = steps = 0
     started = time.perf_counter()
     try:
         s_obs, r_obs = state_g.reset(seed=seed), rgb_g.reset(seed=seed)
@@ -110,6 +110,7 @@ def record_demos(expert_run: Path, rl_task: Any, out: Path, episodes: int, n_env
                 current[i]["reward"].append(np.float32(r_res.reward[i]))
             for i in np.flatnonzero(s_res.episode_done):
                 played += 1
+                n_solved += bool(solved[i])
                 if (solved[i] or not solved_only) and n_kept < episodes:
                     for k in per_step:
                         kept[k].append(np.stack(current[i][k]))
@@ -139,7 +140,8 @@ def record_demos(expert_run: Path, rl_task: Any, out: Path, episodes: int, n_env
     meta = {"expert_run": str(expert_run), "env": task.env, "control_mode": task.control_mode,
             "max_episode_steps": task.max_episode_steps, "image_size": vis.image_size, "policy": vis.policy,
             "instruction_tokens": vis.instruction_tokens, "instruction": vis.instruction,
-            "episodes": n_kept, "episodes_played": played, "expert_success": n_kept / max(played, 1),
+            "episodes": n_kept, "episodes_played": played, "expert_success": n_solved / max(played, 1),
+            "solved_only": solved_only,
             "transitions": int(len(arrays["action"])), "env_steps": steps, "seed": seed,
             "seconds": time.perf_counter() - started}
     Path(f"{out}.json").write_text(json.dumps(meta, indent=2) + "\n")
@@ -483,13 +485,15 @@ def main(argv: list[str] | None = None) -> None:
 
     ap = argparse.ArgumentParser(prog="python -m benchmarks.learn_vla", description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
-    rec = sub.add_parser("demos", help="record an expert run's solved episodes with rgb observations")
+    rec = sub.add_parser("demos", help="record an expert run's solved (or all) episodes with rgb observations")
     rec.add_argument("expert_run", type=Path)
     rec.add_argument("out", type=Path)
     rec.add_argument("--episodes", type=int, default=200)
     rec.add_argument("--topology", type=Path, default=DEFAULT_TOPOLOGY,
                      help="the RL topology whose observations are recorded (image size, instruction, tokenizer)")
     rec.add_argument("--envs", type=int, default=4)
+    rec.add_argument("--all-episodes", action="store_true",
+                     help="keep every episode the expert plays, failures too (default: solved ones only)")
     bc = sub.add_parser("clone", help="behaviour cloning of a topology's policy on recorded demos")
     bc.add_argument("topology", type=Path, help="the RL topology (its task: rgb obs, the VLA policy)")
     bc.add_argument("demos", type=Path)
@@ -500,17 +504,22 @@ def main(argv: list[str] | None = None) -> None:
     bc.add_argument("--batch", type=int, default=64)
     bc.add_argument("--eval", type=int, default=64, help="evaluation episodes after cloning (0: none)")
     bc.add_argument("--threads", type=int, default=2)
+    bc.add_argument("--noise-std", type=float, default=NOISE_STD,
+                    help=f"the warm start's exploration noise (std of its Gaussian head; default {NOISE_STD})")
     args = ap.parse_args(argv)
     if args.cmd == "demos":
         rl_task = load_topology(args.topology).task
-        print(json.dumps(record_demos(args.expert_run, rl_task, args.out, args.episodes, args.envs), indent=2))
+        print(json.dumps(record_demos(args.expert_run, rl_task, args.out, args.episodes, args.envs,
+                                             solved_only=not args.all_episodes), indent=2))
         return
     torch.set_num_threads(args.threads)
     task = load_topology(args.topology).task
     demos = load_demos(args.demos)
     if args.episodes:
         demos = first_episodes(demos, args.episodes)
-    res = clone(task, demos, args.out, epochs=args.epochs, batch=args.batch, lr=args.lr)
+    if args.noise_std <= 0:
+        ap.error(f"--noise-std must be > 0, got {args.noise_std}")
+    res = clone(task, demos, args.out, epochs=args.epochs, batch=args.batch, lr=args.lr, noise_std=args.noise_std)
     doc = {k: v for k, v in res.items() if k != "policy"}
     if args.eval:
         doc["eval"] = evaluate(task, args.out, args.eval)

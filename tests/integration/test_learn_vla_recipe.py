@@ -75,6 +75,8 @@ def test_demos_replay_the_expert_with_rendered_observations_and_a_clone_warm_sta
     assert sorted(set(demos["episode"].tolist())) == [0, 1, 2] and np.all(np.diff(demos["episode"]) >= 0)
     assert demos["reward"].shape == (n,) and np.isfinite(demos["reward"]).all() and demos["reward"].std() > 0
     assert demos["terminated"].shape == (n,) and not demos["terminated"].any()  # time limits, no successes
+    # every episode kept (failures too), and the expert's success is what it solved, not what was kept
+    assert meta["solved_only"] is False and meta["episodes_played"] >= 3 and meta["expert_success"] == 0.0
     # the arm moves within an episode as the actions say (consecutive joint states differ)
     first = demos["proprio"][demos["episode"] == 0]
     assert np.abs(np.diff(first[:, :9], axis=0)).max() > 1e-3
