@@ -507,18 +507,19 @@ def main(argv: list[str] | None = None) -> None:
     bc.add_argument("--noise-std", type=float, default=NOISE_STD,
                     help=f"the warm start's exploration noise (std of its Gaussian head; default {NOISE_STD})")
     args = ap.parse_args(argv)
+    if args.cmd == "clone" and not args.noise_std > 0:
+        ap.error(f"--noise-std must be > 0, got {args.noise_std}")
     if args.cmd == "demos":
         rl_task = load_topology(args.topology).task
-        print(json.dumps(record_demos(args.expert_run, rl_task, args.out, args.episodes, args.envs,
-                                             solved_only=not args.all_episodes), indent=2))
+        meta = record_demos(args.expert_run, rl_task, args.out, args.episodes, args.envs,
+                            solved_only=not args.all_episodes)
+        print(json.dumps(meta, indent=2))
         return
     torch.set_num_threads(args.threads)
     task = load_topology(args.topology).task
     demos = load_demos(args.demos)
     if args.episodes:
         demos = first_episodes(demos, args.episodes)
-    if args.noise_std <= 0:
-        ap.error(f"--noise-std must be > 0, got {args.noise_std}")
     res = clone(task, demos, args.out, epochs=args.epochs, batch=args.batch, lr=args.lr, noise_std=args.noise_std)
     doc = {k: v for k, v in res.items() if k != "policy"}
     if args.eval:
