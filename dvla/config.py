@@ -365,7 +365,9 @@ class TaskConfig:
     #: ManiSkill3 env id (e.g. "PushCube-v1"), "libero" (LIBERO tasks, see `libero`) or a Gymnasium
     #: factory as "module:function"
     env: str = rule("PushCube-v1", nonempty="an env id like 'PushCube-v1' or 'module:function'")
-    #: ManiSkill observation mode ("state", "rgb")
+    #: ManiSkill observation mode: "state" (a flat vector), "rgb" (camera images + the joints as
+    #: proprio + the instruction) or "rgb+state" (the same, with the simulator's whole state vector,
+    #: object poses included, as proprio: privileged, for telling perception from control apart)
     obs_mode: str = "state"
     #: ManiSkill controller
     control_mode: str = "pd_joint_delta_pos"
@@ -450,7 +452,7 @@ class TaskConfig:
         wanted = POLICY_OBS.get(self.policy)
         if ":" not in self.policy and wanted is None:
             yield "policy", unknown_value("policy", self.policy, (*POLICY_OBS, "module:Class"))
-        elif wanted and self.obs_mode in OBS_MODES and self.obs_mode != wanted:
+        elif wanted and self.obs_mode in OBS_MODES and OBS_MODES[self.obs_mode] != wanted:
             yield "policy", f"policy {self.policy!r} reads {wanted!r} observations, but obs_mode is {self.obs_mode!r}"
         yield from grpo_layout_problems(self)
         if self.env != LIBERO_ENV and self.libero is not None:
@@ -481,8 +483,9 @@ class TaskConfig:
                                    f"{self.action_chunk}; {fix}")
 
 
-OBS_MODES = ("state", "rgb")
-"""ManiSkill observation modes the env adapter understands (dvla/learn/envs.py)."""
+OBS_MODES = {"state": "state", "rgb": "rgb", "rgb+state": "rgb"}
+"""ManiSkill observation modes the env adapter understands (dvla/learn/envs.py), and the kind of
+observations each gives a policy (``rgb+state``: rgb whose proprio is the privileged state vector)."""
 POLICY_OBS = {"mlp": "state", "tiny-vla": "rgb", "vla-tokens": "rgb", "vla-flow": "rgb", "pi0": "rgb", "pi05": "rgb",
               "smolvla": "rgb", "openvla": "rgb", "openvla-oft": "rgb"}
 """Registered policies (dvla/learn/policies.py) and the observations they read (a user

@@ -12,7 +12,7 @@ import numpy as np
 from ..fabric.messages import ArraySpec, ChunkSpec
 
 __all__ = ["ArraySpec", "ChunkSpec", "ObsSpec", "EnvSetupError", "PolicySetupError", "StepResult", "StepLater",
-           "structured_spec"]
+           "maniskill_proprio", "structured_spec"]
 
 
 class EnvSetupError(RuntimeError):
@@ -71,6 +71,16 @@ class StepLater:
         return self.step(actions)  # type: ignore[attr-defined]  (the group's own step)
 
 
+def maniskill_proprio(obs: Any) -> list[Any]:
+    """The parts of a ManiSkill observation dict (or of its space's ``.spaces``) that make the
+    proprioception, in order: the whole state vector where the dict has one (``obs_mode``
+    ``rgb+state``: object poses included), else the joints' positions and velocities."""
+    if "state" in obs:
+        return [obs["state"]]
+    agent = obs["agent"]
+    return [agent["qpos"], agent["qvel"]]
+
+
 def structured_spec(space: Any, n_tokens: int, vocab: int) -> ObsSpec:
     """The spec of :func:`_structured_obs`'s output, read from ManiSkill's Dict space (or from
     one that already has rgb and proprio)."""
@@ -81,12 +91,11 @@ def structured_spec(space: Any, n_tokens: int, vocab: int) -> ObsSpec:
     try:
         cameras = space["sensor_data"]
         shapes = [tuple(cameras[name]["rgb"].shape) for name in sorted(cameras.spaces)]
-        agent = space["agent"]
-        n_proprio = int(np.prod(agent["qpos"].shape) + np.prod(agent["qvel"].shape))
+        n_proprio = int(sum(np.prod(part.shape) for part in maniskill_proprio(space.spaces)))
     except (KeyError, TypeError) as err:
         raise TypeError(
-            f"observation space without sensor_data/<camera>/rgb and agent/qpos, agent/qvel "
-            f"(keys {sorted(space.spaces)}); only ManiSkill's obs_mode='rgb' is understood"
+            f"observation space without sensor_data/<camera>/rgb and agent/qpos, agent/qvel or state "
+            f"(keys {sorted(space.spaces)}); only ManiSkill's obs_mode 'rgb' and 'rgb+state' are understood"
         ) from err
     if not shapes or len({s[:2] for s in shapes}) != 1:
         raise TypeError(f"cameras must share one image size, got {shapes}")

@@ -4,6 +4,8 @@ tokenised instruction."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -95,3 +97,31 @@ def test_one_scene_group_gives_the_same_rgb_observations():
     finally:
         loop.close()
         scene.close()
+
+
+@pytest.mark.timeout(240)
+def test_rgb_plus_state_gives_the_state_vector_as_proprio():
+    """obs_mode 'rgb+state': rendered images, and as proprio the privileged state vector (joints,
+    tool pose, goal and cube poses) that a state-observation env of the same seed gives, step for
+    step; the one-scene group reads it alike."""
+    pytest.importorskip("mani_skill")
+    from dvla.learn.vector_env import VectorEnvGroup
+
+    priv = replace(TASK, obs_mode="rgb+state")
+    groups = (EnvGroup(replace(TASK, obs_mode="state", policy="mlp"), 1, seed=5), EnvGroup(priv, 1, seed=5),
+              VectorEnvGroup(priv, 1, seed=5, backend="physx_cpu"))
+    state, loop, scene = groups
+    try:
+        s, a, b = (g.reset() for g in groups)
+        assert loop.obs_spec["proprio"].shape == (s.shape[1],) and s.shape[1] > 18  # more than the joints
+        assert scene.obs_spec == loop.obs_spec
+        assert a["rgb"].std() > 5
+        rng = np.random.default_rng(0)
+        for _ in range(3):
+            np.testing.assert_allclose(a["proprio"], s, atol=1e-5)
+            assert np.array_equal(a["proprio"], b["proprio"].numpy()) and np.array_equal(a["rgb"], b["rgb"].numpy())
+            act = rng.uniform(-1, 1, (1, state.act_dim)).astype(np.float32)
+            s, a, b = state.step(act).next_obs, loop.step(act).next_obs, scene.step(torch.from_numpy(act)).next_obs
+    finally:
+        for g in groups:
+            g.close()

@@ -514,3 +514,15 @@ def test_up_options_override_the_budget_mode_seed_and_warm_start() -> None:
     got = apply_overrides(topo, UpOptions(max_env_steps=123, mode="sync", seed=7, init_weights="/w/bc.safetensors"))
     assert (got.task.budget.max_env_steps, got.mode, got.seed, got.task.init_weights) == (123, "sync", 7, "/w/bc.safetensors")
     assert got.task.budget.until_success == topo.task.budget.until_success and got.racks == topo.racks
+
+
+def test_obs_mode_rgb_plus_state_is_an_rgb_mode_for_policies() -> None:
+    """``rgb+state`` (images + the privileged state vector as proprio) is read by the rgb
+    policies; a state policy, or a mode nobody knows, is one problem line naming the key."""
+    ok = MINIMAL + "task:\n  obs_mode: rgb+state\n  policy: tiny-vla\n"
+    assert parse_topology(ok, "t.yaml").task.obs_mode == "rgb+state"
+    (problem,) = _problems(MINIMAL + "task:\n  obs_mode: rgb+state\n  policy: mlp\n")
+    assert problem.path == "task.policy" and "'state' observations" in problem.message
+    assert "'rgb+state'" in problem.message
+    (problem,) = _problems(MINIMAL + "task:\n  obs_mode: rgb+depth\n  policy: tiny-vla\n")
+    assert problem.path == "task.obs_mode" and "expected state, rgb, rgb+state" in problem.message
