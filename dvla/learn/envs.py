@@ -20,7 +20,7 @@ from dvla.config import LIBERO_ENV, TaskConfig, env_group_sizes
 
 from ..stats import wilson_interval
 from .spec import (ArraySpec, ChunkSpec, EnvSetupError, ObsSpec, StepLater, StepResult, maniskill_proprio,
-                   structured_spec)
+                   not_maniskill_rgb, structured_spec)
 
 __all__ = [
     "make_env", "EnvSetupError", "ArraySpec", "ObsSpec", "EnvGroup", "StepResult", "run_eval_episodes",
@@ -199,10 +199,7 @@ def _structured_obs(obs: dict, tokens: np.ndarray) -> dict[str, np.ndarray]:
         images = [_to_numpy(cameras[name]["rgb"])[0] for name in sorted(cameras)]
         proprio = np.concatenate([_to_numpy(part).reshape(-1) for part in maniskill_proprio(obs)])
     except (KeyError, TypeError) as err:
-        raise TypeError(
-            f"dict observation without sensor_data/<camera>/rgb and agent/qpos, agent/qvel or state "
-            f"(top-level keys {sorted(obs)}); only ManiSkill's obs_mode 'rgb' and 'rgb+state' are understood"
-        ) from err
+        raise not_maniskill_rgb("dict observation", obs) from err
     if not images:
         raise TypeError("obs_mode='rgb' produced no camera image (sensor_data is empty)")
     return {

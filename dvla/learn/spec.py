@@ -12,7 +12,7 @@ import numpy as np
 from ..fabric.messages import ArraySpec, ChunkSpec
 
 __all__ = ["ArraySpec", "ChunkSpec", "ObsSpec", "EnvSetupError", "PolicySetupError", "StepResult", "StepLater",
-           "maniskill_proprio", "structured_spec"]
+           "maniskill_proprio", "not_maniskill_rgb", "structured_spec"]
 
 
 class EnvSetupError(RuntimeError):
@@ -81,6 +81,12 @@ def maniskill_proprio(obs: Any) -> list[Any]:
     return [agent["qpos"], agent["qvel"]]
 
 
+def not_maniskill_rgb(what: str, keys: Any) -> TypeError:
+    """The one-line error for an observation (or its space) that is not ManiSkill's rgb layout."""
+    return TypeError(f"{what} without sensor_data/<camera>/rgb and agent/qpos, agent/qvel or state "
+                     f"(keys {sorted(keys)}); only ManiSkill's obs_mode 'rgb' and 'rgb+state' are understood")
+
+
 def structured_spec(space: Any, n_tokens: int, vocab: int) -> ObsSpec:
     """The spec of :func:`_structured_obs`'s output, read from ManiSkill's Dict space (or from
     one that already has rgb and proprio)."""
@@ -93,10 +99,7 @@ def structured_spec(space: Any, n_tokens: int, vocab: int) -> ObsSpec:
         shapes = [tuple(cameras[name]["rgb"].shape) for name in sorted(cameras.spaces)]
         n_proprio = int(sum(np.prod(part.shape) for part in maniskill_proprio(space.spaces)))
     except (KeyError, TypeError) as err:
-        raise TypeError(
-            f"observation space without sensor_data/<camera>/rgb and agent/qpos, agent/qvel or state "
-            f"(keys {sorted(space.spaces)}); only ManiSkill's obs_mode 'rgb' and 'rgb+state' are understood"
-        ) from err
+        raise not_maniskill_rgb("observation space", space.spaces) from err
     if not shapes or len({s[:2] for s in shapes}) != 1:
         raise TypeError(f"cameras must share one image size, got {shapes}")
     h, w = shapes[0][:2]

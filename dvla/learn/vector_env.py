@@ -21,7 +21,8 @@ import torch
 from dvla.config import TaskConfig
 
 from ..fabric.messages import TrajectoryChunk, chunk_arrays, nest
-from .spec import ArraySpec, ChunkSpec, ObsSpec, StepLater, StepResult, maniskill_proprio, structured_spec
+from .spec import (ArraySpec, ChunkSpec, ObsSpec, StepLater, StepResult, maniskill_proprio, not_maniskill_rgb,
+                   structured_spec)
 
 __all__ = ["VectorEnvGroup", "make_vector_env", "DeviceChunk"]
 
@@ -143,10 +144,7 @@ class VectorEnvGroup(StepLater):
             images = [cameras[name]["rgb"] for name in sorted(cameras)]
             proprio = torch.cat([part.reshape(self.n, -1) for part in maniskill_proprio(raw)], dim=1)
         except (KeyError, TypeError) as err:
-            raise TypeError(
-                f"dict observation without sensor_data/<camera>/rgb and agent/qpos, agent/qvel or state "
-                f"(top-level keys {sorted(raw)}); only ManiSkill's obs_mode 'rgb' and 'rgb+state' are understood"
-            ) from err
+            raise not_maniskill_rgb("dict observation", raw) from err
         return {"rgb": torch.cat(images, dim=-1).to(torch.uint8), "proprio": proprio.to(torch.float32),
                 "tokens": self._tokens}
 
