@@ -14,6 +14,9 @@ The pieces, each usable on its own (``python -m benchmarks.learn_vla --help``):
   held at its initial value (a Gaussian head: mean-squared error scaled; action bins:
   cross-entropy), proprio statistics folded from the demonstrations first. Saves
   ``replicated_tensors(policy)`` as safetensors: what ``task.init_weights`` reads.
+- :func:`record_scenes` and :func:`pretrain_percept`: PushCube pictures with the goal's and cube's
+  positions, and a small convolutional perception trained to read them, which tiny-vla then
+  holds frozen (``policy_kwargs.percept``; :mod:`dvla.learn.vla.percept`).
 - :func:`evaluate`: deterministic episodes from fixed seeds (``run_eval_episodes``), success with
   its 95 % Wilson interval.
 """
@@ -146,6 +149,118 @@ def record_demos(expert_run: Path, rl_task: Any, out: Path, episodes: int, n_env
             "seconds": time.perf_counter() - started}
     Path(f"{out}.json").write_text(json.dumps(meta, indent=2) + "\n")
     return meta
+
+
+SCENE_SEED = 70_000_000
+PERCEPT_LABELS = ("goal_x", "goal_y", "cube_x", "cube_y")
+
+
+def record_scenes(task: Any, demos: dict[str, np.ndarray], out: Path, n: int, seed: int = SCENE_SEED,
+                  progress: Callable[[str], None] = _progress) -> dict[str, Any]:
+    """``n`` PushCube pictures at ``task``'s image size, each with the goal's and cube's table
+    coordinates read from the simulator (``out``.npz: rgb, labels [n, 4] in metres, label_names).
+
+    Each scene: the arm in a joint pose drawn from ``demos`` (what a policy sees it do), the goal
+    where a reset puts it, the cube anywhere along its push from its start to the goal or, one
+    scene in three, anywhere on the table, turned by up to ~35 degrees. The cube is placed
+    independently of the goal on purpose: from resets alone a network learns to read the cube
+    off the goal (they start 20 cm apart) and misses it as soon as it is pushed."""
+    import torch
+    from mani_skill.utils.structs.pose import Pose
+    from transforms3d.euler import euler2quat
+
+    from dvla.learn.envs import EnvGroup
+
+    if task.env != "PushCube-v1" or "rgb" not in task.obs_mode:
+        raise ValueError(f"scenes are arranged for PushCube-v1 with rgb observations; the task has "
+                         f"env {task.env!r}, obs_mode {task.obs_mode!r}")
+    group = EnvGroup(task, 1, seed)
+    rng = np.random.default_rng(seed)
+    rgb = np.zeros((n, task.image_size, task.image_size, 3), dtype=np.uint8)
+    labels = np.zeros((n, len(PERCEPT_LABELS)), dtype=np.float32)
+    started = time.perf_counter()
+
+    def pose(p: Any, q: Any) -> Any:
+        return Pose.create_from_pq(p=torch.tensor(np.asarray(p), dtype=torch.float32)[None],
+                                   q=torch.tensor(np.asarray(q), dtype=torch.float32)[None])
+
+    try:
+        group.reset(seed=seed)
+        env = group._envs[0].unwrapped
+        dof = int(env.agent.robot.get_qpos().shape[-1])
+        arm = demos["proprio"][:, :dof]  # both rgb layouts start with the joint positions
+        for i in range(n):
+            env.agent.robot.set_qpos(torch.from_numpy(arm[rng.integers(len(arm))]).float()[None])
+            env.agent.robot.set_qvel(torch.zeros(1, dof))
+            start = rng.uniform(-0.1, 0.1, 2)  # PushCube's reset range for the cube
+            goal = np.array([start[0] + 0.1 + env.goal_radius, start[1], 1e-3])
+            t = rng.uniform()
+            cube = np.array([start[0] + t * (goal[0] - start[0]) + rng.normal(0, 0.02),
+                             start[1] + rng.normal(0, 0.03) * (0.3 + t), env.cube_half_size])
+            if rng.uniform() < 1 / 3:
+                cube[:2] = rng.uniform([-0.15, -0.15], [0.25, 0.15])
+            env.goal_region.set_pose(pose(goal, euler2quat(0, np.pi / 2, 0)))
+            env.obj.set_pose(pose(cube, euler2quat(0, 0, rng.uniform(-0.6, 0.6))))
+            rgb[i] = group._convert(env.get_obs(), 0)["rgb"]
+            labels[i] = (*env.goal_region.pose.p[0, :2].tolist(), *env.obj.pose.p[0, :2].tolist())
+            if (i + 1) % 1000 == 0:
+                progress(f"scenes: {i + 1}/{n} ({time.perf_counter() - started:.0f} s)")
+    finally:
+        group.close()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(out, rgb=rgb, labels=labels, label_names=np.array(PERCEPT_LABELS, dtype=np.str_))
+    return {"scenes": n, "image_size": task.image_size, "seed": seed, "seconds": time.perf_counter() - started}
+
+
+def pretrain_percept(scenes: dict[str, np.ndarray], out: Path, epochs: int = 12, batch: int = 64, lr: float = 2e-3,
+                     held_out: float = 0.1, seed: int = 0,
+                     progress: Callable[[str], None] = _progress) -> dict[str, Any]:
+    """Supervised training of a :class:`~dvla.learn.vla.percept.Percept` on ``scenes``
+    (:func:`record_scenes`' arrays) to their labels (standardised squared error, AdamW, one-cycle
+    learning rate); the last ``held_out`` of the scenes are kept out and measured after every
+    epoch (rms error per label, in the labels' units). Saves the network to ``out``."""
+    import torch
+
+    from dvla.learn.vla.percept import Percept, save_percept
+
+    torch.manual_seed(seed)
+    rgb, y = torch.from_numpy(scenes["rgb"]), torch.from_numpy(scenes["labels"]).float()
+    names = tuple(str(x) for x in scenes["label_names"])
+    n_test = int(len(y) * held_out)
+    if n_test < 1 or len(y) - n_test < batch:
+        raise ValueError(f"{len(y)} scenes are too few to keep {held_out:.0%} out and train in batches of {batch}")
+    test = torch.arange(len(y) - n_test, len(y))
+    train = torch.arange(len(y) - n_test)
+    net = Percept(y.shape[1], labels=names)
+    net.mu.copy_(y[train].mean(0))
+    net.sd.copy_(y[train].std(0).clamp_min(1e-6))
+    opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
+    per_epoch = -(-len(train) // batch)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, lr, total_steps=epochs * per_epoch)
+    started = time.perf_counter()
+    history = []
+    for epoch in range(epochs):
+        net.train()
+        total = 0.0
+        for idx in train[torch.randperm(len(train))].split(batch):
+            loss = ((net(rgb[idx]) - (y[idx] - net.mu) / net.sd) ** 2).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            sched.step()
+            total += loss.item() * len(idx)
+        net.eval()
+        with torch.no_grad():
+            err = torch.cat([net.estimate(rgb[i]) - y[i] for i in test.split(512)])
+        rms = err.pow(2).mean(0).sqrt().tolist()
+        history.append({"loss": total / len(train), "held_out_rms": dict(zip(names, rms))})
+        progress(f"pretrain: epoch {epoch + 1}/{epochs} loss {total / len(train):.4f} held-out rms "
+                 + " ".join(f"{k} {v * 100:.2f} cm" for k, v in zip(names, rms))
+                 + f" ({time.perf_counter() - started:.0f} s)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_percept(net, out)
+    return {"epochs": history, "train_scenes": len(train), "held_out_scenes": n_test,
+            "seconds": time.perf_counter() - started}
 
 
 def load_demos(path: Path) -> dict[str, np.ndarray]:
@@ -506,7 +621,33 @@ def main(argv: list[str] | None = None) -> None:
     bc.add_argument("--threads", type=int, default=2)
     bc.add_argument("--noise-std", type=float, default=NOISE_STD,
                     help=f"the warm start's exploration noise (std of its Gaussian head; default {NOISE_STD})")
+    sc = sub.add_parser("scenes", help="render PushCube scenes with the goal's and cube's positions (perception labels)")
+    sc.add_argument("demos", type=Path, help="demonstrations whose arm poses the scenes reuse")
+    sc.add_argument("out", type=Path)
+    sc.add_argument("--scenes", type=int, default=12000)
+    sc.add_argument("--topology", type=Path, default=DEFAULT_TOPOLOGY,
+                    help="the RL topology whose pictures are rendered (image size)")
+    pt = sub.add_parser("pretrain", help="train a perception (policy_kwargs.percept) on recorded scenes")
+    pt.add_argument("scenes", type=Path)
+    pt.add_argument("out", type=Path)
+    pt.add_argument("--epochs", type=int, default=12)
+    pt.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
+    for name in ("scenes", "epochs"):
+        if isinstance(getattr(args, name, None), int) and getattr(args, name) < 1:
+            ap.error(f"--{name} must be >= 1, got {getattr(args, name)}")
+    if args.cmd == "scenes":
+        task = load_topology(args.topology).task
+        meta = record_scenes(task, load_demos(args.demos), args.out, args.scenes)
+        Path(f"{args.out}.json").write_text(json.dumps(meta, indent=2) + "\n")
+        print(json.dumps(meta, indent=2))
+        return
+    if args.cmd == "pretrain":
+        torch.set_num_threads(args.threads)
+        doc = pretrain_percept(load_demos(args.scenes), args.out, epochs=args.epochs)
+        Path(f"{args.out}.json").write_text(json.dumps(doc, indent=2) + "\n")
+        print(json.dumps(doc["epochs"][-1], indent=2))
+        return
     if args.cmd == "clone" and not args.noise_std > 0:
         ap.error(f"--noise-std must be > 0, got {args.noise_std}")
     if args.cmd == "demos":

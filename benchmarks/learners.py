@@ -22,7 +22,7 @@ Figures:
   last update, compared.
 
 Workload: ``tiny-vla`` at the ``base`` preset (5.9 M parameters) on the inputs of
-topologies/local-vla.yaml (64x64 rgb, 8 px patches, 16 instruction tokens, 18 proprio values,
+topologies/local-vla.yaml (64x64 rgb, 8 px patches, 16 instruction tokens, 25 proprio values,
 8 actions) and that topology's PPO shape (4 minibatches, 2 epochs), with a smaller batch so the
 bench stays short (a sample costs the same at 64 or 400 per batch). ``base`` is the smallest
 preset whose learner is the slow stage on a CPU core (see :data:`WHY`). ``target_kl`` is off so
@@ -70,7 +70,7 @@ class LearnersBenchConfig:
     image_size: int = 64
     patch_size: int = 8
     instruction_tokens: int = 16
-    proprio: int = 18
+    proprio: int = 25
     act_dim: int = 8
     #: PPO update shape
     update_epochs: int = 2

@@ -74,11 +74,15 @@ class StepLater:
 def maniskill_proprio(obs: Any) -> list[Any]:
     """The parts of a ManiSkill observation dict (or of its space's ``.spaces``) that make the
     proprioception, in order: the whole state vector where the dict has one (``obs_mode``
-    ``rgb+state``: object poses included), else the joints' positions and velocities."""
+    ``rgb+state``: object poses included), else the joints' positions and velocities followed by
+    the task's ``extra`` entries in ManiSkill's order. Without ``state`` those extras are what a
+    real robot knows of itself (PushCube: the tool's pose, ``tcp_pose``; object poses only come
+    with ``state``), so an ``rgb`` policy reads what LIBERO's proprio also has: joints and tool pose."""
     if "state" in obs:
         return [obs["state"]]
     agent = obs["agent"]
-    return [agent["qpos"], agent["qvel"]]
+    extra = obs.get("extra") if hasattr(obs, "get") else None
+    return [agent["qpos"], agent["qvel"], *(extra.values() if extra is not None else ())]
 
 
 def not_maniskill_rgb(what: str, keys: Any) -> TypeError:

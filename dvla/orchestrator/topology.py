@@ -522,6 +522,34 @@ def _checkpoint_problems(topo: Topology) -> Problems:
         yield "task.policy_kwargs.checkpoint", str(err)
 
 
+def _percept_problems(topo: Topology) -> Problems:
+    """tiny-vla's ``policy_kwargs.percept``: a perception file (``dvla/learn/vla/percept.py``) every
+    role loads; its safetensors header is checked here (nothing is loaded). A path missing on this
+    machine is left to the roles when some node is remote."""
+    task = topo.task
+    path = task.policy_kwargs.get("percept") if task.policy == "tiny-vla" else None
+    if path is None:
+        return
+    key = "task.policy_kwargs.percept"
+    if not isinstance(path, str) or not path:
+        yield key, f"expected the path of a perception file (benchmarks/learn_vla.py pretrain), got {path!r}"
+        return
+    if any(node.host not in LOCAL_HOSTS for _rack, node in topo.nodes()) and not os.path.exists(path):
+        return
+    try:
+        with open(path, "rb") as f:
+            size = int.from_bytes(f.read(8), "little")
+            header = json.loads(f.read(size)) if 0 < size < 1 << 24 else None
+    except OSError as err:
+        yield key, f"{path}: {err.strerror or err}"
+        return
+    except ValueError:
+        header = None
+    meta = header.get("__metadata__") if isinstance(header, dict) else None
+    if not isinstance(meta, dict) or not all(str(meta.get(k, "")).isdigit() for k in ("outputs", "keypoints", "channels")):
+        yield key, f"{path}: not a perception file (a safetensors file whose metadata has outputs, keypoints, channels)"
+
+
 def _remote_address_problems(topo: Topology) -> Problems:
     """With remote nodes, local nodes must bind where the remote ones can reach them (not loopback)."""
     placed = topo.placed()
@@ -537,7 +565,7 @@ def _remote_address_problems(topo: Topology) -> Problems:
 
 _MACHINE_CHECKS: dict[type, tuple[Callable[[Any], Problems], ...]] = {
     TaskConfig: (_user_policy_problems, _libero_assets_problems),
-    Topology: (_checkpoint_problems, _remote_address_problems),
+    Topology: (_checkpoint_problems, _percept_problems, _remote_address_problems),
 }
 
 

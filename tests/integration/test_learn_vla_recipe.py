@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks.learn_vla import (NOISE_STD, clone, demo_tokens, evaluate, first_episodes, load_demos, observed_as,
-                                  record_demos)
+from benchmarks.learn_vla import (NOISE_STD, PERCEPT_LABELS, clone, demo_tokens, evaluate, first_episodes, load_demos,
+                                  observed_as, record_demos, record_scenes)
 from dvla.learn import make_policy
 from dvla.learn.envs import probe_spec
 from dvla.learn.vla.tokenizer import instruction_tokenizer
@@ -70,7 +70,7 @@ def test_demos_replay_the_expert_with_rendered_observations_and_a_clone_warm_sta
     n = len(demos["action"])
     assert meta["episodes"] == 3 and meta["transitions"] == n == 3 * STEPS
     assert demos["rgb"].shape == (n, 32, 32, 3) and demos["rgb"].dtype == np.uint8 and demos["rgb"].std() > 0
-    assert demos["proprio"].shape == (n, 18) and demos["action"].shape == (n, 8)
+    assert demos["proprio"].shape == (n, 25) and demos["action"].shape == (n, 8)
     assert np.abs(demos["action"]).max() <= 1.0 and np.abs(demos["action"]).max() > 0.05  # clipped, and moving
     assert sorted(set(demos["episode"].tolist())) == [0, 1, 2] and np.all(np.diff(demos["episode"]) >= 0)
     assert demos["reward"].shape == (n,) and np.isfinite(demos["reward"]).all() and demos["reward"].std() > 0
@@ -139,3 +139,25 @@ def test_a_hugging_face_vla_is_cloned_from_the_same_demos_through_its_own_tokeni
         assert torch.equal(replicated_tensors(fresh)[k], v), k
     with pytest.raises(ValueError, match="task.image_size 64"):
         clone(dataclasses.replace(hf, image_size=64), demos, tmp_path / "no.safetensors", epochs=1)
+
+
+def test_scenes_for_the_perception_are_labelled_pictures_of_the_arm_in_the_demos_poses(
+        recorded: tuple[Any, Path, dict[str, Any]], tmp_path: Path) -> None:
+    """record_scenes: rendered PushCube pictures at the task's size with the goal's and cube's
+    table xy read back from the simulator; the same seed gives the same scenes."""
+    task, out, _meta = recorded
+    demos = load_demos(out)
+    with pytest.raises(ValueError, match="PickCube-v1"):
+        record_scenes(dataclasses.replace(task, env="PickCube-v1"), demos, tmp_path / "x.npz", 2)
+    a, b = tmp_path / "a.npz", tmp_path / "b.npz"
+    meta = record_scenes(task, demos, a, 5, seed=11, progress=lambda _m: None)
+    record_scenes(task, demos, b, 5, seed=11, progress=lambda _m: None)
+    sa, sb = load_demos(a), load_demos(b)
+    assert meta["scenes"] == 5 and tuple(sa["label_names"]) == PERCEPT_LABELS
+    assert sa["rgb"].shape == (5, 32, 32, 3) and sa["rgb"].dtype == np.uint8 and sa["rgb"].std() > 5
+    assert sa["labels"].shape == (5, 4) and np.isfinite(sa["labels"]).all() and np.abs(sa["labels"]).max() < 0.4
+    goal, cube = sa["labels"][:, :2], sa["labels"][:, 2:]
+    assert np.linalg.norm(goal - cube, axis=1).max() > 0.02 and len({tuple(g) for g in goal.round(4)}) == 5
+    assert all(not np.array_equal(sa["rgb"][0], x) for x in sa["rgb"][1:])  # every scene is another picture
+    np.testing.assert_array_equal(sa["rgb"], sb["rgb"])
+    np.testing.assert_array_equal(sa["labels"], sb["labels"])

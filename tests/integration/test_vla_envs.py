@@ -35,7 +35,7 @@ def group():
 def test_rgb_observations_and_a_chunk_on_the_wire(group):
     spec = group.obs_spec
     assert {k: (s.shape, s.dtype) for k, s in spec.items()} == {
-        "rgb": ((32, 32, 3), "uint8"), "proprio": ((18,), "float32"), "tokens": ((8,), "int32"),
+        "rgb": ((32, 32, 3), "uint8"), "proprio": ((25,), "float32"), "tokens": ((8,), "int32"),
     }
     obs = group.reset(seed=7)
     assert obs["rgb"].dtype == np.uint8 and obs["rgb"].shape == (2, 32, 32, 3)
@@ -103,25 +103,29 @@ def test_one_scene_group_gives_the_same_rgb_observations():
 def test_rgb_plus_state_gives_the_state_vector_as_proprio():
     """obs_mode 'rgb+state': rendered images, and as proprio the privileged state vector (joints,
     tool pose, goal and cube poses) that a state-observation env of the same seed gives, step for
-    step; the one-scene group reads it alike."""
+    step; the one-scene group reads it alike. obs_mode 'rgb' gives that vector's first 25 entries
+    (joints 9 + 9, tool pose 7) and no object's pose."""
     pytest.importorskip("mani_skill")
     from dvla.learn.vector_env import VectorEnvGroup
 
     priv = replace(TASK, obs_mode="rgb+state")
     groups = (EnvGroup(replace(TASK, obs_mode="state", policy="mlp"), 1, seed=5), EnvGroup(priv, 1, seed=5),
-              VectorEnvGroup(priv, 1, seed=5, backend="physx_cpu"))
-    state, loop, scene = groups
+              VectorEnvGroup(priv, 1, seed=5, backend="physx_cpu"), EnvGroup(TASK, 1, seed=5))
+    state, loop, scene, plain = groups
     try:
-        s, a, b = (g.reset() for g in groups)
-        assert loop.obs_spec["proprio"].shape == (s.shape[1],) and s.shape[1] > 18  # more than the joints
+        s, a, b, c = (g.reset() for g in groups)
+        assert loop.obs_spec["proprio"].shape == (s.shape[1],) and s.shape[1] > 25  # more than joints and tool
+        assert plain.obs_spec["proprio"].shape == (25,)
         assert scene.obs_spec == loop.obs_spec
         assert a["rgb"].std() > 5
         rng = np.random.default_rng(0)
         for _ in range(3):
             np.testing.assert_allclose(a["proprio"], s, atol=1e-5)
+            np.testing.assert_allclose(c["proprio"], s[:, :25], atol=1e-5)
             assert np.array_equal(a["proprio"], b["proprio"].numpy()) and np.array_equal(a["rgb"], b["rgb"].numpy())
             act = rng.uniform(-1, 1, (1, state.act_dim)).astype(np.float32)
             s, a, b = state.step(act).next_obs, loop.step(act).next_obs, scene.step(torch.from_numpy(act)).next_obs
+            c = plain.step(act).next_obs
     finally:
         for g in groups:
             g.close()

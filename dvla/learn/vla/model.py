@@ -4,7 +4,9 @@ One transformer encoder reads ``[ACT] [VAL] | image patches | proprioception | i
 (padding words masked); ``[ACT]`` reads the mean of a Gaussian over the action (learned
 state-independent log-std; with ``task.action_chunk`` K, K actions side by side), ``[VAL]`` the
 value. Sizes: ``policy_kwargs`` on top of a named preset (``size``, default ``tiny``, about 0.4 M
-parameters; ``1b`` for GPU machines: see :data:`PRESETS`).
+parameters; ``1b`` for GPU machines: see :data:`PRESETS`). ``policy_kwargs.percept``: a pretrained
+perception file (:mod:`.percept`), loaded frozen by every role; its estimates from the image join
+the proprioception's token.
 """
 
 from __future__ import annotations
@@ -62,6 +64,7 @@ class TinyVLA(nn.Module):
         mlp_ratio: int = 4,
         init_log_std: float = -0.5,
         proprio_stats: str = "running",
+        percept: str | None = None,
         device: Any = None,
     ):
         super().__init__()
@@ -92,10 +95,17 @@ class TinyVLA(nn.Module):
         self.readout = nn.Parameter(torch.zeros(1, 2, d_model, **factory))  # [ACT], [VAL]
         self.n_proprio = _spec_shape(obs["proprio"])[0] if "proprio" in obs else 0
         if self.n_proprio:
-            self.proprio_in = nn.Linear(self.n_proprio, d_model, **factory)
             self.register_buffer("proprio_mean", torch.zeros(self.n_proprio, **factory))
             self.register_buffer("proprio_var", torch.ones(self.n_proprio, **factory))
             self.register_buffer("proprio_count", torch.zeros((), **factory))
+        self.percept: nn.Module | None = None
+        if percept:  # frozen: not learnt, not replicated; every role loads the same file
+            from .percept import load_percept
+
+            self.percept = load_percept(percept, device=device).requires_grad_(False)
+        n_in = self.n_proprio + (self.percept.outputs if self.percept is not None else 0)
+        if n_in:  # one token: the standardised proprioception, then the perception's estimates
+            self.proprio_in = nn.Linear(n_in, d_model, **factory)
         self.n_words = _spec_shape(obs["tokens"])[0] if "tokens" in obs else 0
         if self.n_words:
             vocab = getattr(obs["tokens"], "vocab", None)
@@ -141,10 +151,15 @@ class TinyVLA(nn.Module):
         img = rgb.to(dtype).permute(0, 3, 1, 2) / 255.0 - 0.5
         parts = [self.readout.expand(b, -1, -1), self.patchify(img).flatten(2).transpose(1, 2) + self.patch_pos]
         masks = [torch.zeros(b, parts[0].shape[1] + parts[1].shape[1], dtype=torch.bool, device=rgb.device)]
+        known = []
         if self.n_proprio:
             p = obs["proprio"].to(dtype)
-            p = ((p - self.proprio_mean) / (self.proprio_var + 1e-8).sqrt()).clamp(-10.0, 10.0)
-            parts.append(self.proprio_in(p).unsqueeze(1))
+            known.append(((p - self.proprio_mean) / (self.proprio_var + 1e-8).sqrt()).clamp(-10.0, 10.0))
+        if self.percept is not None:
+            with torch.no_grad():  # already standardised by the perception's own label statistics
+                known.append(self.percept(rgb).to(dtype).clamp(-10.0, 10.0))
+        if known:
+            parts.append(self.proprio_in(torch.cat(known, 1)).unsqueeze(1))
             masks.append(torch.zeros(b, 1, dtype=torch.bool, device=rgb.device))
         if self.n_words:
             ids = obs["tokens"].long()
