@@ -69,12 +69,27 @@ def load_expert(run_dir: Path) -> tuple[Any, Any]:
     return task, policy.eval()
 
 
+#: the demonstration arrays that describe the file rather than one entry per step
+PER_FILE = ("instruction_text", "label_names")
+#: first seed of the perception's scenes
+SCENE_SEED = 70_000_000
+#: what a PushCube perception reads from the image (metres, the table's frame)
+PERCEPT_LABELS = ("goal_x", "goal_y", "cube_x", "cube_y")
+
+
+def pushcube_labels(env: Any) -> np.ndarray:
+    """:data:`PERCEPT_LABELS` of one (unwrapped, single-scene) PushCube env, from the simulator."""
+    return np.array([*env.goal_region.pose.p[0, :2].tolist(), *env.obj.pose.p[0, :2].tolist()], dtype=np.float32)
+
+
 def record_demos(expert_run: Path, rl_task: Any, out: Path, episodes: int, n_envs: int = 4,
                  seed: int = DEMO_SEED, progress: Callable[[str], None] = _progress,
                  solved_only: bool = True) -> dict[str, Any]:
     """Record ``episodes`` solved episodes (every episode: ``solved_only=False``) of the expert
     with ``rl_task``'s rgb observations into ``out`` (.npz: rgb, proprio, tokens, action, reward,
-    episode, terminated; plus ``out``.json: what was recorded)."""
+    episode, terminated; on PushCube also labels and label_names: the goal's and cube's table xy
+    read from the simulator at every step, what :func:`pretrain_percept` can learn from; plus
+    ``out``.json: what was recorded)."""
     import torch
 
     from dvla.learn.envs import EnvGroup, obs_to_torch
@@ -84,7 +99,8 @@ def record_demos(expert_run: Path, rl_task: Any, out: Path, episodes: int, n_env
     vis = observed_as(task, rl_task)
     state_g, rgb_g = EnvGroup(task, n_envs, seed), EnvGroup(vis, n_envs, seed)
     keys = ("rgb", "proprio", "tokens")
-    per_step = (*keys, "action", "reward")
+    labelled = vis.env == "PushCube-v1"
+    per_step = (*keys, "action", "reward", *(("labels",) if labelled else ()))
     kept: dict[str, list[np.ndarray]] = {k: [] for k in (*per_step, "episode", "terminated", "instruction_id")}
     current: list[dict[str, list[np.ndarray]]] = [{k: [] for k in per_step} for _ in range(n_envs)]
     texts: list[str] = []  # every instruction seen, in order: a step's instruction_id indexes it
@@ -104,6 +120,8 @@ def record_demos(expert_run: Path, rl_task: Any, out: Path, episodes: int, n_env
                 for k in keys:
                     current[i][k].append(r_obs[k][i])
                 current[i]["action"].append(action[i])
+                if labelled:
+                    current[i]["labels"].append(pushcube_labels(rgb_g._envs[i].unwrapped))
             s_res, r_res = state_g.step(action), rgb_g.step(action)
             steps += n_envs
             if not np.array_equal(s_res.episode_done, r_res.episode_done):
@@ -138,6 +156,8 @@ def record_demos(expert_run: Path, rl_task: Any, out: Path, episodes: int, n_env
         rgb_g.close()
     arrays = {k: np.concatenate(v) for k, v in kept.items()}
     arrays["instruction_text"] = np.array(texts, dtype=np.str_)
+    if labelled:
+        arrays["label_names"] = np.array(PERCEPT_LABELS, dtype=np.str_)
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out, **arrays)
     meta = {"expert_run": str(expert_run), "env": task.env, "control_mode": task.control_mode,
@@ -150,9 +170,6 @@ def record_demos(expert_run: Path, rl_task: Any, out: Path, episodes: int, n_env
     Path(f"{out}.json").write_text(json.dumps(meta, indent=2) + "\n")
     return meta
 
-
-SCENE_SEED = 70_000_000
-PERCEPT_LABELS = ("goal_x", "goal_y", "cube_x", "cube_y")
 
 
 def record_scenes(task: Any, demos: dict[str, np.ndarray], out: Path, n: int, seed: int = SCENE_SEED,
@@ -202,7 +219,7 @@ def record_scenes(task: Any, demos: dict[str, np.ndarray], out: Path, n: int, se
             env.goal_region.set_pose(pose(goal, euler2quat(0, np.pi / 2, 0)))
             env.obj.set_pose(pose(cube, euler2quat(0, 0, rng.uniform(-0.6, 0.6))))
             rgb[i] = group._convert(env.get_obs(), 0)["rgb"]
-            labels[i] = (*env.goal_region.pose.p[0, :2].tolist(), *env.obj.pose.p[0, :2].tolist())
+            labels[i] = pushcube_labels(env)
             if (i + 1) % 1000 == 0:
                 progress(f"scenes: {i + 1}/{n} ({time.perf_counter() - started:.0f} s)")
     finally:
@@ -213,27 +230,43 @@ def record_scenes(task: Any, demos: dict[str, np.ndarray], out: Path, n: int, se
 
 
 def pretrain_percept(scenes: dict[str, np.ndarray], out: Path, epochs: int = 12, batch: int = 64, lr: float = 2e-3,
-                     held_out: float = 0.1, seed: int = 0,
+                     held_out: float = 0.1, seed: int = 0, demos: dict[str, np.ndarray] | None = None,
                      progress: Callable[[str], None] = _progress) -> dict[str, Any]:
     """Supervised training of a :class:`~dvla.learn.vla.percept.Percept` on ``scenes``
     (:func:`record_scenes`' arrays) to their labels (standardised squared error, AdamW, one-cycle
-    learning rate); the last ``held_out`` of the scenes are kept out and measured after every
-    epoch (rms error per label, in the labels' units). Saves the network to ``out``."""
+    learning rate). With labelled ``demos`` (:func:`record_demos` on PushCube) their frames train
+    it too, and a ``held_out`` share of their episodes (every k-th) is what it is measured on: the
+    pictures a policy will see. Without, the last ``held_out`` of the scenes are. Measured after
+    every epoch: rms error per label, in the labels' units. Saves the network to ``out``."""
     import torch
 
     from dvla.learn.vla.percept import Percept, save_percept
 
     torch.manual_seed(seed)
-    rgb, y = torch.from_numpy(scenes["rgb"]), torch.from_numpy(scenes["labels"]).float()
     names = tuple(str(x) for x in scenes["label_names"])
-    n_test = int(len(y) * held_out)
-    if n_test < 1 or len(y) - n_test < batch:
-        raise ValueError(f"{len(y)} scenes are too few to keep {held_out:.0%} out and train in batches of {batch}")
-    test = torch.arange(len(y) - n_test, len(y))
-    train = torch.arange(len(y) - n_test)
+    if not 0 < held_out < 1:
+        raise ValueError(f"held_out must be in (0, 1), got {held_out}")
+    if demos is None:
+        n_test = int(len(scenes["labels"]) * held_out)
+        test = np.arange(len(scenes["labels"])) >= len(scenes["labels"]) - n_test
+        sets = [(scenes["rgb"][~test], scenes["labels"][~test])]
+        t_rgb, t_y = scenes["rgb"][test], scenes["labels"][test]
+    else:
+        if "labels" not in demos or tuple(str(x) for x in demos.get("label_names", ())) != names:
+            raise ValueError(f"the demonstrations carry no labels {names} (record them from a PushCube topology)")
+        test = demos["episode"] % max(1, round(1 / held_out)) == 0
+        sets = [(scenes["rgb"], scenes["labels"]), (demos["rgb"][~test], demos["labels"][~test])]
+        t_rgb, t_y = demos["rgb"][test], demos["labels"][test]
+    rgb = torch.from_numpy(np.concatenate([r for r, _ in sets]))
+    y = torch.from_numpy(np.concatenate([l for _, l in sets])).float()
+    if len(t_y) < 1 or len(y) < batch:
+        raise ValueError(f"{len(y)} training and {len(t_y)} held-out pictures: too few to train in batches of {batch}")
+    test_rgb, test_y = torch.from_numpy(t_rgb), torch.from_numpy(t_y).float()
+    train = torch.arange(len(y))
+    progress(f"pretrain: {len(y)} pictures, {len(test_y)} held out")
     net = Percept(y.shape[1], labels=names)
-    net.mu.copy_(y[train].mean(0))
-    net.sd.copy_(y[train].std(0).clamp_min(1e-6))
+    net.mu.copy_(y.mean(0))
+    net.sd.copy_(y.std(0).clamp_min(1e-6))
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
     per_epoch = -(-len(train) // batch)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, lr, total_steps=epochs * per_epoch)
@@ -251,15 +284,16 @@ def pretrain_percept(scenes: dict[str, np.ndarray], out: Path, epochs: int = 12,
             total += loss.item() * len(idx)
         net.eval()
         with torch.no_grad():
-            err = torch.cat([net.estimate(rgb[i]) - y[i] for i in test.split(512)])
+            err = torch.cat([net.estimate(test_rgb[i]) - test_y[i] for i in torch.arange(len(test_y)).split(512)])
         rms = err.pow(2).mean(0).sqrt().tolist()
         history.append({"loss": total / len(train), "held_out_rms": dict(zip(names, rms))})
         progress(f"pretrain: epoch {epoch + 1}/{epochs} loss {total / len(train):.4f} held-out rms "
-                 + " ".join(f"{k} {v * 100:.2f} cm" for k, v in zip(names, rms))
+                 + " ".join(f"{k} {v:.4g}" for k, v in zip(names, rms))
                  + f" ({time.perf_counter() - started:.0f} s)")
     out.parent.mkdir(parents=True, exist_ok=True)
     save_percept(net, out)
-    return {"epochs": history, "train_scenes": len(train), "held_out_scenes": n_test,
+    return {"epochs": history, "train_pictures": len(train), "held_out_pictures": len(test_y),
+            "held_out_from": "scenes" if demos is None else "demos",
             "seconds": time.perf_counter() - started}
 
 
@@ -274,7 +308,7 @@ def first_episodes(demos: dict[str, np.ndarray], n: int) -> dict[str, np.ndarray
     if n > held:
         raise ValueError(f"{n} episodes asked, the demos hold {held}")
     keep = demos["episode"] < n
-    return {k: (v[keep] if k != "instruction_text" else v) for k, v in demos.items()}
+    return {k: (v[keep] if k not in PER_FILE else v) for k, v in demos.items()}
 
 
 def demo_tokens(task: Any, demos: dict[str, np.ndarray]) -> np.ndarray:
@@ -630,6 +664,8 @@ def main(argv: list[str] | None = None) -> None:
     pt = sub.add_parser("pretrain", help="train a perception (policy_kwargs.percept) on recorded scenes")
     pt.add_argument("scenes", type=Path)
     pt.add_argument("out", type=Path)
+    pt.add_argument("--demos", type=Path, help="labelled demonstrations (recorded on PushCube): trained on too, "
+                    "and every 10th episode held out to measure on")
     pt.add_argument("--epochs", type=int, default=12)
     pt.add_argument("--threads", type=int, default=2)
     args = ap.parse_args(argv)
@@ -644,7 +680,8 @@ def main(argv: list[str] | None = None) -> None:
         return
     if args.cmd == "pretrain":
         torch.set_num_threads(args.threads)
-        doc = pretrain_percept(load_demos(args.scenes), args.out, epochs=args.epochs)
+        doc = pretrain_percept(load_demos(args.scenes), args.out, epochs=args.epochs,
+                               demos=load_demos(args.demos) if args.demos else None)
         Path(f"{args.out}.json").write_text(json.dumps(doc, indent=2) + "\n")
         print(json.dumps(doc["epochs"][-1], indent=2))
         return

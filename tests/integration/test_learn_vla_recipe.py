@@ -71,6 +71,12 @@ def test_demos_replay_the_expert_with_rendered_observations_and_a_clone_warm_sta
     assert meta["episodes"] == 3 and meta["transitions"] == n == 3 * STEPS
     assert demos["rgb"].shape == (n, 32, 32, 3) and demos["rgb"].dtype == np.uint8 and demos["rgb"].std() > 0
     assert demos["proprio"].shape == (n, 25) and demos["action"].shape == (n, 8)
+    # PushCube: the goal's and cube's xy from the simulator, a perception's labels; the goal stays put
+    assert tuple(demos["label_names"]) == PERCEPT_LABELS and demos["labels"].shape == (n, 4)
+    assert np.abs(demos["labels"]).max() < 0.4
+    for e in range(3):
+        goal = demos["labels"][demos["episode"] == e, :2]
+        assert np.ptp(goal, axis=0).max() < 1e-6 and np.linalg.norm(goal[0] - demos["labels"][demos["episode"] == e][0, 2:]) > 0.05
     assert np.abs(demos["action"]).max() <= 1.0 and np.abs(demos["action"]).max() > 0.05  # clipped, and moving
     assert sorted(set(demos["episode"].tolist())) == [0, 1, 2] and np.all(np.diff(demos["episode"]) >= 0)
     assert demos["reward"].shape == (n,) and np.isfinite(demos["reward"]).all() and demos["reward"].std() > 0

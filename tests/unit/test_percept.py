@@ -47,6 +47,20 @@ def test_pretraining_learns_where_the_object_is(tmp_path):
     assert err.pow(2).mean().sqrt().item() < 0.25 * spread  # fresh pictures, as well as held-out ones
 
 
+def test_labelled_demonstrations_train_it_too_and_are_what_it_is_measured_on(tmp_path):
+    scenes = squares(300)
+    demos = {**squares(200, seed=2), "episode": np.repeat(np.arange(20), 10)}
+    doc = pretrain_percept(scenes, tmp_path / "p.safetensors", epochs=1, batch=32, demos=demos,
+                           progress=lambda _m: None)
+    # every 10th of the 20 episodes held out (2 x 10 pictures); the rest and every scene trained on
+    assert doc["held_out_from"] == "demos" and doc["held_out_pictures"] == 20 and doc["train_pictures"] == 480
+    unlabelled = {k: v for k, v in demos.items() if k != "labels"}
+    with pytest.raises(ValueError, match="carry no labels"):
+        pretrain_percept(scenes, tmp_path / "q.safetensors", epochs=1, demos=unlabelled, progress=lambda _m: None)
+    with pytest.raises(ValueError, match="held_out"):
+        pretrain_percept(scenes, tmp_path / "q.safetensors", epochs=1, held_out=0.0, progress=lambda _m: None)
+
+
 def test_round_trip_and_errors_naming_the_file(tmp_path):
     torch.manual_seed(0)
     net = Percept(3, keypoints=4, channels=8, labels=("a", "b", "c"))
