@@ -171,7 +171,6 @@ def record_demos(expert_run: Path, rl_task: Any, out: Path, episodes: int, n_env
     return meta
 
 
-
 def record_scenes(task: Any, demos: dict[str, np.ndarray], out: Path, n: int, seed: int = SCENE_SEED,
                   progress: Callable[[str], None] = _progress) -> dict[str, Any]:
     """``n`` PushCube pictures at ``task``'s image size, each with the goal's and cube's table
