@@ -261,20 +261,19 @@ def pretrain_percept(scenes: dict[str, np.ndarray], out: Path, epochs: int = 12,
     if len(t_y) < 1 or len(y) < batch:
         raise ValueError(f"{len(y)} training and {len(t_y)} held-out pictures: too few to train in batches of {batch}")
     test_rgb, test_y = torch.from_numpy(t_rgb), torch.from_numpy(t_y).float()
-    train = torch.arange(len(y))
     progress(f"pretrain: {len(y)} pictures, {len(test_y)} held out")
     net = Percept(y.shape[1], labels=names)
     net.mu.copy_(y.mean(0))
     net.sd.copy_(y.std(0).clamp_min(1e-6))
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
-    per_epoch = -(-len(train) // batch)
+    per_epoch = -(-len(y) // batch)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, lr, total_steps=epochs * per_epoch)
     started = time.perf_counter()
     history = []
     for epoch in range(epochs):
         net.train()
         total = 0.0
-        for idx in train[torch.randperm(len(train))].split(batch):
+        for idx in torch.randperm(len(y)).split(batch):
             loss = ((net(rgb[idx]) - (y[idx] - net.mu) / net.sd) ** 2).mean()
             opt.zero_grad()
             loss.backward()
@@ -285,13 +284,13 @@ def pretrain_percept(scenes: dict[str, np.ndarray], out: Path, epochs: int = 12,
         with torch.no_grad():
             err = torch.cat([net.estimate(test_rgb[i]) - test_y[i] for i in torch.arange(len(test_y)).split(512)])
         rms = err.pow(2).mean(0).sqrt().tolist()
-        history.append({"loss": total / len(train), "held_out_rms": dict(zip(names, rms))})
-        progress(f"pretrain: epoch {epoch + 1}/{epochs} loss {total / len(train):.4f} held-out rms "
+        history.append({"loss": total / len(y), "held_out_rms": dict(zip(names, rms))})
+        progress(f"pretrain: epoch {epoch + 1}/{epochs} loss {total / len(y):.4f} held-out rms "
                  + " ".join(f"{k} {v:.4g}" for k, v in zip(names, rms))
                  + f" ({time.perf_counter() - started:.0f} s)")
     out.parent.mkdir(parents=True, exist_ok=True)
     save_percept(net, out)
-    return {"epochs": history, "train_pictures": len(train), "held_out_pictures": len(test_y),
+    return {"epochs": history, "train_pictures": len(y), "held_out_pictures": len(test_y),
             "held_out_from": "scenes" if demos is None else "demos",
             "seconds": time.perf_counter() - started}
 

@@ -524,7 +524,7 @@ def _checkpoint_problems(topo: Topology) -> Problems:
 
 def _percept_problems(topo: Topology) -> Problems:
     """tiny-vla's ``policy_kwargs.percept``: a perception file (``dvla/learn/vla/percept.py``) every
-    role loads; its safetensors header is checked here (nothing is loaded). A path missing on this
+    role loads; its safetensors header is checked (``check_percept``; nothing is loaded). A path missing on this
     machine is left to the roles when some node is remote."""
     task = topo.task
     path = task.policy_kwargs.get("percept") if task.policy == "tiny-vla" else None
@@ -536,18 +536,12 @@ def _percept_problems(topo: Topology) -> Problems:
         return
     if any(node.host not in LOCAL_HOSTS for _rack, node in topo.nodes()) and not os.path.exists(path):
         return
+    from dvla.learn.vla.checkpoint import CheckpointError, check_percept  # no torch: a header check
+
     try:
-        with open(path, "rb") as f:
-            size = int.from_bytes(f.read(8), "little")
-            header = json.loads(f.read(size)) if 0 < size < 1 << 24 else None
-    except OSError as err:
-        yield key, f"{path}: {err.strerror or err}"
-        return
-    except ValueError:
-        header = None
-    meta = header.get("__metadata__") if isinstance(header, dict) else None
-    if not isinstance(meta, dict) or not all(str(meta.get(k, "")).isdigit() for k in ("outputs", "keypoints", "channels")):
-        yield key, f"{path}: not a perception file (a safetensors file whose metadata has outputs, keypoints, channels)"
+        check_percept(path)
+    except CheckpointError as err:
+        yield key, str(err)
 
 
 def _remote_address_problems(topo: Topology) -> Problems:

@@ -20,8 +20,8 @@ import xxhash
 
 from ..spec import PolicySetupError
 
-__all__ = ["CheckpointError", "CheckpointInfo", "check_checkpoint", "executed_chunk", "content_hash",
-           "hash_files", "FAMILIES", "POLICY_FILE", "EXPERT_FILE"]
+__all__ = ["CheckpointError", "CheckpointInfo", "check_checkpoint", "check_percept", "executed_chunk", "content_hash",
+           "hash_files", "FAMILIES", "POLICY_FILE", "EXPERT_FILE", "PERCEPT_SIZES"]
 
 FAMILIES = {"tokens": "vla-tokens", "flow": "vla-flow"}
 """dvla_policy.json family -> the policy name that loads it."""
@@ -31,6 +31,8 @@ _TOKENIZER_FILES = ("tokenizer.json", "tokenizer.model", "vocab.json")
 _REQUIRED = {"tokens": ("n_bins",), "flow": ("denoise_steps", "expert")}
 _COMMON = ("family", "action_dim", "max_chunk", "action_low", "action_high")
 _BLOCK = 8 << 20
+#: the sizes a perception file (tiny-vla's ``policy_kwargs.percept``, :mod:`.percept`) keeps in its metadata
+PERCEPT_SIZES = ("outputs", "keypoints", "channels")
 
 
 class CheckpointError(PolicySetupError):
@@ -72,6 +74,24 @@ def _check_safetensors(file: Path) -> dict[str, Any]:
     if 8 + n + end > size:
         raise _fail(file, f"truncated safetensors file: its header needs {8 + n + end} bytes, the file has {size}")
     return header
+
+
+def check_percept(path: str | Path) -> tuple[dict[str, int], dict[str, str]]:
+    """The sizes and the metadata of a perception file (:mod:`.percept`), from its header alone:
+    a file that is missing, not safetensors, truncated or without integer sizes is one line
+    naming the file (:class:`CheckpointError`)."""
+    path = Path(path)
+    if not path.is_file():
+        raise _fail(path, "No such file (a perception file: python -m benchmarks.learn_vla pretrain)")
+    try:
+        header = _check_safetensors(path)
+    except CheckpointError as err:
+        raise _fail(path, f"not a safetensors file, so not a perception file ({str(err).removeprefix(f'{path}: ')})") from None
+    meta = header.get("__metadata__") or {}
+    try:
+        return {k: int(meta[k]) for k in PERCEPT_SIZES}, meta
+    except (KeyError, ValueError, TypeError):
+        raise _fail(path, f"metadata needs integer {', '.join(PERCEPT_SIZES)} (not a perception file); has {meta}") from None
 
 
 def _weight_files(path: Path) -> tuple[Path, ...]:

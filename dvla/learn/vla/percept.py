@@ -24,6 +24,8 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from .checkpoint import PERCEPT_SIZES, check_percept
+
 __all__ = ["Percept", "load_percept", "save_percept"]
 
 
@@ -69,8 +71,7 @@ class Percept(nn.Module):
 def save_percept(net: Percept, path: Path | str) -> None:
     from safetensors.torch import save_file
 
-    meta = {"outputs": str(net.outputs), "keypoints": str(net.keypoints), "channels": str(net.channels),
-            "labels": ",".join(net.labels)}
+    meta = {**{k: str(getattr(net, k)) for k in PERCEPT_SIZES}, "labels": ",".join(net.labels)}
     save_file({k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()}, str(path), metadata=meta)
 
 
@@ -82,16 +83,12 @@ def load_percept(path: Path | str, device: Any = None) -> Percept:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such perception file (policy_kwargs.percept)")
+    sizes, meta = check_percept(path)
     try:
         with safe_open(str(path), "pt") as f:
-            meta = f.metadata() or {}
             tensors = {k: f.get_tensor(k) for k in f.keys()}
-    except Exception as e:  # a truncated or foreign file
+    except Exception as e:  # a file its header does not describe
         raise ValueError(f"{path}: not a safetensors perception file ({type(e).__name__}: {e})") from None
-    try:
-        sizes = {k: int(meta[k]) for k in ("outputs", "keypoints", "channels")}
-    except (KeyError, ValueError):
-        raise ValueError(f"{path}: metadata needs integer outputs, keypoints, channels; has {meta}") from None
     labels = tuple(x for x in meta.get("labels", "").split(",") if x)
     net = Percept(**sizes, labels=labels)
     try:
