@@ -178,7 +178,8 @@ def test_slots_carry_structured_observations_in_their_dtypes():
 
 def test_fixed_proprio_statistics_stay_as_loaded():
     """`proprio_stats: fixed` keeps a warm start's statistics (the learner's `observe` folds
-    nothing); `running` folds every batch; anything else is refused naming the key."""
+    nothing) or, holding none, takes the first batch's and keeps them; `running` folds every
+    batch; anything else is refused naming the key."""
     running = make_policy("tiny-vla", SPEC, 8, size="tiny")
     fixed = make_policy("tiny-vla", SPEC, 8, size="tiny", proprio_stats="fixed")
     loaded = {"proprio_mean": torch.full((SPEC["proprio"].shape[0],), 0.5), "proprio_count": torch.tensor(100.0)}
@@ -188,5 +189,11 @@ def test_fixed_proprio_statistics_stay_as_loaded():
     fixed.observe(batch)
     assert float(running.proprio_count) == 16 and not torch.equal(running.proprio_mean, torch.zeros_like(running.proprio_mean))
     assert float(fixed.proprio_count) == 100 and torch.equal(fixed.proprio_mean, loaded["proprio_mean"])
+    fresh = make_policy("tiny-vla", SPEC, 8, size="tiny", proprio_stats="fixed")
+    fresh.observe(batch)
+    first = fresh.proprio_mean.clone()
+    assert float(fresh.proprio_count) == 16 and torch.allclose(first, running.proprio_mean)
+    fresh.observe(obs_batch(16, seed=1))
+    assert float(fresh.proprio_count) == 16 and torch.equal(fresh.proprio_mean, first)
     with pytest.raises(ValueError, match="proprio_stats"):
         make_policy("tiny-vla", SPEC, 8, size="tiny", proprio_stats="frozen")

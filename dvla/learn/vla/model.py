@@ -84,7 +84,8 @@ class TinyVLA(nn.Module):
             raise ValueError(f"policy_kwargs.d_model: {d_model} must be a multiple of heads={heads}")
         if proprio_stats not in ("running", "fixed"):
             raise ValueError(f"policy_kwargs.proprio_stats: {proprio_stats!r} (expected 'running' or 'fixed')")
-        #: "fixed": the proprio statistics stay as built or loaded (a warm start's), `observe` folds nothing
+        #: "fixed": the proprio statistics are folded from the first batch observed (a clone's
+        #: demonstrations) or loaded (a warm start's), and then stay: `observe` folds nothing more
         self.proprio_stats = proprio_stats
         self.act_dim = int(act_dim)
         self.d_model = d_model
@@ -138,8 +139,10 @@ class TinyVLA(nn.Module):
 
     @torch.no_grad()
     def observe(self, obs: Mapping[str, Tensor]) -> None:
-        """Fold a batch's proprioception into the running statistics (Chan's parallel update)."""
-        if not self.n_proprio or self.proprio_stats == "fixed":
+        """Fold a batch's proprioception into the running statistics (Chan's parallel update);
+        with ``proprio_stats: fixed`` only while none are held yet (the first batch, or nothing
+        loaded)."""
+        if not self.n_proprio or (self.proprio_stats == "fixed" and float(self.proprio_count) > 0):
             return
         fold_moments(self.proprio_mean, self.proprio_var, self.proprio_count, obs["proprio"].reshape(-1, self.n_proprio))
 
