@@ -253,13 +253,30 @@ def learn_vla(
     topology: Annotated[Optional[Path], typer.Argument(help="the RL stage's topology (default: topologies/local-vla-rl.yaml)")] = None,
     seeds: Annotated[str, typer.Option(help="comma-separated seeds of the RL runs")] = "1,2,3",
     modes: Annotated[str, typer.Option(help="comma-separated modes of the warm-started runs (async, sync)")] = "async,sync",
+    warm_runs: Annotated[bool, typer.Option("--warm-runs/--control-only",
+                                            help="run the warm-started arms, or only the control (with --warm and, "
+                                            "for a perception, --percept)")] = True,
     control: Annotated[bool, typer.Option(help="also run the random initialisation (first mode) per seed")] = True,
     expert: Annotated[Optional[Path], typer.Option(help="a finished state run to record demonstrations from "
                                                    "(default: train one with topologies/local.yaml)")] = None,
+    expert_seed: Annotated[int, typer.Option(help="seed of the expert trained here")] = 2,
+    expert_until: Annotated[float, typer.Option(help="stop the expert trained here once an evaluation's lower bound "
+                                                "reaches this success: a mediocre expert (0: its topology's 0.75)",
+                                                min=0, max=1)] = 0.1,
+    expert_eval: Annotated[int, typer.Option(help="episodes of each of the expert's evaluations", min=1)] = 32,
     demos_file: Annotated[Optional[Path], typer.Option("--demos-file", help="recorded demonstrations (.npz) to clone from")] = None,
-    demos: Annotated[int, typer.Option(help="solved expert episodes to record", min=1)] = 300,
-    clone_epochs: Annotated[int, typer.Option(help="behaviour cloning epochs", min=1)] = 3,
+    demos: Annotated[int, typer.Option(help="expert episodes to record", min=1)] = 200,
+    all_episodes: Annotated[bool, typer.Option("--all-episodes/--solved-only",
+                                               help="record every episode the expert plays, or only solved ones")] = True,
+    percept: Annotated[Optional[Path], typer.Option(help="a perception file for tiny-vla (policy_kwargs.percept) "
+                                                    "instead of pretraining one")] = None,
+    scenes: Annotated[int, typer.Option(help="rendered scenes to pretrain tiny-vla's perception on (0: no perception)",
+                                        min=0)] = 12000,
+    percept_epochs: Annotated[int, typer.Option(help="perception pretraining epochs", min=1)] = 12,
+    clone_epochs: Annotated[int, typer.Option(help="behaviour cloning epochs", min=1)] = 20,
     clone_lr: Annotated[float, typer.Option(help="behaviour cloning step size (Adam)")] = 1e-3,
+    clone_noise_std: Annotated[Optional[float], typer.Option(help="the warm start's exploration noise (std of its Gaussian "
+                                                             "head; default benchmarks.learn_vla.NOISE_STD)")] = None,
     warm: Annotated[Optional[Path], typer.Option(help="a warm start (safetensors) to use instead of cloning one")] = None,
     rise: Annotated[float, typer.Option(help="the level the RL runs must reach: warm start's success + this")] = 0.3,
     base_port: Annotated[int, typer.Option(help="first TCP port")] = 21400,
@@ -269,10 +286,12 @@ def learn_vla(
                                                               "(dvla up --max-wall-s; default: the topology's budget)")] = None,
 ) -> None:
     """The SFT -> RL recipe on this machine: an expert trained on PushCube's state vector,
-    its solved episodes recorded with rendered observations, a VLA cloned from them (the warm
-    start, kept beside the JSON as .warm.safetensors), then RL through `dvla up` from the warm
+    its episodes recorded with rendered observations, tiny-vla's perception pretrained on rendered
+    scenes (kept beside the JSON as .percept.safetensors), a VLA cloned from the episodes (the warm
+    start, kept as .warm.safetensors), then RL through `dvla up` from the warm
     start per seed and mode, and from the random initialisation as the control; success curves
     by env steps and by seconds (JSON + PNG)."""
+    import dataclasses
     import tempfile
 
     from benchmarks.learn_vla import DEFAULT_TOPOLOGY, Recipe, format_table, plot, run_bench
@@ -284,24 +303,38 @@ def learn_vla(
     mode_list = tuple(m.strip() for m in modes.split(",") if m.strip())
     if not seed_list or not mode_list or any(m not in ("async", "sync") for m in mode_list):
         raise fail(f"--seeds needs at least one seed and --modes async and/or sync (got {seeds!r}, {modes!r})")
-    for name, path in (("--expert", expert), ("--demos-file", demos_file), ("--warm", warm), ("topology", topology)):
+    for name, path in (("--expert", expert), ("--demos-file", demos_file), ("--warm", warm), ("--percept", percept),
+                       ("topology", topology)):
         if path is not None and not path.exists():
             raise fail(f"{name}: not found: {path}")
+    if not warm_runs and (not control or warm is None):
+        raise fail("--control-only runs the control of a given warm start: it needs --warm (and not --no-control)")
     if not 0 < rise <= 1:
         raise fail(f"--rise must be in (0, 1], got {rise}")
     if max_wall_s is not None and not max_wall_s > 0:
         raise fail(f"--max-wall-s must be > 0, got {max_wall_s}")
     if not clone_lr > 0:
         raise fail(f"--clone-lr must be > 0, got {clone_lr}")
-    recipe = Recipe(topology=(topology or DEFAULT_TOPOLOGY).resolve(), seeds=seed_list, modes=mode_list, control=control,
-                    expert=expert.resolve() if expert else None, demos_file=demos_file.resolve() if demos_file else None,
-                    demos=demos, clone_epochs=clone_epochs, clone_lr=clone_lr, warm=warm.resolve() if warm else None,
-                    rise=rise, base_port=base_port, runs=runs.resolve() if runs else None,
-                    max_wall_s=max_wall_s)
+    if clone_noise_std is not None and not clone_noise_std > 0:
+        raise fail(f"--clone-noise-std must be > 0, got {clone_noise_std}")
+    def resolved(path: Optional[Path]) -> Optional[Path]:
+        return path.resolve() if path else None
+
+    recipe = Recipe(topology=(topology or DEFAULT_TOPOLOGY).resolve(), seeds=seed_list, modes=mode_list, warm_runs=warm_runs,
+                    control=control,
+                    expert=resolved(expert), expert_seed=expert_seed, expert_until=expert_until or None,
+                    expert_eval=expert_eval,
+                    demos_file=resolved(demos_file), demos=demos, all_episodes=all_episodes, percept=resolved(percept),
+                    scenes=scenes, percept_epochs=percept_epochs, clone_epochs=clone_epochs, clone_lr=clone_lr,
+                    warm=resolved(warm), rise=rise, base_port=base_port,
+                    runs=resolved(runs), max_wall_s=max_wall_s)
+    if clone_noise_std is not None:
+        recipe = dataclasses.replace(recipe, clone_noise_std=clone_noise_std)
 
     def run(progress: Callable[[str], None]) -> dict:
         with tempfile.TemporaryDirectory(prefix="dvla-bench-learn-vla-") as tmp:
-            doc = run_bench(recipe, Path(tmp), progress, warm_out=json_path.with_suffix(".warm.safetensors"))
+            doc = run_bench(recipe, Path(tmp), progress, warm_out=json_path.with_suffix(".warm.safetensors"),
+                            percept_out=json_path.with_suffix(".percept.safetensors"))
         return _with_plot(doc, json_path, plot)
 
     _run_and_save("learn-vla", json_path, format_table, run)

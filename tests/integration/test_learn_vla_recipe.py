@@ -22,7 +22,7 @@ from dvla.learn.envs import probe_spec
 from dvla.learn.vla.tokenizer import instruction_tokenizer
 from dvla.orchestrator.topology import load_topology
 from dvla.replication import replicated_tensors
-from dvla.roles.checkpoint import load_init_weights, optimizer_tensors, save_checkpoint
+from dvla.roles.checkpoint import CheckpointError, load_init_weights, optimizer_tensors, save_checkpoint
 
 ROOT = Path(__file__).resolve().parents[2]
 STEPS = 6  # steps per episode (the time limit: a random expert solves nothing)
@@ -167,3 +167,41 @@ def test_scenes_for_the_perception_are_labelled_pictures_of_the_arm_in_the_demos
     assert all(not np.array_equal(sa["rgb"][0], x) for x in sa["rgb"][1:])  # every scene is another picture
     np.testing.assert_array_equal(sa["rgb"], sb["rgb"])
     np.testing.assert_array_equal(sa["labels"], sb["labels"])
+
+
+def test_the_bench_pretrains_a_perception_and_clones_the_warm_start_with_it(
+        recorded: tuple[Any, Path, dict[str, Any]], tmp_path: Path) -> None:
+    """run_bench's stages before RL (no seeds: no RL run) from recorded demos: scenes rendered, a
+    perception pretrained to the given file, the RL topology derived with it as tiny-vla's
+    ``percept``, and the warm start cloned through that topology (it holds the perception's token
+    input, so it loads into the derived task's policy and not into the plain one)."""
+    from benchmarks.learn_vla import Recipe, run_bench, with_percept
+
+    task, demos_file, _meta = recorded
+    text = (ROOT / "topologies" / "local-vla-rl.yaml").read_text()
+    assert "  image_size: 64\n" in text and "  patch_size: 8\n" in text
+    topo = tmp_path / "rl.yaml"
+    topo.write_text(text.replace("  image_size: 64\n", f"  image_size: 32\n  max_episode_steps: {STEPS}\n"))
+    with pytest.raises(ValueError, match="a perception is a tiny-vla option"):
+        with_percept(ROOT / "topologies" / "local.yaml", tmp_path / "p.safetensors", tmp_path / "x.yaml")
+    recipe = Recipe(topology=topo, seeds=(), demos_file=demos_file, scenes=64, percept_epochs=1, clone_epochs=2,
+                    warm_eval=2)
+    work = tmp_path / "work"
+    work.mkdir()
+    doc = run_bench(recipe, work, progress=lambda _m: None, warm_out=tmp_path / "warm.safetensors",
+                    percept_out=tmp_path / "percept.safetensors")
+    assert doc["scenes"]["scenes"] == 64 and doc["percept"]["file"] == str(tmp_path / "percept.safetensors")
+    assert doc["percept"]["held_out_from"] == "demos" and len(doc["percept"]["epochs"]) == 1
+    assert len(doc["clone"]["losses"]) == 2 and doc["warm"]["episodes"] == 2 and doc["runs"] == []
+    derived = load_topology(work / "rl-topology.yaml").task
+    assert derived.policy_kwargs["percept"] == str(tmp_path / "percept.safetensors")
+    assert derived.policy_kwargs["proprio_stats"] == "fixed" and derived.image_size == 32
+    obs_spec, act_dim = probe_spec(derived)
+    with_p = make_policy(derived.policy, obs_spec, act_dim, **derived.policy_kwargs)
+    load_init_weights(tmp_path / "warm.safetensors", with_p)
+    assert with_p.proprio_count.item() > 0  # the demonstrations' statistics came with the warm start
+    assert torch.allclose(with_p.log_std.exp(), torch.full_like(with_p.log_std, NOISE_STD))
+    plain = load_topology(topo).task
+    without = make_policy(plain.policy, obs_spec, act_dim, **plain.policy_kwargs)
+    with pytest.raises(CheckpointError, match="warm.safetensors: .* has shape"):
+        load_init_weights(tmp_path / "warm.safetensors", without)
