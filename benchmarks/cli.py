@@ -291,7 +291,6 @@ def learn_vla(
     start, kept as .warm.safetensors), then RL through `dvla up` from the warm
     start per seed and mode, and from the random initialisation as the control; success curves
     by env steps and by seconds (JSON + PNG)."""
-    import dataclasses
     import tempfile
 
     from benchmarks.learn_vla import DEFAULT_TOPOLOGY, Recipe, format_table, plot, run_bench
@@ -317,6 +316,7 @@ def learn_vla(
         raise fail(f"--clone-lr must be > 0, got {clone_lr}")
     if clone_noise_std is not None and not clone_noise_std > 0:
         raise fail(f"--clone-noise-std must be > 0, got {clone_noise_std}")
+
     def resolved(path: Optional[Path]) -> Optional[Path]:
         return path.resolve() if path else None
 
@@ -327,9 +327,8 @@ def learn_vla(
                     demos_file=resolved(demos_file), demos=demos, all_episodes=all_episodes, percept=resolved(percept),
                     scenes=scenes, percept_epochs=percept_epochs, clone_epochs=clone_epochs, clone_lr=clone_lr,
                     warm=resolved(warm), rise=rise, base_port=base_port,
-                    runs=resolved(runs), max_wall_s=max_wall_s)
-    if clone_noise_std is not None:
-        recipe = dataclasses.replace(recipe, clone_noise_std=clone_noise_std)
+                    runs=resolved(runs), max_wall_s=max_wall_s,
+                    **({"clone_noise_std": clone_noise_std} if clone_noise_std is not None else {}))
 
     def run(progress: Callable[[str], None]) -> dict:
         with tempfile.TemporaryDirectory(prefix="dvla-bench-learn-vla-") as tmp:

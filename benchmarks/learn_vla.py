@@ -518,10 +518,8 @@ def reached(curve: list[dict[str, float]], level: float) -> dict[str, float] | N
 
 def derive_topology(topology: Path, out: Path, changes: dict[str, Any]) -> Path:
     """``topology`` with ``changes`` (dotted keys under ``task``, e.g. ``eval.episodes``) set,
-    written to ``out`` (the file's own keys, nothing filled in) and checked as ``dvla up`` checks it."""
+    written to ``out`` (the file's own keys, nothing filled in; whoever runs it checks it)."""
     import yaml
-
-    from dvla.orchestrator.topology import load_topology
 
     doc = yaml.safe_load(Path(topology).read_text())
     for key, value in changes.items():
@@ -534,7 +532,6 @@ def derive_topology(topology: Path, out: Path, changes: dict[str, Any]) -> Path:
     out.parent.mkdir(parents=True, exist_ok=True)
     note = ", ".join(f"task.{k}: {v}" for k, v in changes.items())
     out.write_text(f"# {topology} with {note}\n" + yaml.safe_dump(doc, sort_keys=False))
-    load_topology(out)
     return out
 
 
