@@ -273,7 +273,8 @@ def learn_vla(
     scenes: Annotated[int, typer.Option(help="rendered scenes to pretrain tiny-vla's perception on (0: no perception)",
                                         min=0)] = 12000,
     percept_epochs: Annotated[int, typer.Option(help="perception pretraining epochs", min=1)] = 12,
-    clone_epochs: Annotated[int, typer.Option(help="behaviour cloning epochs", min=1)] = 20,
+    clone_epochs: Annotated[Optional[int], typer.Option(help="behaviour cloning epochs (default "
+                                                        "benchmarks.learn_vla.CLONE_EPOCHS)", min=1)] = None,
     clone_lr: Annotated[float, typer.Option(help="behaviour cloning step size (Adam)")] = 1e-3,
     clone_noise_std: Annotated[Optional[float], typer.Option(help="the warm start's exploration noise (std of its Gaussian "
                                                              "head; default benchmarks.learn_vla.NOISE_STD)")] = None,
@@ -325,9 +326,10 @@ def learn_vla(
                     expert=resolved(expert), expert_seed=expert_seed, expert_until=expert_until or None,
                     expert_eval=expert_eval,
                     demos_file=resolved(demos_file), demos=demos, all_episodes=all_episodes, percept=resolved(percept),
-                    scenes=scenes, percept_epochs=percept_epochs, clone_epochs=clone_epochs, clone_lr=clone_lr,
+                    scenes=scenes, percept_epochs=percept_epochs, clone_lr=clone_lr,
                     warm=resolved(warm), rise=rise, base_port=base_port,
                     runs=resolved(runs), max_wall_s=max_wall_s,
+                    **({"clone_epochs": clone_epochs} if clone_epochs is not None else {}),
                     **({"clone_noise_std": clone_noise_std} if clone_noise_std is not None else {}))
 
     def run(progress: Callable[[str], None]) -> dict:
