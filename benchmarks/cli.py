@@ -318,6 +318,10 @@ def learn_vla(
     if clone_noise_std is not None and not clone_noise_std > 0:
         raise fail(f"--clone-noise-std must be > 0, got {clone_noise_std}")
 
+    # options left out keep the recipe's defaults (benchmarks.learn_vla.CLONE_EPOCHS, NOISE_STD)
+    unset_means_default = {k: v for k, v in {"clone_epochs": clone_epochs, "clone_noise_std": clone_noise_std}.items()
+                           if v is not None}
+
     def resolved(path: Optional[Path]) -> Optional[Path]:
         return path.resolve() if path else None
 
@@ -328,9 +332,7 @@ def learn_vla(
                     demos_file=resolved(demos_file), demos=demos, all_episodes=all_episodes, percept=resolved(percept),
                     scenes=scenes, percept_epochs=percept_epochs, clone_lr=clone_lr,
                     warm=resolved(warm), rise=rise, base_port=base_port,
-                    runs=resolved(runs), max_wall_s=max_wall_s,
-                    **({"clone_epochs": clone_epochs} if clone_epochs is not None else {}),
-                    **({"clone_noise_std": clone_noise_std} if clone_noise_std is not None else {}))
+                    runs=resolved(runs), max_wall_s=max_wall_s, **unset_means_default)
 
     def run(progress: Callable[[str], None]) -> dict:
         with tempfile.TemporaryDirectory(prefix="dvla-bench-learn-vla-") as tmp:
