@@ -190,9 +190,10 @@ def _open_fabric(name: str, secret: bytes, *, ctrl: Any, data: Any = None, share
     """A bench fabric; `auth` "identity" (as under `dvla up`: the run secret's tag and the sender's
     certified Ed25519 signature, `identity` its credential text), "tag" (the run secret only),
     "none", or "none-data" (trajectories without envelopes, control as under `dvla up`)."""
-    from dvla.fabric import CTRL, DATA, Fabric
+    from dvla.fabric import CTRL, DATA, Fabric, keep_freed_buffers
     from dvla.fabric.identity import Identity
 
+    keep_freed_buffers()  # as every role process does (DVLA_KEEP_FREED_BUFFERS=0: glibc's defaults)
     ident = Identity.from_text(identity) if auth in ("identity", "none-data") and identity else None
     fabric = Fabric(run=RUN, name=name, ctrl_conf=ctrl, data_conf=None if shared else data, secret=secret,
                     identity=ident)
@@ -905,14 +906,16 @@ def _stop(procs: list[Any]) -> None:
 def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: bool = True,
               progress: Callable[[str], None] = lambda _m: None) -> dict[str, Any]:
     """Run every measurement; returns the JSON document (see the module docstring)."""
-    from dvla.fabric import new_secret
+    from dvla.fabric import keep_freed_buffers, new_secret
 
     cfg = cfg or (BenchConfig.quick() if quick else BenchConfig())
     ctx = mp.get_context("spawn")
     secret = bytes.fromhex(new_secret())
     started = time.monotonic()
     pids: list[int] = []  # every worker, all stopped before returning (recorded for checks)
-    doc: dict[str, Any] = {"config": asdict(cfg), "quick": quick, "shared_memory": False, "cpus": os.cpu_count()}
+    doc: dict[str, Any] = {"config": asdict(cfg), "quick": quick, "shared_memory": False, "cpus": os.cpu_count(),
+                           # whether every worker keeps freed buffers in its heap, as roles do
+                           "keep_freed_buffers": keep_freed_buffers()}
     throughput: dict[str, Any] = {}
     for label, target, n in (("64k", 64 * KIB, cfg.n_64k), ("1m", MIB, cfg.n_1m)):
         progress(f"throughput {label}: {cfg.rounds} rounds x {n} chunks of {payload_size(target)} bytes")

@@ -15,6 +15,7 @@ from .accounting import Accounting
 from .codec import Limits, decode, encode
 from .errors import CodecError, FabricError, SecretError, SignatureError
 from .fabric import CTRL, DATA, Fabric, Inbox
+from .heap import keep_freed_buffers
 from .keys import KeySpace
 from .messages import (
     Command,
@@ -35,5 +36,5 @@ __all__ = [
     "Accounting", "CTRL", "CodecError", "Command", "DATA", "EvalResult", "Fabric", "FabricError", "Inbox",
     "KeySpace", "LedgerRecord", "Limits", "Receipt", "ReceiptRequest", "RoleStatus", "SecretError",
     "SignatureError", "Signer", "SnapshotRequest", "TlsFiles", "TrajectoryChunk", "Verifier", "WeightChunk",
-    "WeightManifest", "decode", "encode", "load_secret", "new_secret", "plane_config",
+    "WeightManifest", "decode", "encode", "keep_freed_buffers", "load_secret", "new_secret", "plane_config",
 ]

@@ -50,7 +50,8 @@ class Inbox:
     congestion control), then drops and counts the message: a slow consumer must never stall
     Zenoh's receive thread long enough to close the transport. With a `decoder` (both planes'
     subscriptions) raw envelopes are queued and :meth:`get` verifies and decodes them on the
-    reader's thread, never on Zenoh's; without one, :meth:`offer` queues items as they are.
+    reader's thread, never on Zenoh's (their timestamps judged at arrival: see
+    ``Verifier.open``'s ``received_ns``); without one, :meth:`offer` queues items as they are.
     """
 
     def __init__(
@@ -74,7 +75,7 @@ class Inbox:
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key, raw, peer = _take(sample, self._acct, self._plane)
-        self.offer((key, raw), peer)
+        self.offer((key, raw, time.time_ns()), peer)
 
     def offer(self, item: Any, peer: str) -> None:
         """Queue `item` (from `peer`), waiting at most `block_s` for space; else drop it and count
@@ -205,11 +206,12 @@ class Fabric:
         if self.data is None:
             raise RuntimeError(f"{self.name}: this fabric was opened without a data plane")
 
-        def _verified(key: str, raw: bytes) -> tuple[str, memoryview] | None:
-            """(sending rollout, payload), counted as received from it; None: counted as refused."""
+        def _verified(key: str, raw: bytes, received_ns: int) -> tuple[str, memoryview] | None:
+            """(sending rollout, payload), counted as received from it; None: counted as refused.
+            Freshness is judged at `received_ns` (arrival), not after the wait in the inbox."""
             peer = KeySpace.last(key)
             try:
-                opened = self._verifier.open(key, raw)
+                opened = self._verifier.open(key, raw, received_ns=received_ns)
                 refused = self._refusal(key, opened.sender, opened.kind)
                 if refused is not None:
                     raise refused
@@ -223,8 +225,8 @@ class Fabric:
             self.accounting.received(DATA, len(raw), peer)
             return peer, opened.payload
 
-        def _open(key: str, raw: bytes) -> Any | None:
-            got = _verified(key, raw)
+        def _open(key: str, raw: bytes, received_ns: int) -> Any | None:
+            got = _verified(key, raw, received_ns)
             if got is None:
                 return None
             peer, payload = got
@@ -240,7 +242,7 @@ class Fabric:
                 return None
             return msg
 
-        def _full(item: tuple[str, bytes], _claimed: str) -> None:
+        def _full(item: tuple[str, bytes, int], _claimed: str) -> None:
             got = _verified(*item)
             if got is None:
                 return
@@ -257,7 +259,7 @@ class Fabric:
 
         def _hand_off(sample: zenoh.Sample) -> None:
             key = str(sample.key_expr)
-            inbox.offer((key, sample.payload.to_bytes()), KeySpace.last(key))
+            inbox.offer((key, sample.payload.to_bytes(), time.time_ns()), KeySpace.last(key))
 
         key = self.keys.traj(rollout) if rollout != "*" else self.keys.traj_all()
         self._declared.append(self.data.declare_subscriber(key, _on_receive_thread(_hand_off)))
@@ -287,12 +289,14 @@ class Fabric:
         return None if why is None else SignatureError("unauthorized", why)
 
     def open_signed(self, key: str, raw: bytes, expect: type | tuple[type, ...] | None, *, query: bool = False,
-                    bind: bytes = b"", fresh: bool = True) -> tuple[str, Any] | None:
+                    bind: bytes = b"", fresh: bool = True, received_ns: int | None = None) -> tuple[str, Any] | None:
         """Verify, authorize and decode a control message; None (and counted) when it fails.
         `query`: it is a query's request; `bind`: the nonce a reply must be bound to;
-        `fresh=False`: an old envelope kept as proof (no freshness or replay check)."""
+        `fresh=False`: an old envelope kept as proof (no freshness or replay check);
+        `received_ns`: its arrival (wall clock), when it waited in a queue since."""
         try:
-            sender, kind, payload, _nonce = self._verifier.open(key, raw, bind=bind, fresh=fresh)
+            sender, kind, payload, _nonce = self._verifier.open(key, raw, bind=bind, fresh=fresh,
+                                                                received_ns=received_ns)
             refused = self._refusal(key, sender, kind, query)
             if refused is not None:
                 raise refused
@@ -333,8 +337,8 @@ class Fabric:
         `sign_key` when given (else `key`); with `with_envelope`, (sender, message, envelope
         bytes) so the reader can forward the envelope unchanged."""
 
-        def _decode(k: str, raw: bytes) -> tuple[Any, ...] | None:
-            got = self.open_signed(sign_key or k, raw, expect)
+        def _decode(k: str, raw: bytes, received_ns: int) -> tuple[Any, ...] | None:
+            got = self.open_signed(sign_key or k, raw, expect, received_ns=received_ns)
             if got is not None and with_envelope:
                 return (*got, raw)
             return got

@@ -246,11 +246,13 @@ class Verifier:
             return len(self._seen)
 
     def open(self, key_expr: str, envelope: bytes | bytearray | memoryview, *, bind: bytes = b"",
-             fresh: bool = True) -> Opened:
+             fresh: bool = True, received_ns: int | None = None) -> Opened:
         """Verify and return an :class:`Opened`, or raise :class:`SignatureError`.
 
         ``fresh=False`` skips the timestamp and replay checks (an old envelope kept as proof,
-        e.g. the actor's manifest inside a snapshot reply)."""
+        e.g. the actor's manifest inside a snapshot reply). ``received_ns``: when this receiver
+        took the envelope off the wire, by its own ``clock``; the timestamp's age is judged then,
+        so an envelope that waited in the receiver's own bounded queue is not stale (None: now)."""
         env = self._view(envelope)
         parsed = _parse(env)
         if parsed.key_id != self._kid:
@@ -258,7 +260,7 @@ class Verifier:
                                  f"(claimed sender {parsed.sender!r}; another run, or a rotated secret)")
         tag = self._check_tag(key_expr, bind, env, parsed)
         if fresh:  # cheap checks first: a captured envelope with a flipped signature bit is a replay
-            self._check_fresh(parsed)
+            self._check_fresh(parsed, received_ns)
         if self._operator is not None:
             self._check_identity(parsed, tag)
         if fresh:
@@ -301,9 +303,11 @@ class Verifier:
         if not verify_signature(parsed.public, _SIG_DOMAIN + tag, parsed.sig):
             raise SignatureError("bad_identity", f"signature of {parsed.sender!r} does not verify")
 
-    def _check_fresh(self, parsed: _Parsed) -> None:
+    def _check_fresh(self, parsed: _Parsed, received_ns: int | None = None) -> None:
         """Raise stale/replay without remembering anything (the identity is not checked yet)."""
         now = self._clock()
+        if received_ns is not None:
+            now = min(now, received_ns)  # never later than now: a receive time cannot extend a timestamp's life
         age = now - parsed.ts_ns
         if abs(age) > self.max_age_ns:
             raise SignatureError("stale", f"timestamp off by {age / 1e9:.3f}s (limit {self.max_age_ns / 1e9:.3f}s)")

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from ..config import RoleConfig
-from ..fabric import Fabric, load_secret, plane_config
+from ..fabric import Fabric, keep_freed_buffers, load_secret, plane_config
 from ..fabric.identity import IDENTITY_ENV, Identity, IdentityError, read_revoked
 from ..fabric.messages import ArraySpec, ChunkSpec, Command, RoleStatus
 from ..fabric.zconfig import DATA_BLOCK_WAIT_BEFORE_CLOSE_US, plane_max_message_size
@@ -231,6 +231,8 @@ def main(role_factory: Any, argv: list[str] | None = None) -> int:
         pin_cpus(cfg.cpus)
     # One intra-op thread per role: the lanes are the concurrency; more threads only contend.
     threads = set_torch_threads(1)
+    # Chunks pass through MiB-sized buffers: keep freed ones in the heap (dvla/fabric/heap.py).
+    kept = keep_freed_buffers()
     fabric = open_fabric(cfg)
     role = None
     host: RoleHost | None = None
@@ -240,6 +242,7 @@ def main(role_factory: Any, argv: list[str] | None = None) -> int:
         host.placement = {
             "cpus": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
             "torch_threads": threads,
+            "keep_freed_buffers": kept,
         }
 
         def _on_signal(signum: int, _frame: Any) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -35,6 +36,7 @@ def test_bench_fabric_quick_writes_every_figure(tmp_path: Path) -> None:
     for key in HEADLINE_KEYS:
         assert positive(doc.get(key)), (key, doc.get(key))
     assert doc["quick"] is True and doc["shared_memory"] is False
+    assert doc["keep_freed_buffers"] is (platform.libc_ver()[0] == "glibc")  # as roles do (dvla/fabric/heap.py)
     for label in ("64k", "1m"):
         e = doc["throughput"][label]
         assert positive(e["payload_bytes"]) and positive(e["messages"])

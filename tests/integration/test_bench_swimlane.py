@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -106,6 +107,7 @@ def test_bench_swimlane_quick_writes_every_figure(tmp_path: Path) -> None:
             want = [1] if name.startswith("actor") else [0]
             assert placement["cpus"] == want, (name, placement)
             assert placement["torch_threads"] == {"intra": 1, "interop": 1}
+            assert placement["keep_freed_buffers"] is (platform.libc_ver()[0] == "glibc")  # dvla/fabric/heap.py
     assert isinstance(balanced["balanced_within_20pct"], bool)
 
     leftover = subprocess.run(["pgrep", "-f", str(runs)], capture_output=True, text=True).stdout.split()

@@ -424,6 +424,32 @@ def test_slow_consumer_backpressure_loses_nothing_silently(pair: Pair, block_s: 
 
 
 @pytest.mark.timeout(30)
+def test_chunks_that_waited_in_the_inbox_longer_than_the_age_limit_are_accepted() -> None:
+    # A learner busy with an update leaves chunks in its bounded inbox; they arrived fresh and are
+    # verified when read, so their age is judged at arrival (before: refused as "stale" once the
+    # wait passed max_age_s, 2-4 % of the chunks of a slow VLA run). Control inboxes do the same.
+    ctrl_port, data_port = free_port(), free_port()
+    actor = Fabric(run=RUN, name="actor", secret=SECRET, max_age_s=1.0,
+                   ctrl_conf=plane_config(mode="router", listen=[f"tcp/127.0.0.1:{ctrl_port}"]),
+                   data_conf=plane_config(mode="peer", listen=[f"tcp/127.0.0.1:{data_port}"]))
+    rollout = open_client(ctrl_port, data_port, "rollout-0")
+    try:
+        inbox = actor.subscribe_traj(maxsize=8, expect=TrajectoryChunk)
+        wait_route(actor.data, rollout.data)
+        sent = [make_chunk(rollout.name, i) for i in range(3)]
+        for c in sent:
+            rollout.publish_traj(c)
+        assert wait_for(lambda: inbox.depth() == len(sent), 5), inbox.depth()
+        time.sleep(1.5)  # longer than max_age_s, in the actor's own queue
+        got = [inbox.get(timeout=1.0) for _ in sent]
+        assert [c.seq for c in got if c is not None] == [0, 1, 2]
+        assert actor.accounting.get(DATA, "rejected") == 0
+    finally:
+        rollout.close()
+        actor.close()
+
+
+@pytest.mark.timeout(30)
 def test_garbage_and_oversized_data_payloads_are_rejected_and_counted(pair: Pair) -> None:
     actor, rollout = pair.actor, pair.rollout
     inbox = actor.subscribe_traj(maxsize=32, expect=TrajectoryChunk)

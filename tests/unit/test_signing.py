@@ -161,6 +161,25 @@ def test_stale_and_future_timestamps():
     assert reason_of(verifier, KEY, edge) == "stale"
 
 
+def test_age_is_judged_at_arrival_when_the_receiver_queued_the_envelope():
+    # An envelope that arrived fresh and then waited in the receiver's own bounded queue (a busy
+    # learner) is not stale; a receive time never lengthens a life: it cannot be later than now.
+    clock = Clock()
+    sealed = Signer(SECRET, "rollout-0", clock=Clock(T0)).seal(KEY, b"chunk")
+    later = Signer(SECRET, "rollout-0", clock=Clock(T0 + SEC)).seal(KEY, b"chunk")
+    verifier = Verifier(SECRET, max_age_s=30.0, clock=clock)
+    clock.now = T0 + 200 * SEC  # read 200 s after it was sealed
+    assert reason_of(verifier, KEY, sealed) == "stale"
+    with pytest.raises(SignatureError, match="stale"):
+        verifier.open(KEY, sealed, received_ns=T0 + 500 * SEC)  # a "receive time" after now counts as now
+    assert verifier.open(KEY, sealed, received_ns=T0 + 2 * SEC).payload == b"chunk"
+    with pytest.raises(SignatureError, match="replay"):
+        verifier.open(KEY, sealed, received_ns=T0 + 2 * SEC)  # its nonce is held as any other
+    assert verifier.open(KEY, later, received_ns=T0 + 3 * SEC).payload == b"chunk"
+    with pytest.raises(SignatureError, match="stale"):
+        verifier.open(KEY, later, received_ns=T0 + 40 * SEC)  # it had aged out when it arrived
+
+
 def test_replay_memory_is_bounded_and_evicted_nonces_stay_rejected():
     clock = Clock()
     signer = Signer(SECRET, "actor", clock=clock)
