@@ -21,6 +21,7 @@ import ctypes
 import ctypes.util
 import logging
 import os
+import platform
 
 __all__ = ["DISABLE_ENV", "MMAP_THRESHOLD", "TRIM_THRESHOLD", "keep_freed_buffers"]
 
@@ -48,12 +49,9 @@ def keep_freed_buffers(mmap_threshold: int = MMAP_THRESHOLD, trim_threshold: int
         return False
     if "glibc.malloc." in os.environ.get("GLIBC_TUNABLES", ""):
         return False
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
-        libc.gnu_get_libc_version  # glibc only: other C libraries' mallopt take other options
-    except (OSError, AttributeError):
+    if platform.libc_ver()[0] != "glibc":  # other C libraries' mallopt take other options
         return False
+    mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
     ok = mallopt(_M_MMAP_THRESHOLD, mmap_threshold) == 1 and mallopt(_M_TRIM_THRESHOLD, trim_threshold) == 1
     if not ok:
