@@ -567,8 +567,9 @@ def _ctrl_addr(layout: Layout, shared: bool) -> str:
 #: what loads a loaded ctrl RTT phase: the source's trajectory chunks through its data session
 #: ("fabric"); as controls, plain TCP from the same process over the same link ("tcp": no Zenoh,
 #: no envelopes, no Python per byte: the delay the flooded link and this machine's kernel add by
-#: themselves), or no traffic at all, only processes burning the CPU the fabric's flood burned
-#: ("cpu", `hog_cores`: how much of the isolation loss is the CPU, not the planes)
+#: themselves), or no traffic at all, only processes burning the CPU the fabric's flood added to
+#: the sink's and source's ("cpu", `hog_cores`: how much of the isolation loss is the CPU, not
+#: the planes)
 FLOODS = ("fabric", "tcp", "cpu")
 #: processes that share the CPU control's load (each busy for `hog_cores / HOGS` of the time)
 HOGS = 2
@@ -745,8 +746,10 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
     identity `dvla up` would give it (sink: actor, source: rollout, tool: operator); `auth`
     "none-data": the flood without envelopes (the baseline of what authenticating it costs the ctrl plane).
     The loaded phase reports the CPU the sink and source burned (`flood_cpu_cores`: CPU seconds
-    per second); `flood_kind` "cpu" loads the machine with :data:`HOGS` processes burning
-    `hog_cores` in all instead of any traffic."""
+    per second), the idle phase what they burned answering the tool's queries alone (`cpu_cores`),
+    and the loaded phase the difference (`flood_extra_cpu_cores`: what the flood added);
+    `flood_kind` "cpu" loads the machine with :data:`HOGS` processes burning `hog_cores` in all
+    instead of any traffic."""
     from dvla.fabric.identity import Identity
 
     if flood_kind not in FLOODS:
@@ -776,6 +779,7 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
     blocks: list[dict[str, float]] = []  # p99 of each phase, block by block
     misses = dict.fromkeys(phases, 0)
     flood_msgs = flood_bytes = flood_s = flood_cpu = hog_cpu = 0.0
+    idle_cpu = idle_s = 0.0  # CPU seconds of sink and source in the idle phases, and their length
     try:
         for hog in hogs:
             hog.start()
@@ -802,15 +806,19 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
                         _wait_for(lambda: received.value > 0, START_TIMEOUT_S, "the flood never reached the sink")
                     time.sleep(cfg.warmup_s)
                     c0, b0, t0 = received.value, received_bytes.value, time.monotonic()
-                    cpu0, hog0 = _proc_cpu_s([sink.pid, src.pid]), _proc_cpu_s([h.pid for h in hogs])
+                    hog0 = _proc_cpu_s([h.pid for h in hogs])
+                cpu0, w0 = _proc_cpu_s([sink.pid, src.pid]), time.monotonic()
                 cmds.put((phase, per_block))
                 got = _collect(out, {phase}, cfg.phase_timeout_s + 5)[phase][1]
+                if phase == "idle":
+                    idle_cpu += _proc_cpu_s([sink.pid, src.pid]) - cpu0
+                    idle_s += time.monotonic() - w0
                 rtts[phase] += got[0]
                 if got[0]:
                     blocks[-1][phase] = percentile(sorted(got[0]), 99)
                 misses[phase] += got[1]
                 if phase == "loaded":
-                    flood_cpu += _proc_cpu_s([sink.pid, src.pid]) - cpu0
+                    flood_cpu += _proc_cpu_s([sink.pid, src.pid]) - cpu0  # (taken after the warm-up)
                     hog_cpu += _proc_cpu_s([h.pid for h in hogs]) - hog0
                     flood_msgs += received.value - c0
                     flood_bytes += received_bytes.value - b0
@@ -821,6 +829,9 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
         result["loaded"]["flood"] = flood_kind
         result["loaded"]["auth"] = auth
         result["loaded"]["flood_cpu_cores"] = flood_cpu / flood_s
+        if idle:
+            result["idle"]["cpu_cores"] = idle_cpu / idle_s
+            result["loaded"]["flood_extra_cpu_cores"] = max(0.0, result["loaded"]["flood_cpu_cores"] - result["idle"]["cpu_cores"])
         if hogs:
             result["loaded"]["hog_cores_asked"] = hog_cores
             result["loaded"]["hog_cores"] = hog_cpu / flood_s
@@ -947,7 +958,9 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
                 plain = _measure_ctrl(ctx, lay, False, cfg, secret, pids, idle=True, auth="none-data")
                 progress(f"ctrl RTT ({lay.name}): separate sessions, idle and data link flooded by plain TCP, alternating")
                 tcp = _measure_ctrl(ctx, lay, False, cfg, secret, pids, idle=True, flood_kind="tcp")
-                cores = separate["loaded"]["flood_cpu_cores"]
+                # what the flood added to the sink's and source's CPU (idle, answering the
+                # queries already costs them some), burned by processes with no traffic
+                cores = separate["loaded"]["flood_extra_cpu_cores"]
                 progress(f"ctrl RTT ({lay.name}): separate sessions, idle and {cores:.2f} cores burned without traffic")
                 cpu = _measure_ctrl(ctx, lay, False, cfg, secret, pids, idle=True, flood_kind="cpu", hog_cores=cores)
         ctrl[lay.name] = {"layout": lay.describe(), "idle": separate["idle"], "loaded": separate["loaded"],
@@ -974,6 +987,7 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
         doc["tcp_flood_over_idle_blocks"] = _spread(ctrl[head]["block_ratios_tcp"])
     if "loaded_cpu" in ctrl[head]:
         doc["flood_cpu_cores"] = ctrl[head]["loaded"]["flood_cpu_cores"]
+        doc["flood_extra_cpu_cores"] = ctrl[head]["loaded"]["flood_extra_cpu_cores"]
         doc["cpu_load_over_idle"] = ctrl[head]["loaded_cpu"]["p99_ms"] / ctrl[head]["idle_cpu"]["p99_ms"]
         doc["cpu_load_over_idle_blocks"] = _spread(ctrl[head]["block_ratios_cpu"])
     doc["actor_cpu_us_per_auth_chunk"] = doc["auth"]["data"]["identity"]["sub_cpu_us_per_chunk"]
@@ -1037,7 +1051,7 @@ def format_table(doc: dict[str, Any]) -> str:
     tcp = (f"\n  controls: flood without envelopes loaded/idle p99 = {doc['noauth_loaded_over_idle']:.2f}   "
            f"plain-TCP flood/idle p99 = {doc['tcp_flood_over_idle']:.2f}") if "tcp_flood_over_idle" in doc else ""
     if "cpu_load_over_idle" in doc:
-        tcp += (f"   the flood's CPU ({doc['flood_cpu_cores']:.2f} cores) burned without traffic: "
+        tcp += (f"   the CPU the flood added ({doc['flood_extra_cpu_cores']:.2f} cores) burned without traffic: "
                 f"loaded/idle p99 = {doc['cpu_load_over_idle']:.2f}")
     lines.append(f"headline ({doc['ctrl_rtt_layout']}): loaded/idle p99 = {doc['loaded_over_idle']:.2f}{spread}   "
                  f"shared/separate p99 = {doc['shared_over_separate']:.2f}{tcp}   links layout: {doc['links_layout']}")

@@ -70,7 +70,12 @@ def test_bench_fabric_quick_writes_every_figure(tmp_path: Path) -> None:
         assert positive(links["loaded_noauth"]["flood_bytes_per_s"]) and positive(doc["noauth_loaded_over_idle"])
         # the CPU control burned about the CPU the fabric's flood burned, and sent nothing
         assert positive(links["loaded"]["flood_cpu_cores"]) and doc["flood_cpu_cores"] == links["loaded"]["flood_cpu_cores"]
-        assert links["loaded_cpu"]["hog_cores_asked"] == links["loaded"]["flood_cpu_cores"]
+        # the control burns what the flood added to the sink's and source's idle CPU (answering
+        # the queries), not their whole loaded CPU
+        assert links["idle"]["cpu_cores"] >= 0  # (quick phases are too short for /proc's 10 ms ticks)
+        extra = links["loaded"]["flood_extra_cpu_cores"]
+        assert extra == max(0.0, links["loaded"]["flood_cpu_cores"] - links["idle"]["cpu_cores"])
+        assert links["loaded_cpu"]["hog_cores_asked"] == extra == doc["flood_extra_cpu_cores"]
         assert links["loaded_cpu"]["hog_cores"] >= 0  # (quick phases are too short for /proc's 10 ms ticks)
         assert links["loaded_cpu"]["flood"] == "cpu" and links["loaded_cpu"]["flood_bytes_per_s"] == 0
         assert positive(doc["cpu_load_over_idle"])
