@@ -21,8 +21,11 @@ is one group whose steps stay tensors on the sim device (a ``DeviceChunk``), cop
 once per chunk. The grouping is :func:`dvla.learn.envs.env_groups` (the actor sizes its slots
 from it through ``chunk_envs``).
 
-Modes: ``sync`` (the lock-step baseline) waits for a new policy version after its share of one
-learner batch; ``sim_only`` (a benchmark baseline) steps the envs with uniform random actions
+Modes: ``sync`` (the lock-step baseline) acts in rounds, one per policy version: a group starts
+a chunk only while the chunks started in this round hold less than the rollout's share of one
+learner batch (``lockstep_steps``); a group that may not start one waits, and once every group
+waits, so does the rollout, for the next version. So every chunk is acted on by one version, the
+newest, whatever the number of groups. ``sim_only`` (a benchmark baseline) steps the envs with uniform random actions
 and infers and ships nothing.
 """
 
@@ -213,7 +216,9 @@ class Rollout:
         self.sync_mode = cfg.mode == "sync"
         self.sim_only = cfg.mode == "sim_only"
         self._lockstep_version = -1  # sync mode: actions of older versions are recomputed
-        self._since_version = 0
+        self._round_version = -1  # sync mode: the version the current round acts with
+        self._round_steps = 0  # sync mode: env steps of the chunks started in this round
+        self._parked: list[int] = []  # sync mode: groups waiting for the next round
         self._ready = threading.Event()
         self._ledger_sent = 0.0
 
@@ -280,8 +285,11 @@ class Rollout:
 
     def _sim(self, ctx: LaneContext) -> None:
         for g in self.groups:
-            self.to_infer.put(g.gid, ctx.stop, stats=ctx.stats)
+            self._next_step(g, ctx)
         while ctx.running:
+            if self._parked and len(self._parked) == len(self.groups):  # sync: the round is shipped
+                self._next_round(ctx)
+                continue
             a = self.to_sim.get(ctx.stop, stats=ctx.stats)
             if a is None:
                 return
@@ -294,9 +302,35 @@ class Rollout:
                     g.envs.step_async(a.actions)
                 self._record_step(g, a, g.envs.step_wait())
                 ctx.count(g.envs.n)
+            if self.sync_mode:
+                self._round_version = max(self._round_version, a.version)
             if g.t == self.spec.T:
                 self._finish_chunk(g, ctx)
-            self.to_infer.put(a.gid, ctx.stop, stats=ctx.stats)
+            self._next_step(g, ctx)
+
+    def _next_step(self, g: _Group, ctx: LaneContext) -> None:
+        """Send ``g`` for its next actions; in sync mode a group about to start a chunk waits
+        (parked) when this round's chunks already hold the rollout's share."""
+        if self.sync_mode and g.t == 0:
+            if self._round_steps >= max(self.cfg.lockstep_steps, 1):  # (at least one chunk a round)
+                self._parked.append(g.gid)
+                return
+            self._round_steps += self.spec.T * g.envs.n
+        self.to_infer.put(g.gid, ctx.stop, stats=ctx.stats)
+
+    def _next_round(self, ctx: LaneContext) -> None:
+        """Sync mode, every group parked: wait for a version newer than this round's, then start
+        the next round with the parked groups (in the order they finished)."""
+        with ctx.waiting():
+            while ctx.running and self.pool.active_version <= self._round_version:
+                self.pool.maybe_swap()
+                ctx.sleep(0.005)
+        # An action computed with an older version is recomputed (_sim) rather than stepped.
+        self._lockstep_version = self._round_version = self.pool.active_version
+        self._round_steps = 0
+        parked, self._parked = self._parked, []
+        for gid in parked:
+            self._next_step(self.groups[gid], ctx)
 
     def _sim_random(self, ctx: LaneContext) -> None:
         """sim_only mode: step every group with uniform random actions; nothing leaves the process."""
@@ -376,23 +410,6 @@ class Rollout:
         if nxt is None:
             return  # stopping
         g.chunk = nxt
-        if self.sync_mode:
-            self._lockstep_wait(g, ctx)
-
-    def _lockstep_wait(self, g: _Group, ctx: LaneContext) -> None:
-        """Lock-step baseline: after this rollout's share of a batch, wait for a new version."""
-        self._since_version += self.spec.T * g.envs.n
-        if self._since_version < self.cfg.lockstep_steps:
-            return
-        self._since_version = 0
-        start_version = self.pool.active_version
-        with ctx.waiting():
-            while ctx.running and self.pool.active_version <= start_version:
-                self.pool.maybe_swap()
-                ctx.sleep(0.005)
-        # Actions the infer lane computed for the other group meanwhile used the old weights:
-        # _sim sends those back, so every step of the next batch acts with the new version.
-        self._lockstep_version = self.pool.active_version
 
     def _ship(self, ctx: LaneContext) -> None:
         while ctx.running:
