@@ -9,17 +9,17 @@ and a new version is published into the rollout's held weights, as WeightSync wo
 
 from __future__ import annotations
 
-import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from dvla.config import PlaneEndpoints, PPOConfig, ReplicationConfig, RoleConfig, TaskConfig
-from dvla.fabric import Fabric, plane_config
 from dvla.replication import WeightEncoder
 from dvla.roles.rollout import Rollout
-from dvla.roles.runtime import ExitStatus, RoleHost
+from dvla.roles.runtime import ExitStatus
+
+from .lone_rollout import run_alone
 
 T, ENVS = 4, 4  # two groups of two envs: a chunk is T * 2 env steps
 TASK = TaskConfig(env="PushCube-v1", max_episode_steps=10, envs_per_rollout=ENVS, chunk_steps=T,
@@ -40,7 +40,6 @@ def _run(tmp_path: Path, per_round: int, chunks: int) -> list[tuple[int, tuple[i
     Path(cfg.run_dir).mkdir(parents=True)
     finished: list[tuple[int, tuple[int, ...]]] = []
     shipped: list[int] = []
-    host: list[RoleHost] = []
     rng = np.random.default_rng(0)
 
     class Learner(Rollout):
@@ -53,35 +52,23 @@ def _run(tmp_path: Path, per_round: int, chunks: int) -> list[tuple[int, tuple[i
             shipment.pool.give(shipment.chunk)
             self.ledger.add_shipped(0)
             if len(shipped) >= chunks:
-                host[0].swimlane.stop()
-                return
-            if len(shipped) % per_round == 0:
-                publish(rng.normal(0, 0.3, self.pool.layout.numel).astype(np.float32))
+                self.stop_run()
+            elif len(shipped) % per_round == 0:
+                publish(self)
 
-    fabric = Fabric(run=cfg.run, name=cfg.name, ctrl_conf=plane_config(mode="peer", listen=("tcp/127.0.0.1:0",)),
-                    data_conf=None, secret=b"k" * 32)
-    fabric.traj_matched = lambda: True  # no learner process: ship into the test at once
-    try:
-        role = Learner(cfg, fabric)
+    encoder: list[WeightEncoder] = []  # one encoder: each version follows the last
+
+    def publish(role: Rollout) -> None:
+        if not encoder:
+            encoder.append(WeightEncoder(role.pool.layout, start_version=0))
+        v = encoder[0].encode(rng.normal(0, 0.3, role.pool.layout.numel).astype(np.float32))
+        role.pool.held.apply(v.manifest, v.payload)
+
+    def prepare(role: Rollout) -> None:
         assert [g.envs.n for g in role.groups] == [ENVS // 2, ENVS // 2]
-        encoder = WeightEncoder(role.pool.layout, start_version=0)
+        publish(role)
 
-        def publish(flat: np.ndarray) -> None:
-            v = encoder.encode(flat)
-            role.pool.held.apply(v.manifest, v.payload)
-
-        try:
-            publish(rng.normal(0, 0.3, role.pool.layout.numel).astype(np.float32))
-            role._ready.set()
-            host.append(RoleHost(cfg, fabric, role))
-            timer = threading.Timer(240, host[0].swimlane.stop)
-            timer.start()
-            code = host[0].run()
-            timer.cancel()
-        finally:
-            role.close()
-    finally:
-        fabric.close()
+    code = run_alone(cfg, Learner, prepare)
     assert code == ExitStatus.OK
     assert len(shipped) >= chunks, f"only {len(shipped)} chunks shipped"
     return [(gid, versions, pv) for (gid, versions), pv in zip(finished, shipped)]

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 import signal
-import threading
 import time
 from pathlib import Path
 
@@ -14,13 +13,14 @@ import numpy as np
 import pytest
 
 from dvla.config import PlaneEndpoints, PPOConfig, ReplicationConfig, RoleConfig, TaskConfig
-from dvla.fabric import Fabric, plane_config
 from dvla.fabric.messages import chunk_arrays
 from dvla.learn.envs import EnvGroup, EnvSetupError
 from dvla.learn.simworkers import SimWorkerError, SimWorkers, split_envs
 from dvla.replication import WeightEncoder
 from dvla.roles.rollout import Rollout
-from dvla.roles.runtime import ExitStatus, RoleHost
+from dvla.roles.runtime import ExitStatus
+
+from .lone_rollout import run_alone
 
 ROOT = Path(__file__).resolve().parents[2]
 # short episodes: auto-resets (and their seeds) happen inside every chunk
@@ -38,7 +38,6 @@ def _record(tmp_path: Path, workers: int, mode: str, chunks: int = 3) -> dict[in
     )
     Path(cfg.run_dir).mkdir(parents=True)
     got: dict[int, list[dict]] = {}
-    host: list[RoleHost] = []
 
     class Recording(Rollout):
         def _publish(self, shipment):  # what would go on the data plane, copied
@@ -48,30 +47,18 @@ def _record(tmp_path: Path, workers: int, mode: str, chunks: int = 3) -> dict[in
             shipment.pool.give(shipment.chunk)
             self.ledger.add_shipped(0)
             if len(got) == len(self.groups) and all(len(v) >= chunks for v in got.values()):
-                host[0].swimlane.stop()
+                self.stop_run()
 
-    fabric = Fabric(run=cfg.run, name=cfg.name, ctrl_conf=plane_config(mode="peer", listen=("tcp/127.0.0.1:0",)),
-                    data_conf=None, secret=b"k" * 32)
-    fabric.traj_matched = lambda: True  # no learner here: ship into the recording at once
-    try:
-        role = Recording(cfg, fabric)
-        try:
-            # fixed weights, as a verified version from the actor would install them
-            flat = np.random.default_rng(0).normal(0, 0.3, role.pool.layout.numel).astype(np.float32)
-            v = WeightEncoder(role.pool.layout, start_version=0).encode(flat)
-            role.pool.held.apply(v.manifest, v.payload)
-            role._ready.set()
-            host.append(RoleHost(cfg, fabric, role))
-            timer = threading.Timer(240, host[0].swimlane.stop)
-            timer.start()
-            code = host[0].run()
-            timer.cancel()
-            if workers:
-                assert len(role.status_extra()["sim_workers"]) == workers
-        finally:
-            role.close()
-    finally:
-        fabric.close()
+    def prepare(role: Rollout) -> None:  # fixed weights
+        flat = np.random.default_rng(0).normal(0, 0.3, role.pool.layout.numel).astype(np.float32)
+        v = WeightEncoder(role.pool.layout, start_version=0).encode(flat)
+        role.pool.held.apply(v.manifest, v.payload)
+
+    def check(role: Rollout) -> None:
+        if workers:
+            assert len(role.status_extra()["sim_workers"]) == workers
+
+    code = run_alone(cfg, Recording, prepare, check)
     assert code == ExitStatus.OK
     return {g: v[:chunks] for g, v in got.items()}
 
