@@ -25,8 +25,8 @@ Modes: ``sync`` (the lock-step baseline) acts in rounds, one per policy version:
 a chunk only while the chunks started in this round hold less than the rollout's share of one
 learner batch (``lockstep_steps``); a group that may not start one waits, and once every group
 waits, so does the rollout, for the next version. So every chunk is acted on by one version, the
-newest, whatever the number of groups. ``sim_only`` (a benchmark baseline) steps the envs with uniform random actions
-and infers and ships nothing.
+newest, whatever the number of groups. ``sim_only`` (a benchmark baseline) steps the envs with
+uniform random actions and infers and ships nothing.
 """
 
 from __future__ import annotations
@@ -215,8 +215,8 @@ class Rollout:
         self.infer_ms: collections.deque[float] = collections.deque(maxlen=512)
         self.sync_mode = cfg.mode == "sync"
         self.sim_only = cfg.mode == "sim_only"
-        self._lockstep_version = -1  # sync mode: actions of older versions are recomputed
-        self._round_version = -1  # sync mode: the version the current round acts with
+        # sync mode: the version the current round acts with (actions of older ones are recomputed)
+        self._round_version = -1
         self._round_steps = 0  # sync mode: env steps of the chunks started in this round
         self._parked: list[int] = []  # sync mode: groups waiting for the next round
         self._ready = threading.Event()
@@ -294,7 +294,7 @@ class Rollout:
             if a is None:
                 return
             g = self.groups[a.gid]
-            if a.version < self._lockstep_version:  # sync mode: acted on before the new weights
+            if a.version < self._round_version:  # sync mode: computed before the round's weights
                 self.to_infer.put(a.gid, ctx.stop, stats=ctx.stats)
                 continue
             with ctx.busy():
@@ -325,8 +325,7 @@ class Rollout:
             while ctx.running and self.pool.active_version <= self._round_version:
                 self.pool.maybe_swap()
                 ctx.sleep(0.005)
-        # An action computed with an older version is recomputed (_sim) rather than stepped.
-        self._lockstep_version = self._round_version = self.pool.active_version
+        self._round_version = self.pool.active_version
         self._round_steps = 0
         parked, self._parked = self._parked, []
         for gid in parked:
