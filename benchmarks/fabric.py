@@ -19,7 +19,10 @@ its own process (multiprocessing, spawn) so that the cores are used as in a real
   layouts (:class:`Layout`): `loopback`, where the data link's capacity is the CPU, and, where
   root can build it, `links`: two network namespaces with one rate-limited veth link per plane,
   so that the flood fills the data link while the CPU still has room, as between real hosts.
-  The headline figures come from `links` when it ran.
+  The headline figures come from `links` when it ran. Its controls, same run: the flood without
+  envelopes; the link flooded by plain TCP; the ctrl path (router, status responder) moved into
+  processes that carry no trajectories, then also pinned to a CPU the flood does not use
+  (:data:`APART`); and the flood's own CPU burned with no traffic (:data:`FLOODS`).
 
 Every loop is bounded both in count and in time; a worker that does not report in time fails
 the bench instead of hanging it, and the namespaces are removed whatever happens.
@@ -573,6 +576,22 @@ def _ctrl_addr(layout: Layout, shared: bool) -> str:
 FLOODS = ("fabric", "tcp", "cpu")
 #: processes that share the CPU control's load (each busy for `hog_cores / HOGS` of the time)
 HOGS = 2
+#: where the ctrl path runs in a ctrl RTT phase: "" as under `dvla up` (the sink's process is the
+#: ctrl router, the source's answers the status queries); "processes": a router and a status
+#: responder in processes of their own, so that no process on the ctrl path carries trajectories
+#: (the sink and source keep ctrl sessions, as clients of that router); "core": the same, with
+#: the ctrl path's processes (router, responder, tool) pinned to one CPU and the sink and source
+#: to the others: the ctrl path with CPU that the flood does not compete for
+APART = ("", "processes", "core")
+
+
+def split_cpus() -> tuple[set[int], set[int]]:
+    """(one CPU for the ctrl path, the others for the flood) of this process's CPUs, for the
+    "core" control; RuntimeError with fewer than two."""
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) < 2:
+        raise RuntimeError(f"the ctrl-on-a-core control needs two CPUs, this process may use {cpus}")
+    return {cpus[0]}, set(cpus[1:])
 
 
 def _cpu_hog(flood: Any, stop: Any, duty: float, max_s: float) -> None:
@@ -622,14 +641,17 @@ def _tcp_drain(sock: socket.socket, received: Any, received_bytes: Any, stop: An
 
 def _rtt_sink(layout: Layout, shared: bool, ctrl_port: int, data_port: int, secret: bytes, ready: Any, stop: Any,
               received: Any, received_bytes: Any, max_s: float, identity: str, flood: str, tcp_port: int,
-              auth: str) -> None:
-    """The actor's side: ctrl router (the tool and the source attach to it) and the traj inbox."""
+              auth: str, apart: bool, cpus: set[int] | None) -> None:
+    """The actor's side: ctrl router (the tool and the source attach to it; `apart`: a client of
+    :func:`_ctrl_router` instead) and the traj inbox."""
+    _pin(cpus)
     _enter_ns(layout.sink_ns)
     from dvla.fabric import DATA, TrajectoryChunk, plane_config
 
+    ctrl_at = f"tcp/{_ctrl_addr(layout, shared)}:{ctrl_port}"
     fabric = _open_fabric(
         SINK, secret, shared=shared, identity=identity, auth=auth,
-        ctrl=plane_config(mode="router", listen=[f"tcp/{_ctrl_addr(layout, shared)}:{ctrl_port}"]),
+        ctrl=plane_config(mode="client", connect=[ctrl_at]) if apart else plane_config(mode="router", listen=[ctrl_at]),
         data=plane_config(mode="peer", listen=[f"tcp/{layout.data_addr}:{data_port}"]),
     )
     drain = None
@@ -653,9 +675,11 @@ def _rtt_sink(layout: Layout, shared: bool, ctrl_port: int, data_port: int, secr
 
 
 def _rtt_source(layout: Layout, shared: bool, ctrl_port: int, data_port: int, secret: bytes, ready: Any, flood: Any,
-                stop: Any, max_s: float, max_msgs: int, identity: str, kind: str, tcp_port: int, auth: str) -> None:
-    """The rollout's side: answers status queries; floods 1 MiB chunks (of `kind`, :data:`FLOODS`)
-    while `flood` is set."""
+                stop: Any, max_s: float, max_msgs: int, identity: str, kind: str, tcp_port: int, auth: str,
+                apart: bool, cpus: set[int] | None) -> None:
+    """The rollout's side: answers status queries (`apart`: :func:`_status_responder` does);
+    floods 1 MiB chunks (of `kind`, :data:`FLOODS`) while `flood` is set."""
+    _pin(cpus)
     _enter_ns(layout.source_ns)
     from dvla.fabric import plane_config
 
@@ -665,7 +689,8 @@ def _rtt_source(layout: Layout, shared: bool, ctrl_port: int, data_port: int, se
         data=plane_config(mode="peer", connect=[f"tcp/{layout.data_addr}:{data_port}"]),
     )
     try:
-        fabric.serve(fabric.keys.status(SOURCE), lambda _req: _status_reply())
+        if not apart:
+            fabric.serve(fabric.keys.status(SOURCE), lambda _req: _status_reply())
         chunk = make_chunk(SOURCE, MIB)
         raw = socket.create_connection((layout.data_addr, tcp_port), timeout=START_TIMEOUT_S) if kind == "tcp" else None
         block = bytes(MIB)
@@ -690,9 +715,10 @@ def _rtt_source(layout: Layout, shared: bool, ctrl_port: int, data_port: int, se
 
 
 def _rtt_tool(layout: Layout, shared: bool, ctrl_port: int, secret: bytes, cmds: Any, out: Any,
-              timeout_s: float, identity: str, auth: str) -> None:
+              timeout_s: float, identity: str, auth: str, cpus: set[int] | None) -> None:
     """`dvla status`'s side, next to the sink: samples RTTs of signed status queries on demand
     (as the operator, who alone may ask)."""
+    _pin(cpus)
     _enter_ns(layout.sink_ns)
     from dvla.fabric import plane_config
 
@@ -714,6 +740,49 @@ def _rtt_tool(layout: Layout, shared: bool, ctrl_port: int, secret: bytes, cmds:
             out.put((phase, _sample_rtts(tool, key, n, timeout_s)))
     finally:
         tool.close()
+
+
+def _ctrl_router(layout: Layout, ctrl_port: int, ready: Any, stop: Any, max_s: float, cpus: set[int] | None) -> None:
+    """The "apart" controls' ctrl router, in the sink's namespace: a bare Zenoh router session
+    with the ctrl plane's config, in a process that carries no trajectories."""
+    _pin(cpus)
+    _enter_ns(layout.sink_ns)
+    import zenoh
+
+    from dvla.fabric import keep_freed_buffers, plane_config
+
+    keep_freed_buffers()
+    session = zenoh.open(plane_config(mode="router", listen=[f"tcp/{layout.ctrl_addr}:{ctrl_port}"]))
+    try:
+        ready.set()
+        stop.wait(max_s)
+    finally:
+        session.close()
+
+
+def _status_responder(layout: Layout, ctrl_port: int, secret: bytes, identity: str, ready: Any, stop: Any,
+                      max_s: float, cpus: set[int] | None) -> None:
+    """The "apart" controls' status responder, in the source's namespace: answers the tool's
+    signed status queries for the source (with the source's identity) and sends nothing else."""
+    _pin(cpus)
+    _enter_ns(layout.source_ns)
+    from dvla.fabric import plane_config
+
+    fabric = _open_fabric(SOURCE, secret, identity=identity,
+                          ctrl=plane_config(mode="client", connect=[f"tcp/{layout.ctrl_addr}:{ctrl_port}"]))
+    try:
+        fabric.serve(fabric.keys.status(SOURCE), lambda _req: _status_reply())
+        ready.set()
+        stop.wait(max_s)
+    finally:
+        fabric.close()
+
+
+def _pin(cpus: set[int] | None) -> None:
+    """Restrict this (fresh, single-threaded) worker to `cpus` before it starts any thread
+    (threads inherit the mask of the thread that creates them); None: leave it alone."""
+    if cpus is not None:
+        os.sched_setaffinity(0, cpus)
 
 
 def _sample_rtts(tool: Any, key: str, n: int, timeout_s: float) -> tuple[list[float], int]:
@@ -741,19 +810,23 @@ def _summary(rtts: list[float], misses: int, what: str) -> dict[str, Any]:
 
 
 def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secret: bytes, pids: list[int], *,
-                  idle: bool, flood_kind: str = "fabric", auth: str = "identity", hog_cores: float = 0.0) -> dict[str, Any]:
+                  idle: bool, flood_kind: str = "fabric", auth: str = "identity", hog_cores: float = 0.0,
+                  apart: str = "") -> dict[str, Any]:
     """Idle (optional) and loaded RTT phases against one sink/source pair, every process with the
     identity `dvla up` would give it (sink: actor, source: rollout, tool: operator); `auth`
     "none-data": the flood without envelopes (the baseline of what authenticating it costs the ctrl plane).
     The loaded phase reports the CPU the sink and source burned (`flood_cpu_cores`: CPU seconds
-    per second), the idle phase what they burned answering the tool's queries alone (`cpu_cores`),
-    and the loaded phase the difference (`flood_extra_cpu_cores`: what the flood added);
+    per second; with `apart`, where they answer no queries, the flood's own CPU);
     `flood_kind` "cpu" loads the machine with :data:`HOGS` processes burning `hog_cores` in all
-    instead of any traffic."""
+    instead of any traffic; `apart` (:data:`APART`) moves the ctrl path out of the sink and
+    source. `cpus` reports each process's CPU affinity."""
     from dvla.fabric.identity import Identity
 
     if flood_kind not in FLOODS:
         raise ValueError(f"flood_kind {flood_kind!r}: expected one of {FLOODS}")
+    if apart not in APART or (apart and shared):
+        raise ValueError(f"apart {apart!r}: expected one of {APART}, and none with one shared session")
+    ctrl_cpus, flood_cpus = split_cpus() if apart == "core" else (None, None)
     op = Identity.operator(RUN)
     ctrl_port, data_port, tcp_port = free_port(), free_port(), free_port()
     if shared:
@@ -764,13 +837,19 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
     max_s = 4 * cfg.phase_timeout_s + 30
     sink = ctx.Process(target=_rtt_sink, args=(layout, shared, ctrl_port, data_port, secret, ready_sink, stop, received,
                                                received_bytes, max_s, op.issue("actor", SINK).to_text(), flood_kind,
-                                               tcp_port, auth))
+                                               tcp_port, auth, bool(apart), flood_cpus))
     src = ctx.Process(target=_rtt_source, args=(layout, shared, ctrl_port, data_port, secret, ready_src, flood, stop,
                                                 max_s, 1_000_000, op.issue("rollout", SOURCE).to_text(), flood_kind,
-                                                tcp_port, auth))
+                                                tcp_port, auth, bool(apart), flood_cpus))
     tool = ctx.Process(target=_rtt_tool, args=(layout, shared, ctrl_port, secret, cmds, out, cfg.phase_timeout_s,
-                                               op.to_text(), auth))
-    procs = [sink, src, tool]
+                                               op.to_text(), auth, ctrl_cpus))
+    ready_router, ready_responder = ctx.Event(), ctx.Event()
+    router = ctx.Process(target=_ctrl_router, args=(layout, ctrl_port, ready_router, stop, max_s, ctrl_cpus))
+    responder = ctx.Process(target=_status_responder, args=(layout, ctrl_port, secret,
+                                                            op.issue("rollout", SOURCE).to_text(), ready_responder,
+                                                            stop, max_s, ctrl_cpus))
+    named = {"sink": sink, "source": src, "tool": tool} | ({"router": router, "responder": responder} if apart else {})
+    procs = list(named.values())
     hogs = [ctx.Process(target=_cpu_hog, args=(flood, stop, min(1.0, hog_cores / HOGS), max_s))
             for _ in range(HOGS if flood_kind == "cpu" else 0)]
     procs += hogs
@@ -779,20 +858,28 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
     blocks: list[dict[str, float]] = []  # p99 of each phase, block by block
     misses = dict.fromkeys(phases, 0)
     flood_msgs = flood_bytes = flood_s = flood_cpu = hog_cpu = 0.0
-    idle_cpu = idle_s = 0.0  # CPU seconds of sink and source in the idle phases, and their length
     try:
         for hog in hogs:
             hog.start()
             pids.append(hog.pid)
+        if apart:
+            router.start()
+            pids.append(router.pid)
+            _wait_event(ready_router, router, "ctrl router")
         sink.start()
         pids.append(sink.pid)
         _wait_event(ready_sink, sink, "sink")
         src.start()
         pids.append(src.pid)
         _wait_event(ready_src, src, "source")
+        if apart:
+            responder.start()
+            pids.append(responder.pid)
+            _wait_event(ready_responder, responder, "status responder")
         tool.start()
         pids.append(tool.pid)
         _collect(out, {"reachable"}, START_TIMEOUT_S + 5)
+        cpus = {name: sorted(os.sched_getaffinity(p.pid)) for name, p in named.items()}
         per_block = max(1, cfg.rtt_samples // cfg.rtt_blocks)
         for _ in range(cfg.rtt_blocks):
             blocks.append({})
@@ -807,12 +894,9 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
                     time.sleep(cfg.warmup_s)
                     c0, b0, t0 = received.value, received_bytes.value, time.monotonic()
                     hog0 = _proc_cpu_s([h.pid for h in hogs])
-                cpu0, w0 = _proc_cpu_s([sink.pid, src.pid]), time.monotonic()
+                cpu0 = _proc_cpu_s([sink.pid, src.pid])
                 cmds.put((phase, per_block))
                 got = _collect(out, {phase}, cfg.phase_timeout_s + 5)[phase][1]
-                if phase == "idle":
-                    idle_cpu += _proc_cpu_s([sink.pid, src.pid]) - cpu0
-                    idle_s += time.monotonic() - w0
                 rtts[phase] += got[0]
                 if got[0]:
                     blocks[-1][phase] = percentile(sorted(got[0]), 99)
@@ -829,9 +913,8 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
         result["loaded"]["flood"] = flood_kind
         result["loaded"]["auth"] = auth
         result["loaded"]["flood_cpu_cores"] = flood_cpu / flood_s
-        if idle:
-            result["idle"]["cpu_cores"] = idle_cpu / idle_s
-            result["loaded"]["flood_extra_cpu_cores"] = max(0.0, result["loaded"]["flood_cpu_cores"] - result["idle"]["cpu_cores"])
+        result["loaded"]["apart"] = apart
+        result["cpus"] = cpus
         if hogs:
             result["loaded"]["hog_cores_asked"] = hog_cores
             result["loaded"]["hog_cores"] = hog_cpu / flood_s
@@ -953,14 +1036,20 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
             progress(f"ctrl RTT ({lay.name}): one shared session, data plane flooded")
             shared = _measure_ctrl(ctx, lay, True, cfg, secret, pids, idle=False)
             tcp = plain = cpu = None
+            apart: dict[str, Any] = {}
             if lay.name == "links":  # the controls: the same layout without envelopes, the same link without dvla
                 progress(f"ctrl RTT ({lay.name}): separate sessions, trajectories without envelopes, idle and flooded, alternating")
                 plain = _measure_ctrl(ctx, lay, False, cfg, secret, pids, idle=True, auth="none-data")
                 progress(f"ctrl RTT ({lay.name}): separate sessions, idle and data link flooded by plain TCP, alternating")
                 tcp = _measure_ctrl(ctx, lay, False, cfg, secret, pids, idle=True, flood_kind="tcp")
-                # what the flood added to the sink's and source's CPU (idle, answering the
-                # queries already costs them some), burned by processes with no traffic
-                cores = separate["loaded"]["flood_extra_cpu_cores"]
+                for where in ("processes", "core") if len(os.sched_getaffinity(0)) >= 2 else ("processes",):
+                    progress(f"ctrl RTT ({lay.name}): ctrl router and status responder in processes of their own"
+                             + (", pinned to a CPU the flood does not use" if where == "core" else "")
+                             + ", idle and flooded, alternating")
+                    apart[where] = _measure_ctrl(ctx, lay, False, cfg, secret, pids, idle=True, apart=where)
+                # the flood's own CPU (where the sink and source answer no queries), burned by
+                # processes with no traffic
+                cores = apart["processes"]["loaded"]["flood_cpu_cores"]
                 progress(f"ctrl RTT ({lay.name}): separate sessions, idle and {cores:.2f} cores burned without traffic")
                 cpu = _measure_ctrl(ctx, lay, False, cfg, secret, pids, idle=True, flood_kind="cpu", hog_cores=cores)
         ctrl[lay.name] = {"layout": lay.describe(), "idle": separate["idle"], "loaded": separate["loaded"],
@@ -971,6 +1060,9 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
                                   block_ratios_tcp=tcp["block_ratios"])
         if cpu is not None:
             ctrl[lay.name].update(idle_cpu=cpu["idle"], loaded_cpu=cpu["loaded"], block_ratios_cpu=cpu["block_ratios"])
+        for where, r in apart.items():
+            ctrl[lay.name].update({f"idle_apart_{where}": r["idle"], f"loaded_apart_{where}": r["loaded"],
+                                   f"block_ratios_apart_{where}": r["block_ratios"], f"cpus_apart_{where}": r["cpus"]})
     # Headline: the layout where the data link has a capacity of its own, when it could be built.
     head = "links" if "links" in ctrl else "loopback"
     doc["ctrl_rtt_layout"] = head
@@ -985,9 +1077,13 @@ def run_bench(cfg: BenchConfig | None = None, *, quick: bool = False, links: boo
         doc["noauth_loaded_over_idle_blocks"] = _spread(ctrl[head]["block_ratios_noauth"])
         doc["tcp_flood_over_idle"] = ctrl[head]["loaded_tcp"]["p99_ms"] / ctrl[head]["idle_tcp"]["p99_ms"]
         doc["tcp_flood_over_idle_blocks"] = _spread(ctrl[head]["block_ratios_tcp"])
+    for where in APART[1:]:
+        if f"loaded_apart_{where}" in ctrl[head]:
+            doc[f"apart_{where}_over_idle"] = (ctrl[head][f"loaded_apart_{where}"]["p99_ms"]
+                                              / ctrl[head][f"idle_apart_{where}"]["p99_ms"])
+            doc[f"apart_{where}_over_idle_blocks"] = _spread(ctrl[head][f"block_ratios_apart_{where}"])
     if "loaded_cpu" in ctrl[head]:
-        doc["flood_cpu_cores"] = ctrl[head]["loaded"]["flood_cpu_cores"]
-        doc["flood_extra_cpu_cores"] = ctrl[head]["loaded"]["flood_extra_cpu_cores"]
+        doc["flood_cpu_cores"] = ctrl[head]["loaded_apart_processes"]["flood_cpu_cores"]
         doc["cpu_load_over_idle"] = ctrl[head]["loaded_cpu"]["p99_ms"] / ctrl[head]["idle_cpu"]["p99_ms"]
         doc["cpu_load_over_idle_blocks"] = _spread(ctrl[head]["block_ratios_cpu"])
     doc["actor_cpu_us_per_auth_chunk"] = doc["auth"]["data"]["identity"]["sub_cpu_us_per_chunk"]
@@ -1036,7 +1132,9 @@ def format_table(doc: dict[str, Any]) -> str:
     names = {"idle": "idle", "loaded": "flooded, own ctrl session", "loaded_shared": "flooded, shared session",
              "idle_noauth": "idle (flood unauthenticated)", "loaded_noauth": "flooded, unauthenticated",
              "idle_tcp": "idle (TCP control)", "loaded_tcp": "flooded by plain TCP",
-             "idle_cpu": "idle (CPU control)", "loaded_cpu": "CPU burned, no traffic"}
+             "idle_cpu": "idle (CPU control)", "loaded_cpu": "CPU burned, no traffic",
+             "idle_apart_processes": "idle (ctrl apart)", "loaded_apart_processes": "flooded, ctrl apart",
+             "idle_apart_core": "idle (ctrl on a core)", "loaded_apart_core": "flooded, ctrl on a core"}
     for layout, entry in doc["ctrl_rtt_layouts"].items():
         lines.append("")
         lines.append(f"{'ctrl RTT, ' + layout:<28}{'p50 ms':>8}{'p99 ms':>8}{'flood MB/s':>12}")
@@ -1051,8 +1149,12 @@ def format_table(doc: dict[str, Any]) -> str:
     tcp = (f"\n  controls: flood without envelopes loaded/idle p99 = {doc['noauth_loaded_over_idle']:.2f}   "
            f"plain-TCP flood/idle p99 = {doc['tcp_flood_over_idle']:.2f}") if "tcp_flood_over_idle" in doc else ""
     if "cpu_load_over_idle" in doc:
-        tcp += (f"   the CPU the flood added ({doc['flood_extra_cpu_cores']:.2f} cores) burned without traffic: "
+        tcp += (f"   the flood's CPU ({doc['flood_cpu_cores']:.2f} cores) burned without traffic: "
                 f"loaded/idle p99 = {doc['cpu_load_over_idle']:.2f}")
+    for where, what in (("processes", "ctrl path in processes that carry no trajectories"),
+                        ("core", "the same on a CPU of its own")):
+        if f"apart_{where}_over_idle" in doc:
+            tcp += f"\n  {what}: loaded/idle p99 = {doc[f'apart_{where}_over_idle']:.2f}"
     lines.append(f"headline ({doc['ctrl_rtt_layout']}): loaded/idle p99 = {doc['loaded_over_idle']:.2f}{spread}   "
                  f"shared/separate p99 = {doc['shared_over_separate']:.2f}{tcp}   links layout: {doc['links_layout']}")
     lines.append(f"actor CPU per authenticated 256 KiB chunk: {doc['actor_cpu_us_per_auth_chunk']:.0f} us "

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import platform
 import subprocess
 import sys
@@ -68,14 +69,25 @@ def test_bench_fabric_quick_writes_every_figure(tmp_path: Path) -> None:
         assert links["loaded"]["flood"] == "fabric" and positive(doc["tcp_flood_over_idle"])
         assert links["loaded"]["auth"] == "identity" and links["loaded_noauth"]["auth"] == "none-data"
         assert positive(links["loaded_noauth"]["flood_bytes_per_s"]) and positive(doc["noauth_loaded_over_idle"])
-        # the sink's and source's CPU under the flood is reported
-        assert positive(links["loaded"]["flood_cpu_cores"]) and doc["flood_cpu_cores"] == links["loaded"]["flood_cpu_cores"]
-        # the control burns what the flood added to the sink's and source's idle CPU (answering
-        # the queries), not their whole loaded CPU
-        assert links["idle"]["cpu_cores"] >= 0  # (quick phases are too short for /proc's 10 ms ticks)
-        extra = links["loaded"]["flood_extra_cpu_cores"]
-        assert extra == max(0.0, links["loaded"]["flood_cpu_cores"] - links["idle"]["cpu_cores"])
-        assert links["loaded_cpu"]["hog_cores_asked"] == extra == doc["flood_extra_cpu_cores"]
+        # the ctrl path moved out of the flooding processes: a router and a status responder of
+        # their own (no ctrl router in the sink, no status server in the source), the same flood
+        wheres = ("processes", "core") if len(os.sched_getaffinity(0)) >= 2 else ("processes",)
+        for where in wheres:
+            loaded = links[f"loaded_apart_{where}"]
+            assert loaded["apart"] == where and loaded["flood"] == "fabric" and loaded["auth"] == "identity"
+            assert positive(loaded["flood_bytes_per_s"]) and positive(doc[f"apart_{where}_over_idle"])
+            assert set(links[f"cpus_apart_{where}"]) == {"sink", "source", "tool", "router", "responder"}
+        assert "loaded_apart_core" in links or len(wheres) == 1
+        if "core" in wheres:  # the ctrl path's processes on one CPU, the flooding ones on the others
+            cpus = links["cpus_apart_core"]
+            assert len(cpus["tool"]) == 1 and cpus["tool"] == cpus["router"] == cpus["responder"]
+            assert cpus["sink"] == cpus["source"] and not set(cpus["sink"]) & set(cpus["tool"])
+            assert set(cpus["sink"]) | set(cpus["tool"]) == os.sched_getaffinity(0)
+        assert links["loaded"]["apart"] == ""  # the headline: the ctrl path through the sink and source, as in a run
+        assert all(set(c) == os.sched_getaffinity(0) for c in links["cpus_apart_processes"].values())  # unpinned
+        # the CPU control burns the flood's own CPU: the sink's and source's where they answer no queries
+        assert links["loaded_apart_processes"]["flood_cpu_cores"] >= 0  # (quick phases: coarse CPU clocks)
+        assert links["loaded_cpu"]["hog_cores_asked"] == doc["flood_cpu_cores"] == links["loaded_apart_processes"]["flood_cpu_cores"]
         assert links["loaded_cpu"]["hog_cores"] >= 0  # (quick phases are too short for /proc's 10 ms ticks)
         assert links["loaded_cpu"]["flood"] == "cpu" and links["loaded_cpu"]["flood_bytes_per_s"] == 0
         assert positive(doc["cpu_load_over_idle"])
@@ -86,7 +98,9 @@ def test_bench_fabric_quick_writes_every_figure(tmp_path: Path) -> None:
     alive = [pid for pid in doc["worker_pids"] if Path(f"/proc/{pid}").exists() and not _zombie(pid)]
     # 2 sizes x (publisher, subscriber) + 3 auth modes x (publisher, subscriber) + per layout 2 x (sink, source,
     # tool), the links layout three more (without authentication; plain TCP; the CPU control, with its hogs)
-    assert len(doc["worker_pids"]) == 4 + 6 + 6 * len(layouts) + (9 + 2) * ("links" in layouts) and alive == [], alive
+    # and the ctrl-apart controls (sink, source, tool, router, responder each)
+    apart = 5 * sum(f"loaded_apart_{w}" in layouts.get("links", {}) for w in ("processes", "core"))
+    assert len(doc["worker_pids"]) == 4 + 6 + 6 * len(layouts) + (9 + 2) * ("links" in layouts) + apart and alive == [], alive
     auth = doc["auth"]
     assert set(auth["data"]) == {"none", "tag", "identity"}
     for mode in ("tag", "identity"):
