@@ -819,7 +819,7 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
     per second; with `apart`, where they answer no queries, the flood's own CPU);
     `flood_kind` "cpu" loads the machine with :data:`HOGS` processes burning `hog_cores` in all
     instead of any traffic; `apart` (:data:`APART`) moves the ctrl path out of the sink and
-    source. `cpus` reports each process's CPU affinity."""
+    source. The result's `cpus` is each process's CPU affinity, by name."""
     from dvla.fabric.identity import Identity
 
     if flood_kind not in FLOODS:
@@ -843,12 +843,13 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
                                                 tcp_port, auth, bool(apart), flood_cpus))
     tool = ctx.Process(target=_rtt_tool, args=(layout, shared, ctrl_port, secret, cmds, out, cfg.phase_timeout_s,
                                                op.to_text(), auth, ctrl_cpus))
+    named = {"sink": sink, "source": src, "tool": tool}  # name -> process, for the affinity report
     ready_router, ready_responder = ctx.Event(), ctx.Event()
-    router = ctx.Process(target=_ctrl_router, args=(layout, ctrl_port, ready_router, stop, max_s, ctrl_cpus))
-    responder = ctx.Process(target=_status_responder, args=(layout, ctrl_port, secret,
-                                                            op.issue("rollout", SOURCE).to_text(), ready_responder,
-                                                            stop, max_s, ctrl_cpus))
-    named = {"sink": sink, "source": src, "tool": tool} | ({"router": router, "responder": responder} if apart else {})
+    if apart:
+        named["router"] = ctx.Process(target=_ctrl_router, args=(layout, ctrl_port, ready_router, stop, max_s,
+                                                                 ctrl_cpus))
+        named["responder"] = ctx.Process(target=_status_responder, args=(
+            layout, ctrl_port, secret, op.issue("rollout", SOURCE).to_text(), ready_responder, stop, max_s, ctrl_cpus))
     procs = list(named.values())
     hogs = [ctx.Process(target=_cpu_hog, args=(flood, stop, min(1.0, hog_cores / HOGS), max_s))
             for _ in range(HOGS if flood_kind == "cpu" else 0)]
@@ -863,9 +864,9 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
             hog.start()
             pids.append(hog.pid)
         if apart:
-            router.start()
-            pids.append(router.pid)
-            _wait_event(ready_router, router, "ctrl router")
+            named["router"].start()
+            pids.append(named["router"].pid)
+            _wait_event(ready_router, named["router"], "ctrl router")
         sink.start()
         pids.append(sink.pid)
         _wait_event(ready_sink, sink, "sink")
@@ -873,9 +874,9 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
         pids.append(src.pid)
         _wait_event(ready_src, src, "source")
         if apart:
-            responder.start()
-            pids.append(responder.pid)
-            _wait_event(ready_responder, responder, "status responder")
+            named["responder"].start()
+            pids.append(named["responder"].pid)
+            _wait_event(ready_responder, named["responder"], "status responder")
         tool.start()
         pids.append(tool.pid)
         _collect(out, {"reachable"}, START_TIMEOUT_S + 5)
