@@ -643,7 +643,7 @@ def _rtt_sink(layout: Layout, shared: bool, ctrl_port: int, data_port: int, secr
               received: Any, received_bytes: Any, max_s: float, identity: str, flood: str, tcp_port: int,
               auth: str, apart: bool, cpus: set[int] | None) -> None:
     """The actor's side: ctrl router (the tool and the source attach to it; `apart`: a client of
-    :func:`_ctrl_router` instead) and the traj inbox."""
+    :func:`_ctrl_apart`'s router instead) and the traj inbox."""
     _pin(cpus)
     _enter_ns(layout.sink_ns)
     from dvla.fabric import DATA, TrajectoryChunk, plane_config
@@ -677,7 +677,7 @@ def _rtt_sink(layout: Layout, shared: bool, ctrl_port: int, data_port: int, secr
 def _rtt_source(layout: Layout, shared: bool, ctrl_port: int, data_port: int, secret: bytes, ready: Any, flood: Any,
                 stop: Any, max_s: float, max_msgs: int, identity: str, kind: str, tcp_port: int, auth: str,
                 apart: bool, cpus: set[int] | None) -> None:
-    """The rollout's side: answers status queries (`apart`: :func:`_status_responder` does);
+    """The rollout's side: answers status queries (`apart`: :func:`_ctrl_apart`'s responder does);
     floods 1 MiB chunks (of `kind`, :data:`FLOODS`) while `flood` is set."""
     _pin(cpus)
     _enter_ns(layout.source_ns)
@@ -742,36 +742,23 @@ def _rtt_tool(layout: Layout, shared: bool, ctrl_port: int, secret: bytes, cmds:
         tool.close()
 
 
-def _ctrl_router(layout: Layout, ctrl_port: int, ready: Any, stop: Any, max_s: float, cpus: set[int] | None) -> None:
-    """The "apart" controls' ctrl router, in the sink's namespace: a bare Zenoh router session
-    with the ctrl plane's config, in a process that carries no trajectories."""
+def _ctrl_apart(layout: Layout, which: str, ctrl_port: int, secret: bytes, identity: str | None, ready: Any, stop: Any,
+                max_s: float, cpus: set[int] | None) -> None:
+    """A process of the "apart" controls' ctrl path, carrying no trajectories: `which` "router",
+    the ctrl router in the sink's namespace (a fabric with only a ctrl session, in router mode,
+    as dvla's router role is); "responder", in the source's namespace, a client of that router
+    answering the tool's signed status queries for the source (`identity`: the source's)."""
     _pin(cpus)
-    _enter_ns(layout.sink_ns)
-    import zenoh
-
-    from dvla.fabric import keep_freed_buffers, plane_config
-
-    keep_freed_buffers()
-    session = zenoh.open(plane_config(mode="router", listen=[f"tcp/{layout.ctrl_addr}:{ctrl_port}"]))
-    try:
-        ready.set()
-        stop.wait(max_s)
-    finally:
-        session.close()
-
-
-def _status_responder(layout: Layout, ctrl_port: int, secret: bytes, identity: str, ready: Any, stop: Any,
-                      max_s: float, cpus: set[int] | None) -> None:
-    """The "apart" controls' status responder, in the source's namespace: answers the tool's
-    signed status queries for the source (with the source's identity) and sends nothing else."""
-    _pin(cpus)
-    _enter_ns(layout.source_ns)
+    router = which == "router"
+    _enter_ns(layout.sink_ns if router else layout.source_ns)
     from dvla.fabric import plane_config
 
-    fabric = _open_fabric(SOURCE, secret, identity=identity,
-                          ctrl=plane_config(mode="client", connect=[f"tcp/{layout.ctrl_addr}:{ctrl_port}"]))
+    at = f"tcp/{layout.ctrl_addr}:{ctrl_port}"
+    fabric = _open_fabric("bench-router" if router else SOURCE, secret, identity=identity,
+                          ctrl=plane_config(mode="router", listen=[at]) if router else plane_config(mode="client", connect=[at]))
     try:
-        fabric.serve(fabric.keys.status(SOURCE), lambda _req: _status_reply())
+        if not router:
+            fabric.serve(fabric.keys.status(SOURCE), lambda _req: _status_reply())
         ready.set()
         stop.wait(max_s)
     finally:
@@ -846,10 +833,11 @@ def _measure_ctrl(ctx: Any, layout: Layout, shared: bool, cfg: BenchConfig, secr
     named = {"sink": sink, "source": src, "tool": tool}  # name -> process, for the affinity report
     ready_router, ready_responder = ctx.Event(), ctx.Event()
     if apart:
-        named["router"] = ctx.Process(target=_ctrl_router, args=(layout, ctrl_port, ready_router, stop, max_s,
-                                                                 ctrl_cpus))
-        named["responder"] = ctx.Process(target=_status_responder, args=(
-            layout, ctrl_port, secret, op.issue("rollout", SOURCE).to_text(), ready_responder, stop, max_s, ctrl_cpus))
+        named["router"] = ctx.Process(target=_ctrl_apart, args=(layout, "router", ctrl_port, secret, None,
+                                                                ready_router, stop, max_s, ctrl_cpus))
+        named["responder"] = ctx.Process(target=_ctrl_apart, args=(
+            layout, "responder", ctrl_port, secret, op.issue("rollout", SOURCE).to_text(), ready_responder, stop,
+            max_s, ctrl_cpus))
     procs = list(named.values())
     hogs = [ctx.Process(target=_cpu_hog, args=(flood, stop, min(1.0, hog_cores / HOGS), max_s))
             for _ in range(HOGS if flood_kind == "cpu" else 0)]
