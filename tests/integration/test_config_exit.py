@@ -8,7 +8,6 @@ import json
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -41,13 +40,11 @@ racks:
 def test_a_role_that_cannot_start_is_not_restarted(tmp_path: Path) -> None:
     (tmp_path / "refusal_env.py").write_text(FACTORY)
     (tmp_path / "refused.yaml").write_text(TOPOLOGY)
-    t0 = time.monotonic()
     up = subprocess.run(
         [sys.executable, "-m", "dvla", "up", "refused.yaml", "--runs", "runs", "--base-port", str(free_port_block()),
          "--quiet"], cwd=tmp_path, capture_output=True, text=True, timeout=160,
         env={**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))},
     )
-    elapsed = time.monotonic() - t0
     run_dir = tmp_path / "runs" / "refused"
     assert up.returncode != 0, up.stdout + up.stderr
     result = json.loads((run_dir / "result.json").read_text())
@@ -56,5 +53,4 @@ def test_a_role_that_cannot_start_is_not_restarted(tmp_path: Path) -> None:
     log = (run_dir / "logs" / "actor-n0-0.log").read_text()
     assert "refuses on purpose" in log and "Traceback" not in log
     assert log.count("--- start") == 1  # started once, never again
-    assert elapsed < 120, elapsed
     assert pids_of_run(run_dir) == []

@@ -26,7 +26,6 @@ def _alive(pid: int) -> bool:
 def test_detach_status_down(tmp_path: Path) -> None:
     runs = tmp_path / "runs"
     run_dir = runs / "tiny"
-    started = time.monotonic()
     # tiny, down to one actor and one rollout: the fewest processes a run can have
     topo = tmp_path / "tiny.yaml"
     text = (ROOT / "topologies" / "tiny.yaml").read_text()
@@ -37,13 +36,13 @@ def test_detach_status_down(tmp_path: Path) -> None:
     pid = None
     try:
         assert up.returncode == 0, up.stdout + up.stderr
-        assert time.monotonic() - started < 120  # back as soon as the roles are started, not at the end
         assert str(run_dir) in up.stdout
         for hint in ("dvla status tiny", "dvla logs", "dvla down tiny"):
             assert hint in up.stdout, up.stdout
         state = json.loads((run_dir / "state.json").read_text())
         pid = int(state["pid"])
-        # a daemon: its own session (no terminal's Ctrl-C or hang-up reaches it), not its leader
+        # back as soon as the roles are started, not at the end: the run goes on, a daemon in its
+        # own session (no terminal's Ctrl-C or hang-up reaches it), not its leader
         assert _alive(pid) and os.getsid(pid) != os.getsid(0) and os.getsid(pid) != pid
 
         names: set[str] = set()

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import subprocess
 import sys
 import time
@@ -37,7 +38,8 @@ def test_local_vla_end_to_end(tmp_path: Path) -> None:
                 st = dvla("status", "local-vla", "--runs", str(runs), "--format", "json", timeout=60)
                 if st.returncode == 0:
                     for role in json.loads(st.stdout)["roles"]:
-                        if role["name"] in ROLLOUTS and role["extra"].get("infer_ms_p50", 0) > 0:
+                        acted = role.get("lanes", {}).get("infer", {}).get("items", 0) > 0
+                        if role["name"] in ROLLOUTS and acted and "infer_ms_p50" in role["extra"]:
                             latency[role["name"]] = role["extra"]["infer_ms_p99"]
             time.sleep(3)
         out, _ = up.communicate(timeout=600)
@@ -56,14 +58,17 @@ def test_local_vla_end_to_end(tmp_path: Path) -> None:
     for name in ROLLOUTS:
         s = summaries[name]["extra"]
         assert summaries[name]["policy_version"] >= 2, f"{name} never acted with a trained version"
-        assert s["infer_ms_p50"] > 0 and s["infer_ms_p99"] >= s["infer_ms_p50"]
+        assert summaries[name]["lanes"]["infer"]["items"] > 0  # it acted: the percentiles are of its timings
+        assert math.isfinite(s["infer_ms_p50"]) and math.isfinite(s["infer_ms_p99"]) and s["infer_ms_p50"] <= s["infer_ms_p99"]
         # Per env step a chunk carries the 64x64x3 image twice (obs, final_obs) plus small
         # arrays: about 25 kB as uint8; float32 images would be four times that.
         per_step = s["bytes_shipped"] / summaries[name]["env_steps"]
         assert 2 * 64 * 64 * 3 < per_step < 3 * 64 * 64 * 3, per_step
     with open(run_dir / "metrics.csv") as f:
         rows = list(csv.DictReader(f))
-    assert any(float(r["infer_ms_p50"]) > 0 and float(r["infer_ms_p99"]) > 0 for r in rows)
+    # the slowest rollout's percentiles in every row (p50 <= p99 as for each rollout's own)
+    assert rows and all(math.isfinite(float(r["infer_ms_p50"])) and float(r["infer_ms_p50"]) <= float(r["infer_ms_p99"])
+                        for r in rows)
     assert pids_of_run(run_dir) == []
 
 

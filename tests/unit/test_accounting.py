@@ -8,9 +8,13 @@ from __future__ import annotations
 import json
 import os
 import threading
+import time
 
 from pathlib import Path
 
+import pytest
+
+from dvla import ledger as ledger_module
 from dvla.fabric.accounting import UNAUTHENTICATED, Accounting
 from dvla.ledger import INCARNATION_SHIFT, ActorLedger, RolloutLedger, _Books, reconcile
 
@@ -265,7 +269,25 @@ class _Learner:
         return [("actor-0", Receipt(rollout=request.rollout, seq=self.seq))]
 
 
-def test_a_stopping_rollout_waits_for_its_learner_and_records_what_it_did_not_confirm(tmp_path: Path) -> None:
+class _Clock:
+    """dvla.ledger's `time` with a monotonic clock that only its sleeps move (the rest is the real module)."""
+
+    def __init__(self) -> None:
+        self.t, self.slept = 100.0, []
+
+    def monotonic(self) -> float:
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        self.slept.append(seconds)
+        self.t += seconds
+
+    def __getattr__(self, name: str):
+        return getattr(time, name)
+
+
+def test_a_stopping_rollout_waits_for_its_learner_and_records_what_it_did_not_confirm(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     r = RolloutLedger(tmp_path, "rollout-a", queue_cap=8)
     idle = _Learner(-1)
     assert r.await_receipt(idle, ["actor-0"]) == (0, r.confirm_wait_s, 0, "") and idle.asked == []  # nothing shipped
@@ -276,8 +298,12 @@ def test_a_stopping_rollout_waits_for_its_learner_and_records_what_it_did_not_co
     assert (wait.unconfirmed, wait.queries, wait.why) == (0, 1, "")
     assert done.asked == [("dvla/run/ctrl/receipt/actor-0", "rollout-a", r.first_seq + 4)]
     behind = _Learner(r.first_seq + 2)  # it has the first three, and never more
-    wait = r.await_receipt(behind, ["actor-0"], wait_s=0.3, poll_s=0.05)
-    assert wait.unconfirmed == 2 and wait.queries >= 2 and 0.2 <= wait.waited_s < 2.0
+    clock = _Clock()
+    monkeypatch.setattr(ledger_module, "time", clock)  # time passes only in the polls' sleeps
+    wait = r.await_receipt(behind, ["actor-0"], wait_s=0.3, poll_s=0.04)
+    # it asks, and polls again, until one more poll would end past the 0.3 s: 7 polls, 8 queries
+    assert wait.unconfirmed == 2 and wait.queries == 8 and clock.slept == [0.04] * 7
+    assert wait.waited_s == pytest.approx(0.28)  # what the clock moved from its start to its end
     assert wait.why == "no confirmation within 0.3 s"
     gone = _Learner(-1, matched=False)  # the learner left the link: no query, nothing confirmed
     assert r.await_receipt(gone, ["actor-0"])[::2] == (5, 0) and gone.asked == []
@@ -285,7 +311,8 @@ def test_a_stopping_rollout_waits_for_its_learner_and_records_what_it_did_not_co
     r.unconfirmed = 2
     r.close()
     record = json.loads(next((tmp_path / "counters").iterdir()).read_bytes())
-    assert (record["unconfirmed"], record["clean"]) == (2, True) and record["confirm_wait_s"] >= 0
+    # the last wait's seconds, as measured (on the injected clock, which did not move in it)
+    assert (record["unconfirmed"], record["clean"]) == (2, True) and record["confirm_wait_s"] == round(r.confirm_wait_s, 3) == 0.0
 
 
 def test_an_empty_run_has_empty_books(tmp_path: Path) -> None:

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-import time
 
 import numpy as np
 import pytest
@@ -96,11 +95,13 @@ def test_chunk_pool_hands_out_each_chunk_once_and_stops_waiting_on_stop() -> Non
     taken[0].actions[...] = 1.0
     taken[0].obs["rgb"][...] = 7
     assert not taken[1].actions.any() and not taken[2].obs["rgb"].any()
-    stop_timer = threading.Timer(0.2, stop.set)
-    stop_timer.start()
-    t0 = time.monotonic()
-    assert chunks.take(stop) is None  # every chunk is out: waits, then gives up on stop
-    assert 0.15 < time.monotonic() - t0 < 2.0
-    stop_timer.join()
+    got: list[object] = []
+    waiter = threading.Thread(target=lambda: got.append(chunks.take(stop)), daemon=True)
+    waiter.start()
+    waiter.join(timeout=0.2)
+    assert waiter.is_alive() and got == []  # every chunk is out: it waits ...
+    stop.set()
+    waiter.join(timeout=30)
+    assert not waiter.is_alive() and got == [None]  # ... then gives up on stop
     chunks.give(taken[1])
     assert chunks.take(threading.Event()) is taken[1]

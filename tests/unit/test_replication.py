@@ -533,7 +533,6 @@ def _declare_content_size(frame: bytes, size: int) -> bytes:
 @pytest.mark.parametrize("encoding", ["delta-bf16", "delta-topk"])
 def test_zstd_frame_declaring_a_huge_size_is_refused_without_allocating(encoding: str) -> None:
     import os
-    import time
     import tracemalloc
 
     from dvla.replication.encoding import inflate_delta
@@ -546,14 +545,13 @@ def test_zstd_frame_declaring_a_huge_size_is_refused_without_allocating(encoding
     with pytest.raises((MemoryError, zstandard.ZstdError)):
         zstandard.ZstdDecompressor().decompress(bomb, max_output_size=4096)
     tracemalloc.start()
-    t0 = time.perf_counter()
     try:
         with pytest.raises(CorruptPayload, match="inflates to 1099511627776 bytes"):
             inflate_delta(encoding, memoryview(bomb), 1000)
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
-    assert time.perf_counter() - t0 < 1.0 and peak < 1 << 20
+    assert peak < 1 << 20  # refused from the declared size, before any allocation
     # Frames without a declared size, lying sizes, trailing bytes and junk: all CorruptPayload.
     numel = 400  # delta-bf16 caps output at 800 bytes, delta-topk at 1600
     for data in (

@@ -7,7 +7,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -77,9 +76,7 @@ def test_alias_bomb_is_refused_quickly() -> None:
     lines = ["a0: &a0 [lol, lol, lol, lol, lol, lol, lol, lol, lol, lol]"]
     lines += [f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 10)}]" for i in range(1, 10)]  # 10^10 once expanded
     text = MINIMAL + "task:\n  policy_kwargs:\n" + "".join(f"    {line}\n" for line in lines)
-    start = time.monotonic()
-    p = _one(text)
-    assert time.monotonic() - start < 2.0
+    p = _one(text)  # refused as it is read: never expanded
     assert (p.line, p.path) == (9, "<yaml>") and "anchors and aliases are refused" in p.message
 
 
