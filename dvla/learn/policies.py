@@ -103,6 +103,14 @@ _LAZY: dict[str, str] = {
 }
 
 
+def policy_module(spec: str) -> str | None:
+    """The module that defines policy ``spec`` when it is not one of those registered at import
+    (a family of its own, or a ``module:Class`` plugin); None otherwise."""
+    if ":" in spec:
+        return spec.partition(":")[0]
+    return _LAZY.get(spec) if spec not in _REGISTRY else None
+
+
 def _policy_class(spec: str) -> type:
     if ":" in spec:
         module_name, _, attr = spec.partition(":")

@@ -17,9 +17,11 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 from ..fabric.identity import IDENTITY_ENV, Identity
 from .process import CommandWrapper, Process, Supervised, endpoint_address, is_local_host
+from .zygote import Zygote, warm_start_enabled
 
 log = logging.getLogger("dvla.launcher")
 
@@ -58,6 +60,10 @@ class Launcher:
         #: how a role's argv becomes the command that starts it (in a namespace, over ssh)
         self.wrap = CommandWrapper()
         self.children: dict[str, Supervised] = {}
+        #: the modules a warm-start process imports for the given role kinds (None: no warm starts);
+        #: set by the orchestrator, which knows the task (dvla/orchestrator/zygote.py)
+        self.preload: Callable[[set[str]], list[str]] | None = None
+        self.zygote: Zygote | None = None
 
     def add(self, proc: Process) -> Supervised:
         cfg = proc.config
@@ -76,11 +82,48 @@ class Launcher:
         """The command line that starts `sup`, wrapped to run in its namespace or on its host."""
         return self.wrap(sup.proc, _role_argv(sup))
 
+    def _forkable(self, sup: Supervised) -> bool:
+        """`sup` starts here as it is (no namespace, SSH or Slurm wrapper): a warm start can fork it."""
+        argv = _role_argv(sup)
+        return (self.command(sup) == argv and self.wrap.stdin_payload(sup.proc, argv, None) is None
+                and self.wrap.output_path(sup) is None)
+
+    def _warm_up(self) -> None:
+        """Start the warm-start process for the roles that start here as they are, and wait for
+        its imports; on any trouble, say why once and start every role the plain way."""
+        kinds = {s.proc.config.kind for s in self.children.values() if self._forkable(s)}
+        if not kinds or self.preload is None or self.zygote is not None or not warm_start_enabled(self.env):
+            return
+        zygote = Zygote(self.preload(kinds), self.env, self.run_dir, self.run_dir / "logs" / "zygote.log")
+        if zygote.wait_ready():
+            self.zygote = zygote
+        else:
+            log.warning("warm starts off (roles start with python -m): %s", zygote.why_not)
+            zygote.close()
+
+    def close(self) -> None:
+        """After the last child: end the warm-start process."""
+        if self.zygote is not None:
+            self.zygote.close()
+            self.zygote = None
+
     def start(self, sup: Supervised) -> None:
         argv = self.command(sup)
         identity = self.identities.get(sup.name)
         payload = self.wrap.stdin_payload(sup.proc, _role_argv(sup), identity)
         out_path = self.wrap.output_path(sup)
+        env = self.wrap.child_env(sup.proc, self.env if identity is None else {**self.env, IDENTITY_ENV: identity})
+        if self.zygote is not None and self._forkable(sup) and \
+                {k: v for k, v in env.items() if k != IDENTITY_ENV} == self.env:
+            with open(sup.log_path, "ab", buffering=0) as logf:
+                logf.write(f"--- start {time.strftime('%H:%M:%S')} (restart {sup.restarts}, forked warm): "
+                           f"{' '.join(argv)}\n".encode())
+            forked = self.zygote.spawn(f"dvla.roles.{sup.proc.config.kind}", argv[3:], env, sup.log_path)
+            if forked is not None:
+                sup.popen = forked  # type: ignore[assignment]  (answers as a Popen does)
+                sup.started_at = time.monotonic()
+                log.info("started %s (pid %d, forked warm)", sup.name, forked.pid)
+                return
         logf = open(sup.log_path, "ab", buffering=0)
         outf = None
         try:
@@ -95,7 +138,7 @@ class Launcher:
                 stdin=subprocess.PIPE if payload is not None else subprocess.DEVNULL,
                 stdout=outf if outf is not None else logf,
                 stderr=logf if outf is not None else subprocess.STDOUT,
-                env=self.wrap.child_env(sup.proc, self.env if identity is None else {**self.env, IDENTITY_ENV: identity}),
+                env=env,
                 start_new_session=True,
                 preexec_fn=die_with_parent,
             )
@@ -127,6 +170,7 @@ class Launcher:
         its replicator listens would attach to a further ancestor (its fallback) and stay there,
         so that ancestor would carry the leaf's copy of every version and the tree would be a star.
         """
+        self._warm_up()
         by_name = {sup.name: sup for sup in self.children.values()}
         ready: set[str] = set()
         for sup in self.children.values():

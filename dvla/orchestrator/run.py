@@ -36,10 +36,16 @@ from .slurm import SlurmWrapper, slurm_job_for
 from .ssh import SshWrapper, write_private
 from .topology import dump_topology_yaml
 from .wandb_log import WandbLog, missing_wandb
+from .zygote import preload_modules
 
 log = logging.getLogger("dvla.up")
 #: seconds between status collections
 POLL_S = 1.0
+#: how long a stopping role may take to exit by itself before it is sent SIGTERM
+STOP_WAIT_S = 15.0
+#: how often the stop command is sent again to roles that have not exited (a role still
+#: starting has no command subscriber yet and misses a single put)
+STOP_RESEND_S = 1.0
 
 
 class ExitCode:
@@ -231,6 +237,7 @@ class Up:
         env.setdefault("PYTHONUNBUFFERED", "1")
         env.setdefault("OMP_NUM_THREADS", "1")
         self.launcher = Launcher(self.run_dir, env, max_restarts=opts.max_restarts, operator=self.operator)
+        self.launcher.preload = lambda kinds: preload_modules(kinds, self.topo.task)
 
     def interrupt(self) -> None:
         self._interrupted.set()
@@ -297,6 +304,7 @@ class Up:
             return code
         finally:
             self.launcher.kill_all()
+            self.launcher.close()
             if self.wandb is not None:  # bounded: finish_timeout_s and a margin
                 self.events.extend(self.wandb.close())
             if self.netns is not None:
@@ -339,10 +347,14 @@ class Up:
         together (the tools' ctrl link runs through the actor's router, so relays are told
         while it is still up); escalate to signals on timeout."""
         for kinds in (("rollout", "evaluator"), ("actor", "replicator")):
-            names = [n for n, s in self.launcher.children.items() if s.proc.config.kind in kinds and s.alive()]
-            for n in names:
-                fabric.publish_ctrl(fabric.keys.cmd(n), Command(target=n, verb="stop", args={}, issued_ns=time.time_ns()))
-            left = self.launcher.wait_exit(names, timeout=15.0)
+            left = [n for n, s in self.launcher.children.items() if s.proc.config.kind in kinds and s.alive()]
+            deadline = time.monotonic() + STOP_WAIT_S
+            while left and time.monotonic() < deadline:
+                # Sent again each slice: a role still starting (its command subscriber not yet
+                # declared) misses a single put, and would otherwise be waited for to the end.
+                for n in left:
+                    fabric.publish_ctrl(fabric.keys.cmd(n), Command(target=n, verb="stop", args={}, issued_ns=time.time_ns()))
+                left = self.launcher.wait_exit(left, timeout=min(STOP_RESEND_S, max(0.0, deadline - time.monotonic())))
             if left:
                 self.events.append(f"no clean exit from {', '.join(left)}: terminating")
                 self.launcher.stop(left, timeout=5.0)

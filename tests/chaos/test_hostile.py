@@ -175,9 +175,15 @@ def _assert_checkpoint_finite(run_dir: Path) -> None:
     assert tensors and all(bool(torch.isfinite(t).all()) for t in tensors.values())
 
 
-def _environ(pid: int) -> dict[str, str]:
-    raw = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
-    return dict(item.decode().split("=", 1) for item in raw if b"=" in item)
+def _taken_over(run_dir: Path, victim: str) -> tuple[bytes, object]:
+    """What an attacker who took a rollout over holds: the cluster secret and a credential issued
+    to that rollout's name by the run's operator (as the launcher issues one to every role)."""
+    from dvla.fabric.identity import Identity
+    from dvla.fabric.signing import load_secret
+
+    st = state(run_dir)
+    operator = Identity.from_text(Path(st["operator_identity"]).read_text())
+    return load_secret(st.get("secret_file")), operator.issue("rollout", victim)
 
 
 @pytest.mark.timeout(600)
@@ -185,7 +191,6 @@ def test_a_compromised_rollout_cannot_speak_for_other_roles(tmp_path: Path) -> N
     import numpy as np
 
     from dvla.fabric import Fabric, plane_config
-    from dvla.fabric.identity import IDENTITY_ENV, Identity
     from dvla.fabric.messages import EvalResult, RoleStatus, WeightChunk, WeightManifest
 
     runs = tmp_path / "runs"
@@ -199,10 +204,9 @@ def test_a_compromised_rollout_cannot_speak_for_other_roles(tmp_path: Path) -> N
         before = wait_for(lambda: (lambda s: s if set(s) == roles and s["actor-node0-0"].extra["published_version"] >= 2
                                    else None)(statuses(fabric)), 300, "every role up and the actor at version 2", up)
         victim = "rollout-node0-0"
-        env = _environ(before[victim].pid)  # what an attacker who took the rollout over holds
-        identity = Identity.from_text(env[IDENTITY_ENV])
+        secret, identity = _taken_over(run_dir, victim)
         cfg = json.loads((run_dir / "roles" / f"{victim}.json").read_text())
-        evil = Fabric(run="tiny", name=victim, secret=bytes.fromhex(env["DVLA_SECRET"]), identity=identity,
+        evil = Fabric(run="tiny", name=victim, secret=secret, identity=identity,
                       ctrl_conf=plane_config(mode="client", connect=cfg["ctrl"]["connect"]),
                       data_conf=plane_config(mode="peer", connect=cfg["data"]["connect"]))
         keys = evil.keys
