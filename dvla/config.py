@@ -397,6 +397,10 @@ class TaskConfig:
     eval: EvalConfig = field(default_factory=EvalConfig)
     #: stop conditions
     budget: BudgetConfig = field(default_factory=BudgetConfig)
+    #: the learner (rank 0) writes a checkpoint (policy, optimizer, version, env steps) every this
+    #: many versions, at an incarnation's first version and at the run's end; a restarted actor or learner group, and `dvla up
+    #: --resume`, continue from the last one (docs/reliability.md)
+    checkpoint_every: int = rule(10, ge=1)
     #: a warm start: the policy's tensors to begin from instead of its constructor's, as a
     #: safetensors file holding exactly what the policy replicates (every tensor; with LoRA the
     #: adapters and the new heads, as `replicated_tensors` gives them) or a run's ``checkpoints``

@@ -285,7 +285,7 @@ class Actor:
                     log.warning("update refused as non-finite: no version from this batch (%d refused so far)",
                                 self.learner.updates_refused_nonfinite)
                     continue
-                item = self._new_version(checkpoint=(self.policy_version + 1) % CHECKPOINT_EVERY == 0)
+                item = self._new_version(checkpoint=(self.policy_version + 1) % self.cfg.task.checkpoint_every == 0)
             self.versions.put(item, ctx.stop, stats=ctx.stats)
             ctx.count()
 
@@ -399,10 +399,6 @@ def chunk_problem(chunk: TrajectoryChunk, spec: ChunkSpec, newest_version: int) 
     if v > newest_version:
         return "future_version", f"policy_version {v} is newer than the newest released, {newest_version}"
     return spec.problem(chunk)
-
-
-#: versions between two checkpoints (the first version of an incarnation is checkpointed too)
-CHECKPOINT_EVERY = 10
 
 
 def _listen_address(cfg: RoleConfig) -> str | None:

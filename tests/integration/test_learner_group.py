@@ -119,9 +119,9 @@ def test_kill_of_rank_1_restarts_the_group_from_its_checkpoint(tmp_path: Path) -
     topo.write_text(TWO_RANKS)
     runs = tmp_path / "runs"
     run_dir = runs / "tiny"
-    up = start_up(str(topo), "--runs", str(runs), "--base-port", str(free_port_block()), "--max-env-steps", "9000")
+    up = start_up(str(topo), "--runs", str(runs), "--base-port", str(free_port_block()), "--max-env-steps", "4800")
     try:
-        wait_for(lambda: published(run_dir) >= 12, 240, "version 12 (past the checkpoint at 10)", up)
+        wait_for(lambda: published(run_dir) >= 5, 240, "version 5 (past the checkpoint at 4)", up)
         before = published(run_dir)
         pid = json.loads((run_dir / "state.json").read_text())["children"]["actor-node0-1"]
         os.kill(pid, signal.SIGKILL)
@@ -138,7 +138,7 @@ def test_kill_of_rank_1_restarts_the_group_from_its_checkpoint(tmp_path: Path) -
     assert len(parts) == 2, [(p[0]["version"], p[-1]["version"]) for p in parts]
     assert int(parts[1][0]["version"]) > before  # numbering continued above everything published
     resumed = json.loads((run_dir / "summaries" / "actor-node0-0.json").read_text())["extra"]["resumed_from"]
-    assert resumed["version"] >= 10
+    assert resumed["version"] >= 4  # tiny.yaml checkpoints every other version
     # the restarted group started from the checkpoint: its weights are the ones published then
     assert {r["version"]: r["checksum"] for r in parts[0]}[str(resumed["version"])] == resumed["checksum"]
     assert parts[1][0]["checksum"] == resumed["checksum"]
@@ -156,7 +156,7 @@ def test_kill_of_dvla_up_then_resume_continues_the_run(tmp_path: Path) -> None:
     port = str(free_port_block())
     up = start_up("topologies/tiny.yaml", "--runs", str(runs), "--base-port", port, "--max-env-steps", "200000")
     try:
-        wait_for(lambda: published(run_dir) >= 12, 240, "version 12", up)
+        wait_for(lambda: published(run_dir) >= 5, 240, "version 5 (past the checkpoint at 4)", up)
     finally:
         up.kill()  # SIGKILL: the roles die with it (PR_SET_PDEATHSIG), nothing stops cleanly
         up.wait()
