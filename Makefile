@@ -3,6 +3,10 @@
 PY ?= python3
 TOPOLOGY ?= topologies/local.yaml
 PYTEST_ARGS ?=
+# The default suite runs on two pytest-xdist workers: much of it waits on processes (role start-up,
+# restarts, Zenoh sessions); tests that share machine-wide daemons are grouped on one worker
+# (tests/conftest.py). TEST_WORKERS=0 runs it in one process.
+TEST_WORKERS ?= 2
 
 .PHONY: setup setup-test run test test-slow
 
@@ -17,7 +21,7 @@ run: setup
 	$(PY) -m dvla up $(TOPOLOGY)
 
 test: setup-test
-	$(PY) -m pytest -q $(PYTEST_ARGS)
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadgroup --durations=25 $(PYTEST_ARGS)
 
 test-slow: setup-test
 	$(PY) -m pytest -q -m slow $(PYTEST_ARGS)

@@ -46,3 +46,13 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+def pytest_collection_modifyitems(config: object, items: list) -> None:
+    # Under pytest-xdist (`-n 2 --dist loadgroup`, as `make test` runs), tests that use something
+    # only one of them can hold at a time run on one worker, one after the other: the emulated
+    # clusters (`netns`) route the host's 10.77.0.0/16 to their bridge, and the Slurm tests count
+    # the machine's Slurm daemons before and after.
+    for item in items:
+        if item.get_closest_marker("netns") is not None or item.get_closest_marker("slurm") is not None:
+            item.add_marker(pytest.mark.xdist_group("machine-wide"))
