@@ -7,7 +7,6 @@ survives even a `kill -9` of `dvla up`.
 
 from __future__ import annotations
 
-import ctypes
 import errno
 import logging
 import os
@@ -20,21 +19,11 @@ from pathlib import Path
 from typing import Callable
 
 from ..fabric.identity import IDENTITY_ENV, Identity
-from .process import CommandWrapper, Process, Supervised, endpoint_address, is_local_host
+from .process import CommandWrapper, Process, Supervised, die_with_parent, endpoint_address, is_local_host
 from .zygote import Zygote, warm_start_enabled
 
 log = logging.getLogger("dvla.launcher")
 
-_PR_SET_PDEATHSIG = 1
-
-
-def die_with_parent() -> None:
-    """Runs in a child between fork and exec: the kernel kills it when its parent dies."""
-    try:
-        libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
-    except OSError:
-        pass
 
 
 
@@ -82,16 +71,18 @@ class Launcher:
         """The command line that starts `sup`, wrapped to run in its namespace or on its host."""
         return self.wrap(sup.proc, _role_argv(sup))
 
-    def _forkable(self, sup: Supervised) -> bool:
-        """`sup` starts here as it is (no namespace, SSH or Slurm wrapper): a warm start can fork it."""
+    def _fork_into(self, sup: Supervised) -> str | None:
+        """The network namespace ("" for none) a warm start forks `sup` into, or None when it
+        cannot be forked here (over SSH, as a Slurm step, with a payload on its stdin)."""
         argv = _role_argv(sup)
-        return (self.command(sup) == argv and self.wrap.stdin_payload(sup.proc, argv, None) is None
-                and self.wrap.output_path(sup) is None)
+        if self.wrap.stdin_payload(sup.proc, argv, None) is not None or self.wrap.output_path(sup) is not None:
+            return None
+        return self.wrap.fork_into(sup.proc)
 
     def _warm_up(self) -> None:
         """Start the warm-start process for the roles that start here as they are, and wait for
         its imports; on any trouble, say why once and start every role the plain way."""
-        kinds = {s.proc.config.kind for s in self.children.values() if self._forkable(s)}
+        kinds = {s.proc.config.kind for s in self.children.values() if self._fork_into(s) is not None}
         if not kinds or self.preload is None or self.zygote is not None or not warm_start_enabled(self.env):
             return
         zygote = Zygote(self.preload(kinds), self.env, self.run_dir, self.run_dir / "logs" / "zygote.log")
@@ -113,12 +104,14 @@ class Launcher:
         payload = self.wrap.stdin_payload(sup.proc, _role_argv(sup), identity)
         out_path = self.wrap.output_path(sup)
         env = self.wrap.child_env(sup.proc, self.env if identity is None else {**self.env, IDENTITY_ENV: identity})
-        if self.zygote is not None and self._forkable(sup) and \
-                {k: v for k, v in env.items() if k != IDENTITY_ENV} == self.env:
+        netns = self._fork_into(sup) if self.zygote is not None else None
+        if netns is not None and self.zygote is not None and {k: v for k, v in env.items() if k != IDENTITY_ENV} == self.env:
             with open(sup.log_path, "ab", buffering=0) as logf:
-                logf.write(f"--- start {time.strftime('%H:%M:%S')} (restart {sup.restarts}, forked warm): "
-                           f"{' '.join(argv)}\n".encode())
-            forked = self.zygote.spawn(f"dvla.roles.{sup.proc.config.kind}", argv[3:], env, sup.log_path)
+                where = f" in network namespace {netns}" if netns else ""
+                logf.write(f"--- start {time.strftime('%H:%M:%S')} (restart {sup.restarts}, forked warm{where}): "
+                           f"{' '.join(_role_argv(sup))}\n".encode())
+            forked = self.zygote.spawn(f"dvla.roles.{sup.proc.config.kind}", _role_argv(sup)[3:], env, sup.log_path,
+                                       netns=netns)
             if forked is not None:
                 sup.popen = forked  # type: ignore[assignment]  (answers as a Popen does)
                 sup.started_at = time.monotonic()

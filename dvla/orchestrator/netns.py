@@ -308,6 +308,9 @@ class NetnsWrapper(CommandWrapper):
             raise NetnsError(f"{proc.config.name} has no network namespace in a netns run")
         return ["ip", "netns", "exec", proc.netns, *argv]
 
+    def fork_into(self, proc: Process) -> str | None:
+        return proc.netns
+
 
 class NetnsCluster:
     """The namespaces, bridges and links of one emulated run."""

@@ -5,12 +5,25 @@ else of the orchestrator, so plan, launcher, netns and ssh share these types wit
 
 from __future__ import annotations
 
+import ctypes
 import os
+import signal
 import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..config import RoleConfig
+
+_PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent() -> None:
+    """Runs in a child between fork and exec: the kernel kills it when its parent dies."""
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
+    except OSError:
+        pass
 
 LOOPBACK = "127.0.0.1"
 
@@ -93,6 +106,12 @@ class CommandWrapper:
         unwrapped role command, `identity` its credential text. The pipe then stays open;
         closing it asks the process to stop."""
         return None
+
+    def fork_into(self, proc: Process) -> str | None:
+        """For a warm start (dvla/orchestrator/zygote.py): the network namespace a role forked on
+        this host enters ("" for none), or None when the wrapped command cannot be a fork. A
+        wrapper that changes the command says None unless it overrides this."""
+        return "" if type(self).__call__ is CommandWrapper.__call__ else None
 
     def child_env(self, proc: Process, env: dict[str, str]) -> dict[str, str]:
         """The environment the launched command gets (a wrapper whose command would carry the

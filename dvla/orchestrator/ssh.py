@@ -211,6 +211,9 @@ class SshWrapper(CommandWrapper):
             return self.local(proc, argv)
         return target.argv(target.python_command("-m", "dvla.orchestrator.ssh", "serve"))
 
+    def fork_into(self, proc: Process) -> str | None:
+        return self.local.fork_into(proc) if self.target(proc) is None else None
+
     def stdin_payload(self, proc: Process, argv: list[str], identity: str | None = None) -> bytes | None:
         target = self.target(proc)
         if target is None:

@@ -143,7 +143,7 @@ def serve(preload: list[str]) -> dict[str, Any] | None:
                 os.close(wake_r)
                 os.close(wake_w)
                 os.close(_REPLY_FD)
-                _lead_own_session(zygote)
+                _lead_own_session(zygote, req.get("netns", ""))
                 os.write(led_w, b".")  # the launcher may signal its process group from now on
                 os.close(led_w)
                 return req
@@ -154,9 +154,18 @@ def serve(preload: list[str]) -> dict[str, Any] | None:
             _reply({"pid": pid, "id": req["id"]})
 
 
-def _lead_own_session(zygote: int) -> None:
-    """In the forked child, before the zygote names it: a session of its own (the launcher
-    signals its process group) and death with the zygote."""
+def _lead_own_session(zygote: int, netns: str) -> None:
+    """In the forked child, before the zygote names it: its network namespace (as `ip netns
+    exec` would), a session of its own (the launcher signals its process group) and death with
+    the zygote."""
+    if netns:
+        from .netns import enter_netns
+
+        try:
+            enter_netns(netns)
+        except OSError as err:
+            print(f"dvla zygote: cannot enter network namespace {netns}: {err}", file=sys.stderr)
+            os._exit(1)
     os.setsid()
     try:
         import ctypes
@@ -250,7 +259,7 @@ class Zygote:
     """The launcher's handle on its zygote process (None-safe: `start` says why it cannot)."""
 
     def __init__(self, preload: list[str], env: dict[str, str], run_dir: Path, log_path: Path) -> None:
-        from .launcher import die_with_parent
+        from .process import die_with_parent
 
         self.env = env
         self._lock = threading.Lock()
@@ -315,16 +324,18 @@ class Zygote:
                 return -signal.SIGKILL
         return None
 
-    def spawn(self, module: str, args: list[str], env: dict[str, str], log_path: Path,
+    def spawn(self, module: str, args: list[str], env: dict[str, str], log_path: Path, netns: str = "",
               timeout: float = 30.0) -> ForkedRole | None:
-        """Fork `python -m module args` with `env`, output appended to `log_path`; None when the
-        zygote cannot (the caller starts the process itself)."""
+        """Fork `python -m module args` with `env`, output appended to `log_path`, inside network
+        namespace `netns` ("" for this one); None when the zygote cannot (the caller starts the
+        process itself)."""
         with self._lock:
             if not self.ready or self.proc.stdin is None:
                 return None
             self._next_id += 1
             rid = self._next_id
-        req = {"id": rid, "module": module, "args": args, "env": env, "cwd": os.getcwd(), "log": str(log_path)}
+        req = {"id": rid, "module": module, "args": args, "env": env, "cwd": os.getcwd(), "log": str(log_path),
+               "netns": netns}
         try:
             self.proc.stdin.write((json.dumps(req) + "\n").encode())
             self.proc.stdin.flush()

@@ -90,7 +90,9 @@ def wait_for(check, timeout: float = 20.0):
         got = check()
         if got or time.monotonic() > deadline:
             return got
-        time.sleep(1.0)
+        # most checks start a `dvla status` (~1 s of CPU): polled back to back they took a core
+        # from the run they wait on
+        time.sleep(3.0)
 
 
 @pytest.fixture(scope="module")

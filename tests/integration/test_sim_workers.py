@@ -231,7 +231,7 @@ def test_up_survives_a_killed_sim_worker_and_accounts_for_every_chunk(tmp_path: 
             extra = rollout_extra()
             if extra.get("chunks_shipped", 0) >= 3 and len(extra.get("sim_workers", [])) == 2:
                 break
-            time.sleep(1.0)
+            time.sleep(2.5)  # each check starts a `dvla status` (~1 s of CPU)
         else:
             raise AssertionError("the rollout never shipped with two sim workers")
         assert [w["envs"] for w in extra["sim_workers"]] == [2, 2] and all(w["alive"] for w in extra["sim_workers"])

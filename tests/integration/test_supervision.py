@@ -38,7 +38,7 @@ def _wait(pred, timeout: float, what: str, up: subprocess.Popen) -> None:
             raise AssertionError(f"dvla up exited early while waiting for {what}")
         if pred():
             return
-        time.sleep(1.0)
+        time.sleep(2.5)  # each check starts a `dvla status` (~1 s of CPU on a 2-core machine)
     raise AssertionError(f"timed out waiting for {what}")
 
 

@@ -34,7 +34,7 @@ task:
   max_episode_steps: 50
   ppo: {{batch_steps: 200, minibatches: 2, update_epochs: 1, micro_batch: 32, lr: 0.0003}}
   eval: {{episodes: 2, envs: 2, every_versions: 3}}
-  budget: {{max_env_steps: 1600}}
+  budget: {{max_env_steps: 1200}}
 replication: {{encoding: full}}
 racks:
   - name: rack0

@@ -93,7 +93,6 @@ racks:
 """
 
 
-@pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_grpo_end_to_end(tmp_path: Path) -> None:
     """GRPO through `dvla up`: whole-episode chunks of grouped seeds are learned from (the actor
