@@ -102,6 +102,10 @@ def serve(preload: list[str]) -> dict[str, Any] | None:
     if threads != 1:  # forking a process with threads may copy a lock some thread held
         _reply({"ready": False, "why": f"{threads} threads after importing {', '.join(preload)}"})
         return None
+    torch = sys.modules.get("torch")
+    if torch is not None and torch.cuda.is_initialized():  # a CUDA context does not survive a fork
+        _reply({"ready": False, "why": f"CUDA initialised by importing {', '.join(preload)}"})
+        return None
     zygote = os.getpid()
     wake_r, wake_w = os.pipe()
     os.set_blocking(wake_w, False)
