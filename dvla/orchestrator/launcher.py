@@ -100,18 +100,18 @@ class Launcher:
 
     def start(self, sup: Supervised) -> None:
         argv = self.command(sup)
+        role_argv = _role_argv(sup)
         identity = self.identities.get(sup.name)
-        payload = self.wrap.stdin_payload(sup.proc, _role_argv(sup), identity)
+        payload = self.wrap.stdin_payload(sup.proc, role_argv, identity)
         out_path = self.wrap.output_path(sup)
         env = self.wrap.child_env(sup.proc, self.env if identity is None else {**self.env, IDENTITY_ENV: identity})
-        netns = self._fork_into(sup) if self.zygote is not None else None
-        if netns is not None and self.zygote is not None and {k: v for k, v in env.items() if k != IDENTITY_ENV} == self.env:
+        if self.zygote is not None and (netns := self._fork_into(sup)) is not None and \
+                {k: v for k, v in env.items() if k != IDENTITY_ENV} == self.env:
             with open(sup.log_path, "ab", buffering=0) as logf:
                 where = f" in network namespace {netns}" if netns else ""
                 logf.write(f"--- start {time.strftime('%H:%M:%S')} (restart {sup.restarts}, forked warm{where}): "
-                           f"{' '.join(_role_argv(sup))}\n".encode())
-            forked = self.zygote.spawn(f"dvla.roles.{sup.proc.config.kind}", _role_argv(sup)[3:], env, sup.log_path,
-                                       netns=netns)
+                           f"{' '.join(role_argv)}\n".encode())
+            forked = self.zygote.spawn(role_argv[2], role_argv[3:], env, sup.log_path, netns=netns)
             if forked is not None:
                 sup.popen = forked  # type: ignore[assignment]  (answers as a Popen does)
                 sup.started_at = time.monotonic()

@@ -17,9 +17,10 @@ How it stays a plain role process:
 - ``dvla up`` supervises it through :class:`ForkedRole`, which answers as a ``Popen`` does
   (``pid``, ``poll``, ``wait``, ``returncode``): the zygote reports each child's exit status.
 
-Only roles started on this host as they are (no network namespace, SSH or Slurm wrapper) with
-the run's own environment (the role's credential aside) are forked; ``DVLA_WARM_START=0``
-turns it off. The protocol is one JSON object per line: requests on the zygote's stdin,
+Only roles started on this host with the run's own environment (the role's credential aside)
+are forked: as they are, or into their node's network namespace (``setns`` in the child, where
+the plain start runs ``ip netns exec``); over SSH or as Slurm steps they start as before.
+``DVLA_WARM_START=0`` turns it off. The protocol is one JSON object per line: requests on the zygote's stdin,
 ``{"ready": ...}``, ``{"pid": ..., "id": ...}`` and ``{"exit": pid, "code": ...}`` on its stdout.
 """
 
@@ -38,6 +39,8 @@ import threading
 import time
 from pathlib import Path
 from typing import Any, Callable
+
+from .process import die_with_parent
 
 log = logging.getLogger("dvla.zygote")
 
@@ -171,12 +174,7 @@ def _lead_own_session(zygote: int, netns: str) -> None:
             print(f"dvla zygote: cannot enter network namespace {netns}: {err}", file=sys.stderr)
             os._exit(1)
     os.setsid()
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
-    except OSError:
-        pass
+    die_with_parent()
     if os.getppid() != zygote:  # the zygote died before the line above
         os._exit(1)
 
@@ -248,24 +246,12 @@ class ForkedRole:
         assert self.returncode is not None
         return self.returncode
 
-    def send_signal(self, sig: int) -> None:
-        if self.poll() is None:
-            os.kill(self.pid, sig)
-
-    def kill(self) -> None:
-        self.send_signal(signal.SIGKILL)
-
-    def terminate(self) -> None:
-        self.send_signal(signal.SIGTERM)
-
 
 class Zygote:
-    """The launcher's handle on its zygote process (None-safe: `start` says why it cannot)."""
+    """The launcher's handle on its zygote process; after `wait_ready`, `why_not` says why it
+    cannot fork when it cannot."""
 
     def __init__(self, preload: list[str], env: dict[str, str], run_dir: Path, log_path: Path) -> None:
-        from .process import die_with_parent
-
-        self.env = env
         self._lock = threading.Lock()
         self._exits: dict[int, int] = {}
         self._started: dict[int, int] = {}  # request id -> pid
